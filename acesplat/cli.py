@@ -1,0 +1,16 @@
+"""`acesplat`: the desktop program (synth, map, eval, splat, render, export, demo)."""
+
+from __future__ import annotations
+
+import typer
+
+app = typer.Typer(no_args_is_help=True, add_completion=False, help="ACEsplat desktop: make maps and splats, export bundles.")
+
+
+@app.callback()
+def _root() -> None:
+    """ACEsplat desktop: make maps and splats, export bundles."""
+
+
+def main() -> None:
+    app()

@@ -1,0 +1,46 @@
+"""Shared plumbing for the two command-line programs: one-line errors, JSON reports."""
+
+from __future__ import annotations
+
+import functools
+import sys
+from pathlib import Path
+from typing import Any, Callable, TypeVar
+
+import typer
+
+from .atomic import write_json
+from .errors import InputError
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def one_line_errors(fn: F) -> F:
+    """Turn InputError into a one-line message on stderr and exit code 2, with no traceback."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return fn(*args, **kwargs)
+        except InputError as e:
+            print(f"error: {e}", file=sys.stderr)
+            raise typer.Exit(2) from None
+
+    return wrapper  # type: ignore[return-value]
+
+
+def report_json(path: Path | None, payload: dict[str, Any]) -> None:
+    """Write a command's numbers to ``--json PATH`` atomically (no-op without the flag)."""
+    if path is not None:
+        write_json(path, payload)
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """'HxW' -> (H, W)."""
+    try:
+        h, w = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise InputError(None, f"size must look like HxW (e.g. 240x320), got {text!r}") from None
+    if h <= 0 or w <= 0:
+        raise InputError(None, f"size must be positive, got {text!r}")
+    return h, w

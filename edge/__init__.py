@@ -1,0 +1,1 @@
+"""Edge runtime: frame sources, ONNX SCR inference, PnP pose, timings. Imports neither torch nor onnx."""

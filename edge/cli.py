@@ -1,0 +1,16 @@
+"""`acesplat-edge`: the onboard program (localize, replay, profile, record, bridge)."""
+
+from __future__ import annotations
+
+import typer
+
+app = typer.Typer(no_args_is_help=True, add_completion=False, help="ACEsplat onboard: localize against a bundle.")
+
+
+@app.callback()
+def _root() -> None:
+    """ACEsplat onboard: localize against a bundle."""
+
+
+def main() -> None:
+    app()
