@@ -1,0 +1,130 @@
+"""Camera pose from 2D-3D correspondences: PnP-RANSAC, LM refinement on the inliers, an inlier gate.
+
+Shared by desktop evaluation and the edge runtime so both compute poses the same way.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .camera import Intrinsics
+from .geometry import invert_pose, make_pose, rodrigues_to_matrix
+
+OUTPUT_STRIDE = 8
+"""SCR predictions are made for every 8th pixel; cell (i, j) belongs to pixel (8 j + 4, 8 i + 4)."""
+
+PNP_METHODS = ("usac_magsac", "usac_default", "usac_accurate", "ransac_p3p", "ransac_ap3p", "ransac_sqpnp", "ransac_epnp")
+DEFAULT_METHOD = "ransac_ap3p"
+DEFAULT_THRESHOLD_PX = 10.0
+"""Inlier threshold in pixels of the network input image (ACE uses 10 px)."""
+DEFAULT_MIN_INLIERS = 50
+DEFAULT_ITERATIONS = 1000
+DEFAULT_CONFIDENCE = 0.9999
+
+
+@dataclass
+class PnPResult:
+    """A pose estimate; ``T_c2w`` is None when the solver failed."""
+
+    T_c2w: np.ndarray | None
+    inliers: int
+    correspondences: int
+    localized: bool
+
+    @property
+    def inlier_ratio(self) -> float:
+        return self.inliers / self.correspondences if self.correspondences else 0.0
+
+
+def cell_centers(grid_h: int, grid_w: int, stride: int = OUTPUT_STRIDE) -> np.ndarray:
+    """Pixel coordinates (grid_h * grid_w, 2) of the centres of the prediction cells, row-major."""
+    ys, xs = np.mgrid[0:grid_h, 0:grid_w]
+    return np.stack([xs.ravel() * stride + stride / 2.0, ys.ravel() * stride + stride / 2.0], axis=1).astype(np.float64)
+
+
+def _usac_params(method: str, threshold: float, iterations: int, confidence: float) -> "cv2.UsacParams":
+    params = cv2.UsacParams()
+    params.threshold = threshold
+    params.maxIterations = iterations
+    params.confidence = confidence
+    params.loMethod = cv2.LOCAL_OPTIM_SIGMA if method == "usac_magsac" else cv2.LOCAL_OPTIM_INNER_LO
+    params.score = cv2.SCORE_METHOD_MAGSAC if method == "usac_magsac" else cv2.SCORE_METHOD_MSAC
+    params.sampler = cv2.SAMPLING_UNIFORM
+    params.final_polisher = cv2.NONE_POLISHER
+    return params
+
+
+def solve_pnp(
+    pixels: np.ndarray,
+    points: np.ndarray,
+    intrinsics: Intrinsics,
+    method: str = DEFAULT_METHOD,
+    threshold_px: float = DEFAULT_THRESHOLD_PX,
+    min_inliers: int = DEFAULT_MIN_INLIERS,
+    iterations: int = DEFAULT_ITERATIONS,
+    confidence: float = DEFAULT_CONFIDENCE,
+) -> PnPResult:
+    """Camera-to-world pose from pixels (N, 2) and scene points (N, 3) of an undistorted pinhole image.
+
+    RANSAC finds the inliers, Levenberg-Marquardt refines on them; the frame counts as localized only
+    with at least ``min_inliers`` inliers (the gate that turns a guess into TRACKING or LOST).
+    """
+    pixels = np.ascontiguousarray(pixels, dtype=np.float64).reshape(-1, 2)
+    points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    if pixels.shape[0] != points.shape[0]:
+        raise ValueError(f"pixels {pixels.shape} and points {points.shape} differ in count")
+    if method not in PNP_METHODS:
+        raise ValueError(f"unknown PnP method {method!r}; choose from {PNP_METHODS}")
+    finite = np.isfinite(points).all(axis=1)
+    pixels, points = pixels[finite], points[finite]
+    n = pixels.shape[0]
+    if n < 6:
+        return PnPResult(None, 0, n, False)
+    K = intrinsics.K
+    dist = np.zeros(5)
+    try:
+        if method.startswith("usac"):
+            ok, rvec, tvec, inl = cv2.solvePnPRansac(
+                points, pixels, K, dist, params=_usac_params(method, threshold_px, iterations, confidence)
+            )
+        else:
+            flag = {
+                "ransac_p3p": cv2.SOLVEPNP_P3P,
+                "ransac_ap3p": cv2.SOLVEPNP_AP3P,
+                "ransac_sqpnp": cv2.SOLVEPNP_SQPNP,
+                "ransac_epnp": cv2.SOLVEPNP_EPNP,
+            }[method]
+            ok, rvec, tvec, inl = cv2.solvePnPRansac(
+                points, pixels, K, dist, iterationsCount=iterations, reprojectionError=threshold_px,
+                confidence=confidence, flags=flag,
+            )
+    except cv2.error:
+        return PnPResult(None, 0, n, False)
+    if not ok or inl is None or len(inl) < 4:
+        return PnPResult(None, 0, n, False)
+    idx = inl.reshape(-1)
+    rvec, tvec = cv2.solvePnPRefineLM(points[idx], pixels[idx], K, dist, rvec, tvec)
+    # Recount inliers under the refined pose so the gate sees the final solution.
+    proj, _ = cv2.projectPoints(points, rvec, tvec, K, dist)
+    err = np.linalg.norm(proj.reshape(-1, 2) - pixels, axis=1)
+    R = rodrigues_to_matrix(rvec.reshape(3))
+    depth = points @ R[2] + float(tvec.reshape(3)[2])
+    inliers = int(np.count_nonzero((err < threshold_px) & (depth > 0)))
+    T_w2c = make_pose(R, tvec.reshape(3))
+    return PnPResult(invert_pose(T_w2c), inliers, n, inliers >= min_inliers)
+
+
+def solve_from_grid(
+    coords: np.ndarray, intrinsics: Intrinsics, stride: int = OUTPUT_STRIDE, **kwargs
+) -> PnPResult:
+    """Pose from a scene-coordinate grid (3, h, w) or (h, w, 3) predicted for an image with ``intrinsics``."""
+    coords = np.asarray(coords)
+    if coords.ndim != 3:
+        raise ValueError(f"coordinate grid must be 3-D, got shape {coords.shape}")
+    if coords.shape[0] == 3 and coords.shape[2] != 3:
+        coords = np.moveaxis(coords, 0, -1)
+    h, w, _ = coords.shape
+    return solve_pnp(cell_centers(h, w, stride), coords.reshape(-1, 3), intrinsics, **kwargs)

@@ -1,0 +1,1 @@
+"""Stage 1: scene coordinate regression (encoder + scene-specific head), mapping and localization. Needs torch."""

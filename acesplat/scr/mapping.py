@@ -1,0 +1,244 @@
+"""Stage 1 mapping: train a scene-specific head on a frozen encoder from posed RGB images.
+
+ACE's recipe (Brachmann et al., CVPR 2023), readable top to bottom:
+1. Fill a buffer with encoder features of augmented training images, each feature remembering its
+   pixel, the (augmented) camera's intrinsics and world-to-camera pose.
+2. Train the head on random batches of the buffer with the reprojection loss, the circular threshold
+   curriculum and AdamW under a one-cycle learning rate, all driven by the fraction of the wall-clock
+   budget used (so a shorter budget runs the whole schedule, not the start of it).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import torch
+
+from acesplat.core.camera import Intrinsics
+from acesplat.core.geometry import invert_pose
+from acesplat.core.pnp import cell_centers
+from acesplat.core.preprocess import size_for_short_side, to_gray_input
+from acesplat.core.scene import SceneSplit
+
+from .augment import augment
+from .loss import curriculum_threshold, reprojection_loss
+from .network import Encoder, Head, HeadConfig, normalize_gray
+
+# ACE's defaults, and where this project departs from them for a CPU budget.
+ACE_IMAGE_SHORT_SIDE = 480
+IMAGE_SHORT_SIDE = 360
+"""Mapping/localization resolution (shorter image side); ACE uses 480, a CPU budget favours fewer pixels."""
+BATCH_SIZE = 5120
+"""ACE's batch of buffered features per head step."""
+LR_MIN = 5e-4
+LR_MAX = 5e-3
+"""ACE's one-cycle range."""
+WEIGHT_DECAY = 0.01
+SAMPLES_PER_IMAGE = 1024
+"""Features taken from each augmented image (ACE: 1024)."""
+ACE_BUFFER_SIZE = 8_000_000
+BUFFER_SIZE = 1_000_000
+"""ACE buffers 8M features; on CPU the head sees ~2000 batches in a few minutes, so 1M already gives ~10 epochs."""
+BUFFER_TIME_FRACTION = 0.25
+"""At most this share of the budget fills the buffer; the rest trains the head."""
+ONE_CYCLE_WARMUP = 0.25
+"""Share of training spent rising from LR_MIN to LR_MAX (cosine), then cosine annealing back down."""
+
+
+@dataclass
+class MappingConfig:
+    minutes: float = 4.0
+    short_side: int = IMAGE_SHORT_SIDE
+    head: HeadConfig = field(default_factory=lambda: HeadConfig(width=256, blocks=1))
+    batch_size: int = BATCH_SIZE
+    buffer_size: int = BUFFER_SIZE
+    samples_per_image: int = SAMPLES_PER_IMAGE
+    lr_min: float = LR_MIN
+    lr_max: float = LR_MAX
+    iterations: int | None = None
+    """Fixed iteration count instead of the wall-clock budget (tests, reproducible runs)."""
+    seed: int = 0
+    device: str = "cpu"
+
+
+@dataclass
+class MappingResult:
+    head: Head
+    mean: np.ndarray
+    image_size: tuple[int, int]
+    seconds: float
+    buffer_seconds: float
+    iterations: int
+    buffer_features: int
+    final_loss: float
+    final_valid_fraction: float
+    history: list[dict] = field(default_factory=list)
+
+
+@dataclass
+class TrainingImage:
+    gray: np.ndarray
+    intrinsics: Intrinsics
+    c2w: np.ndarray
+
+
+ProgressFn = Callable[[str, float, dict], None]
+
+
+def one_cycle_lr(progress: float, lr_min: float, lr_max: float, warmup: float = ONE_CYCLE_WARMUP) -> float:
+    """Cosine rise from lr_min to lr_max over ``warmup``, then cosine decay to lr_min / 100."""
+    p = min(max(progress, 0.0), 1.0)
+    if p < warmup:
+        return lr_min + (lr_max - lr_min) * 0.5 * (1 - math.cos(math.pi * p / warmup))
+    q = (p - warmup) / (1 - warmup)
+    lo = lr_min / 100.0
+    return lo + (lr_max - lo) * 0.5 * (1 + math.cos(math.pi * q))
+
+
+def load_training_images(split: SceneSplit, short_side: int) -> list[TrainingImage]:
+    images = []
+    for f in split.frames:
+        rgb = f.load_rgb()
+        size = size_for_short_side(rgb.shape[0], rgb.shape[1], short_side)
+        gray, intr = to_gray_input(rgb, f.intrinsics, size)
+        images.append(TrainingImage(gray, intr, f.pose))
+    return images
+
+
+@torch.no_grad()
+def fill_buffer(
+    images: list[TrainingImage],
+    encoder: Encoder,
+    cfg: MappingConfig,
+    deadline: float,
+    rng: np.random.Generator,
+    progress: ProgressFn | None = None,
+) -> dict[str, torch.Tensor]:
+    """Encoder features of augmented views: feats (N, C) fp16, pixels (N, 2), view (N,), and per view w2c (V, 3, 4), K (V, 3, 3)."""
+    encoder.eval()
+    feats, pixels, views, w2cs, Ks = [], [], [], [], []
+    total = 0
+    order: list[int] = []
+    while total < cfg.buffer_size:
+        if not order:
+            order = list(rng.permutation(len(images)))
+        im = images[order.pop()]
+        view = augment(im.gray, im.intrinsics, im.c2w, rng)
+        x = torch.from_numpy(view.gray)[None, None].to(cfg.device)
+        f = encoder(normalize_gray(x))[0]  # (C, h, w)
+        c, gh, gw = f.shape
+        valid = np.flatnonzero(view.cell_valid[:gh, :gw].reshape(-1))
+        take = rng.choice(valid, size=min(cfg.samples_per_image, valid.size, cfg.buffer_size - total), replace=False)
+        if take.size == 0:
+            continue
+        centers = cell_centers(gh, gw)[take]
+        feats.append(f.reshape(c, -1)[:, torch.from_numpy(take).to(f.device)].T.to(torch.float16).cpu())
+        pixels.append(torch.from_numpy(centers.astype(np.float32)))
+        views.append(torch.full((take.size,), len(w2cs), dtype=torch.int64))
+        w2cs.append(invert_pose(view.c2w)[:3].astype(np.float32))
+        Ks.append(view.intrinsics.K.astype(np.float32))
+        total += take.size
+        if progress:
+            progress("buffer", total / cfg.buffer_size, {"features": total})
+        if time.monotonic() > deadline and len(w2cs) >= len(images):
+            break
+    return {
+        "feats": torch.cat(feats),
+        "pixels": torch.cat(pixels),
+        "view": torch.cat(views),
+        "w2c": torch.from_numpy(np.stack(w2cs)),
+        "K": torch.from_numpy(np.stack(Ks)),
+    }
+
+
+def train_head(
+    head: Head,
+    buffer: dict[str, torch.Tensor],
+    cfg: MappingConfig,
+    seconds: float,
+    progress: ProgressFn | None = None,
+) -> tuple[int, float, float, list[dict]]:
+    """Train ``head`` on the buffer until the budget (or ``cfg.iterations``) is spent."""
+    dev = torch.device(cfg.device)
+    head.to(dev).train()
+    opt = torch.optim.AdamW(head.parameters(), lr=cfg.lr_min, weight_decay=WEIGHT_DECAY)
+    use_amp = dev.type == "cuda"
+    scaler = torch.amp.GradScaler("cuda", enabled=use_amp)
+    feats, pixels, view = buffer["feats"], buffer["pixels"], buffer["view"]
+    w2c_all, K_all = buffer["w2c"].to(dev), buffer["K"].to(dev)
+    if dev.type == "cuda":
+        feats, pixels, view = feats.to(dev), pixels.to(dev), view.to(dev)
+    n = feats.shape[0]
+    gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
+    start = time.monotonic()
+    it = 0
+    loss_v, valid_frac = float("nan"), float("nan")
+    history: list[dict] = []
+    while True:
+        p = it / cfg.iterations if cfg.iterations else (time.monotonic() - start) / seconds
+        if p >= 1.0:
+            break
+        lr = one_cycle_lr(p, cfg.lr_min, cfg.lr_max)
+        for g in opt.param_groups:
+            g["lr"] = lr
+        tau = curriculum_threshold(p)
+        idx = torch.randint(0, n, (min(cfg.batch_size, n),), generator=gen)
+        if dev.type == "cuda":
+            idx = idx.to(dev)
+        f = feats[idx].float().T[None, :, :, None]  # (1, C, B, 1): the head's 1x1 convs run over the batch
+        v = view[idx]
+        with torch.autocast(dev.type, dtype=torch.float16, enabled=use_amp):
+            pred = head(f)[0, :, :, 0].T.float()  # (B, 3)
+        parts = reprojection_loss(pred, w2c_all[v], K_all[v], pixels[idx], tau)
+        opt.zero_grad(set_to_none=True)
+        scaler.scale(parts.loss).backward()
+        scaler.step(opt)
+        scaler.update()
+        it += 1
+        loss_v, valid_frac = float(parts.loss), parts.valid_fraction
+        if it % 50 == 0 or it == 1:
+            history.append({"iteration": it, "progress": p, "lr": lr, "threshold": tau, "loss": loss_v,
+                            "valid": valid_frac, "reproj_px": parts.mean_reproj_px})
+        if progress:
+            progress("train", p, {"iteration": it, "loss": loss_v, "threshold": tau})
+    head.eval()
+    return it, loss_v, valid_frac, history
+
+
+def map_scene(
+    split: SceneSplit,
+    encoder: Encoder,
+    cfg: MappingConfig = MappingConfig(),
+    progress: ProgressFn | None = None,
+) -> MappingResult:
+    """Map a scene: buffer, then head training, inside ``cfg.minutes`` of wall-clock time."""
+    t0 = time.monotonic()
+    torch.manual_seed(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
+    encoder = encoder.to(cfg.device).eval()
+    for p in encoder.parameters():
+        p.requires_grad_(False)
+    images = load_training_images(split, cfg.short_side)
+    budget = cfg.minutes * 60.0
+    buffer = fill_buffer(images, encoder, cfg, t0 + BUFFER_TIME_FRACTION * budget, rng, progress)
+    t_buf = time.monotonic() - t0
+    mean = np.mean([im.c2w[:3, 3] for im in images], axis=0)
+    head = Head(torch.from_numpy(mean).float(), in_channels=encoder.cfg.out, cfg=cfg.head)
+    remaining = max(budget - (time.monotonic() - t0), 1.0)
+    its, loss_v, valid, history = train_head(head, buffer, cfg, remaining, progress)
+    return MappingResult(
+        head=head.cpu(),
+        mean=mean,
+        image_size=images[0].gray.shape,
+        seconds=time.monotonic() - t0,
+        buffer_seconds=t_buf,
+        iterations=its,
+        buffer_features=int(buffer["feats"].shape[0]),
+        final_loss=loss_v,
+        final_valid_fraction=valid,
+        history=history,
+    )

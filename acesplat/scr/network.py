@@ -1,0 +1,200 @@
+"""The SCR network: ACE's encoder/head architecture with widths as parameters.
+
+State-dict names follow ACE's so a user's ``ace_encoder_pretrained.pt`` loads into ``Encoder``
+(its widths are read from the tensors' shapes). Input: grayscale normalised as ACE does
+((x / 255 - 0.4) / 0.25); output: scene coordinates at 1/8 resolution.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+OUTPUT_STRIDE = 8
+GRAY_MEAN = 0.4
+GRAY_STD = 0.25
+"""ACE's grayscale normalisation (torchvision Normalize(mean=0.4, std=0.25) on [0, 1] intensities)."""
+
+HOMOGENEOUS_MIN_SCALE = 0.01
+HOMOGENEOUS_MAX_SCALE = 4.0
+
+
+@dataclass(frozen=True)
+class EncoderConfig:
+    """Channel widths of the encoder stages: conv1..conv4, the 256-wide res1 block, the res2 block and the output."""
+
+    c1: int = 32
+    c2: int = 64
+    c3: int = 128
+    c4: int = 256
+    res2: int = 512
+    out: int = 512
+
+    @classmethod
+    def from_state_dict(cls, sd: dict[str, torch.Tensor]) -> "EncoderConfig":
+        return cls(
+            c1=sd["conv1.weight"].shape[0],
+            c2=sd["conv2.weight"].shape[0],
+            c3=sd["conv3.weight"].shape[0],
+            c4=sd["conv4.weight"].shape[0],
+            res2=sd["res2_conv1.weight"].shape[0],
+            out=sd["res2_conv3.weight"].shape[0],
+        )
+
+    def as_dict(self) -> dict[str, int]:
+        return asdict(self)
+
+
+ACE_ENCODER = EncoderConfig()
+"""ACE's published encoder (39 GMAC at 480x640)."""
+
+
+@dataclass(frozen=True)
+class HeadConfig:
+    """Scene-specific head: width of its 1x1 layers and the number of extra residual blocks."""
+
+    width: int = 512
+    blocks: int = 1
+    homogeneous: bool = True
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+class Encoder(nn.Module):
+    """Fully convolutional feature extractor with output stride 8."""
+
+    def __init__(self, cfg: EncoderConfig = ACE_ENCODER) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.conv1 = nn.Conv2d(1, cfg.c1, 3, 1, 1)
+        self.conv2 = nn.Conv2d(cfg.c1, cfg.c2, 3, 2, 1)
+        self.conv3 = nn.Conv2d(cfg.c2, cfg.c3, 3, 2, 1)
+        self.conv4 = nn.Conv2d(cfg.c3, cfg.c4, 3, 2, 1)
+        self.res1_conv1 = nn.Conv2d(cfg.c4, cfg.c4, 3, 1, 1)
+        self.res1_conv2 = nn.Conv2d(cfg.c4, cfg.c4, 1, 1, 0)
+        self.res1_conv3 = nn.Conv2d(cfg.c4, cfg.c4, 3, 1, 1)
+        self.res2_conv1 = nn.Conv2d(cfg.c4, cfg.res2, 3, 1, 1)
+        self.res2_conv2 = nn.Conv2d(cfg.res2, cfg.res2, 1, 1, 0)
+        self.res2_conv3 = nn.Conv2d(cfg.res2, cfg.out, 3, 1, 1)
+        self.res2_skip = nn.Conv2d(cfg.c4, cfg.out, 1, 1, 0)
+        for m in self.modules():
+            if isinstance(m, nn.Conv2d):
+                # Default init makes deep ReLU features nearly constant; Kaiming keeps them informative.
+                nn.init.kaiming_normal_(m.weight, nonlinearity="relu")
+                nn.init.zeros_(m.bias)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, 1, H, W) normalised grayscale -> (B, out, H/8, W/8) features."""
+        x = F.relu(self.conv1(x))
+        x = F.relu(self.conv2(x))
+        x = F.relu(self.conv3(x))
+        res = F.relu(self.conv4(x))
+        x = F.relu(self.res1_conv1(res))
+        x = F.relu(self.res1_conv2(x))
+        x = F.relu(self.res1_conv3(x))
+        res = res + x
+        x = F.relu(self.res2_conv1(res))
+        x = F.relu(self.res2_conv2(x))
+        x = F.relu(self.res2_conv3(x))
+        return self.res2_skip(res) + x
+
+    @classmethod
+    def from_state_dict(cls, sd: dict[str, torch.Tensor]) -> "Encoder":
+        enc = cls(EncoderConfig.from_state_dict(sd))
+        enc.load_state_dict(sd)
+        return enc
+
+
+class Head(nn.Module):
+    """Per-pixel MLP (1x1 convolutions) from features to scene coordinates.
+
+    Predicts homogeneous coordinates (x, y, z, h) with h kept in [1/max_scale, 1/min_scale] by a softplus,
+    relative to ``mean`` (the mean training camera position), so a fresh head starts near the scene.
+    """
+
+    def __init__(self, mean: torch.Tensor, in_channels: int = 512, cfg: HeadConfig = HeadConfig()) -> None:
+        super().__init__()
+        self.cfg = cfg
+        w = cfg.width
+        self.in_channels = in_channels
+        self.head_skip = nn.Identity() if in_channels == w else nn.Conv2d(in_channels, w, 1, 1, 0)
+        self.res3_conv1 = nn.Conv2d(in_channels, w, 1, 1, 0)
+        self.res3_conv2 = nn.Conv2d(w, w, 1, 1, 0)
+        self.res3_conv3 = nn.Conv2d(w, w, 1, 1, 0)
+        self.res_blocks = nn.ModuleList(
+            nn.ModuleList([nn.Conv2d(w, w, 1, 1, 0) for _ in range(3)]) for _ in range(cfg.blocks)
+        )
+        self.fc1 = nn.Conv2d(w, w, 1, 1, 0)
+        self.fc2 = nn.Conv2d(w, w, 1, 1, 0)
+        self.fc3 = nn.Conv2d(w, 4 if cfg.homogeneous else 3, 1, 1, 0)
+        self.register_buffer("max_scale", torch.tensor([HOMOGENEOUS_MAX_SCALE]))
+        self.register_buffer("min_scale", torch.tensor([HOMOGENEOUS_MIN_SCALE]))
+        self.register_buffer("max_inv_scale", 1.0 / self.max_scale)
+        self.register_buffer("h_beta", math.log(2) / (1.0 - self.max_inv_scale))
+        self.register_buffer("min_inv_scale", 1.0 / self.min_scale)
+        self.register_buffer("mean", torch.as_tensor(mean, dtype=torch.float32).clone().view(1, 3, 1, 1))
+
+    def forward(self, feats: torch.Tensor) -> torch.Tensor:
+        """(B, C, h, w) features -> (B, 3, h, w) scene coordinates."""
+        x = F.relu(self.res3_conv1(feats))
+        x = F.relu(self.res3_conv2(x))
+        x = F.relu(self.res3_conv3(x))
+        res = self.head_skip(feats) + x
+        for block in self.res_blocks:
+            x = F.relu(block[0](res))
+            x = F.relu(block[1](x))
+            x = F.relu(block[2](x))
+            res = res + x
+        sc = F.relu(self.fc1(res))
+        sc = F.relu(self.fc2(sc))
+        sc = self.fc3(sc)
+        if self.cfg.homogeneous:
+            h = F.softplus(sc[:, 3:4], beta=float(self.h_beta)) + self.max_inv_scale
+            h = torch.clamp(h, max=float(self.min_inv_scale))
+            sc = sc[:, :3] / h
+        return sc + self.mean
+
+
+def normalize_gray(gray_u8: torch.Tensor) -> torch.Tensor:
+    """uint8 or float [0, 255] grayscale (B, 1, H, W) -> ACE's normalised input."""
+    return (gray_u8.float() / 255.0 - GRAY_MEAN) / GRAY_STD
+
+
+class SCRNetwork(nn.Module):
+    """Encoder + head: raw grayscale in [0, 255] (B, 1, H, W) -> scene coordinates (B, 3, H/8, W/8).
+
+    Normalisation happens inside so an exported graph needs nothing but the image.
+    """
+
+    def __init__(self, encoder: Encoder, head: Head) -> None:
+        super().__init__()
+        self.encoder = encoder
+        self.head = head
+
+    def forward(self, gray: torch.Tensor) -> torch.Tensor:
+        return self.head(self.encoder(normalize_gray(gray)))
+
+
+def count_macs(encoder_cfg: EncoderConfig, head_cfg: HeadConfig, height: int, width: int) -> dict[str, float]:
+    """Multiply-accumulates of encoder and head at an input size (convolutions only), in GMAC."""
+    c = encoder_cfg
+    h1, w1 = height, width
+    h2, w2 = math.ceil(height / 2), math.ceil(width / 2)
+    h4, w4 = math.ceil(h2 / 2), math.ceil(w2 / 2)
+    h8, w8 = math.ceil(h4 / 2), math.ceil(w4 / 2)
+    enc = (
+        h1 * w1 * 9 * 1 * c.c1
+        + h2 * w2 * 9 * c.c1 * c.c2
+        + h4 * w4 * 9 * c.c2 * c.c3
+        + h8 * w8 * (9 * c.c3 * c.c4 + 9 * c.c4 * c.c4 + c.c4 * c.c4 + 9 * c.c4 * c.c4)
+        + h8 * w8 * (9 * c.c4 * c.res2 + c.res2 * c.res2 + 9 * c.res2 * c.out + c.c4 * c.out)
+    )
+    w = head_cfg.width
+    head_layers = c.out * w * (2 if c.out != w else 1) + 2 * w * w + head_cfg.blocks * 3 * w * w + 2 * w * w + w * 4
+    head = h8 * w8 * head_layers
+    return {"encoder_gmac": enc / 1e9, "head_gmac": head / 1e9}
