@@ -4,12 +4,17 @@ from __future__ import annotations
 
 import typer
 
+from .importers.cli_cmd import import_command
+
 app = typer.Typer(no_args_is_help=True, add_completion=False, help="ACEsplat desktop: make maps and splats, export bundles.")
 
 
 @app.callback()
 def _root() -> None:
     """ACEsplat desktop: make maps and splats, export bundles."""
+
+
+app.command("import")(import_command)
 
 
 def main() -> None:
