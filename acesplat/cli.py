@@ -5,6 +5,7 @@ from __future__ import annotations
 import typer
 
 from .importers.cli_cmd import import_command
+from .scr.cli_cmds import eval_command, map_command, pretrain_command
 
 app = typer.Typer(no_args_is_help=True, add_completion=False, help="ACEsplat desktop: make maps and splats, export bundles.")
 
@@ -15,6 +16,9 @@ def _root() -> None:
 
 
 app.command("import")(import_command)
+app.command("map")(map_command)
+app.command("eval")(eval_command)
+app.command("pretrain-encoder")(pretrain_command)
 
 
 def main() -> None:

@@ -44,3 +44,30 @@ def parse_size(text: str) -> tuple[int, int]:
     if h <= 0 or w <= 0:
         raise InputError(None, f"size must be positive, got {text!r}")
     return h, w
+
+
+class PhaseProgress:
+    """A rich progress bar with one task per named phase, driven by (phase, fraction, info) callbacks."""
+
+    def __init__(self, description: str = "") -> None:
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+        self._progress = Progress(
+            TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f}%"),
+            TimeElapsedColumn(), TextColumn("{task.fields[info]}"), transient=False,
+        )
+        self._tasks: dict[str, int] = {}
+        self._prefix = description
+
+    def __enter__(self) -> "PhaseProgress":
+        self._progress.__enter__()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._progress.__exit__(*exc)
+
+    def __call__(self, phase: str, fraction: float, info: dict | None = None) -> None:
+        if phase not in self._tasks:
+            self._tasks[phase] = self._progress.add_task(f"{self._prefix}{phase}", total=1.0, info="")
+        text = "  ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in (info or {}).items())
+        self._progress.update(self._tasks[phase], completed=min(max(fraction, 0.0), 1.0), info=text)

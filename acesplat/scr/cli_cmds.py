@@ -1,0 +1,166 @@
+"""`acesplat map`, `acesplat eval` and `acesplat pretrain-encoder`. Torch is imported inside the commands."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from acesplat.core.cli_support import PhaseProgress, one_line_errors, parse_size, report_json
+from acesplat.core.errors import InputError
+
+console = Console()
+
+
+def resolve_device(device: str) -> str:
+    import torch
+
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device == "cuda" and not torch.cuda.is_available():
+        raise InputError(None, "--device cuda asked for, but no CUDA device is available")
+    if device not in ("cpu", "cuda"):
+        raise InputError(None, f"--device must be auto, cpu or cuda, got {device!r}")
+    return device
+
+
+@one_line_errors
+def map_command(
+    scene: Path = typer.Argument(..., help="Scene folder in the ACE layout."),
+    out: Path = typer.Option(..., "-o", "--out", help="Map file to write."),
+    minutes: float = typer.Option(4.0, help="Wall-clock budget for mapping."),
+    device: str = typer.Option("auto", help="auto, cpu or cuda."),
+    encoder: Optional[Path] = typer.Option(None, help="Encoder weights (default: the shipped encoder; ACE's file works)."),
+    short_side: Optional[int] = typer.Option(None, help="Shorter image side for the network (default: min(360, image))."),
+    head_width: int = typer.Option(256, help="Width of the head's 1x1 layers."),
+    seed: int = typer.Option(0),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the numbers here."),
+) -> None:
+    """Train a scene-specific SCR head on the training split (Stage 1 mapping)."""
+    import torch
+
+    from acesplat.core.scene import read_split
+
+    from .encoders import load_encoder
+    from .mapfile import SceneMap, save_map
+    from .mapping import IMAGE_SHORT_SIDE, MappingConfig, map_scene
+    from .network import HeadConfig
+
+    if minutes <= 0:
+        raise InputError(None, f"--minutes must be positive, got {minutes}")
+    dev = resolve_device(device)
+    if dev == "cpu":
+        torch.set_num_threads(max(1, torch.get_num_threads()))
+    split = read_split(scene, "train")
+    enc, ident = load_encoder(encoder)
+    first = split.frames[0].intrinsics
+    side = short_side or min(IMAGE_SHORT_SIDE, first.width, first.height)
+    cfg = MappingConfig(minutes=minutes, short_side=side, head=HeadConfig(width=head_width, blocks=1), seed=seed, device=dev)
+    with PhaseProgress("map ") as bar:
+        res = map_scene(split, enc, cfg, bar)
+    meta = {"scene": str(Path(scene).resolve()), "train_frames": len(split), "seconds": res.seconds,
+            "iterations": res.iterations, "buffer_features": res.buffer_features, "device": dev}
+    save_map(out, SceneMap(res.head, ident, res.mean, side, meta))
+    console.print(
+        f"mapped {len(split)} images in {res.seconds:.1f} s ({res.buffer_seconds:.1f} s buffer, "
+        f"{res.iterations} iterations, {res.buffer_features} features, final loss {res.final_loss:.2f}) -> {out}"
+    )
+    report_json(json_out, {**meta, "buffer_seconds": res.buffer_seconds, "final_loss": res.final_loss,
+                           "encoder": ident.as_dict(), "short_side": side, "history": res.history})
+
+
+def results_table(title: str, s: dict) -> Table:
+    t = Table(title=title)
+    for k in ("frames", "localized", "median_translation_m", "median_rotation_deg", "recall_5cm_5deg",
+              "recall_10cm_5deg", "recall_25cm_2deg", "mean_ms"):
+        t.add_column(k.replace("_", " "), justify="right")
+    vals = []
+    for k in ("frames", "localized", "median_translation_m", "median_rotation_deg", "recall_5cm_5deg",
+              "recall_10cm_5deg", "recall_25cm_2deg", "mean_ms"):
+        v = s.get(k)
+        vals.append("-" if v is None else (f"{v:.4g}" if isinstance(v, float) else str(v)))
+    t.add_row(*vals)
+    return t
+
+
+def plot_positions(path: Path, split, estimates: list) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from acesplat.core.atomic import atomic_path
+
+    gt = np.stack([f.pose[:3, 3] for f in split.frames])
+    fig, ax = plt.subplots(figsize=(6, 6))
+    ax.plot(gt[:, 0], gt[:, 1], "g.-", label="ground truth", lw=0.8)
+    for f, T in zip(split.frames, estimates):
+        if T is not None:
+            ax.plot([f.pose[0, 3], T[0, 3]], [f.pose[1, 3], T[1, 3]], "r-", lw=0.6)
+    est = np.array([T[:3, 3] for T in estimates if T is not None]).reshape(-1, 3)
+    ax.plot(est[:, 0], est[:, 1], "rx", ms=4, label="estimated")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.legend()
+    ax.set_title("camera positions (top view)")
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120)
+    plt.close(fig)
+
+
+@one_line_errors
+def eval_command(
+    map_path: Path = typer.Argument(..., metavar="MAP", help="Map file from `acesplat map`."),
+    scene: Path = typer.Argument(..., help="Scene folder in the ACE layout."),
+    split: str = typer.Option("test", help="Split to localize."),
+    encoder: Optional[Path] = typer.Option(None, help="Encoder weights if not where the map says."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the numbers here."),
+    plot: Optional[Path] = typer.Option(None, help="Plot estimated against true camera positions (PNG)."),
+) -> None:
+    """Localize a split against a map and report pose accuracy."""
+    import torch
+
+    from acesplat.core.scene import read_split
+
+    from .localize import Localizer, evaluate
+    from .mapfile import encoder_for_map, load_map
+
+    torch.set_num_threads(max(1, torch.get_num_threads()))
+    m = load_map(map_path)
+    enc = encoder_for_map(m, map_path, encoder)
+    data = read_split(scene, split)
+    loc = Localizer(m.network(enc), m.short_side, {})
+    with PhaseProgress("eval ") as bar:
+        s = evaluate(data, loc, lambda i, n: bar("localize", i / n, {"frame": i}))
+    estimates = s.pop("estimates")
+    console.print(results_table(f"{Path(scene).name} / {split}", s))
+    if plot is not None:
+        plot_positions(plot, data, estimates)
+    report_json(json_out, s)
+
+
+@one_line_errors
+def pretrain_command(
+    out: Path = typer.Argument(..., help="Folder for the scene cache, checkpoint and the final encoder.pt."),
+    minutes: float = typer.Option(60.0, help="Stop (and checkpoint) after this long; run again to resume."),
+    steps: int = typer.Option(6000, help="Total optimisation steps (the schedule spans these)."),
+    scenes: int = typer.Option(48, help="Procedural scenes, one head each."),
+    frames: int = typer.Option(60, help="Frames per scene."),
+    size: str = typer.Option("240x320", help="Rendered frame size HxW."),
+    seed: int = typer.Option(0),
+) -> None:
+    """Pretrain the project's own encoder on procedural scenes (resumable)."""
+    import torch
+
+    from .pretrain import PretrainConfig, pretrain
+
+    torch.set_num_threads(max(1, torch.get_num_threads()))
+    cfg = PretrainConfig(scenes=scenes, frames_per_scene=frames, image_hw=parse_size(size), steps=steps, seed=seed)
+    with PhaseProgress("pretrain ") as bar:
+        summary = pretrain(out, cfg, minutes, bar)
+    console.print(summary)
