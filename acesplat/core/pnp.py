@@ -87,7 +87,7 @@ def solve_pnp(
     dist = np.zeros(5)
     try:
         if method.startswith("usac"):
-            ok, rvec, tvec, inl = cv2.solvePnPRansac(
+            ok, _, rvec, tvec, inl = cv2.solvePnPRansac(
                 points, pixels, K, dist, params=_usac_params(method, threshold_px, iterations, confidence)
             )
         else:
