@@ -23,11 +23,17 @@ class SourceFormat(str, enum.Enum):
 
 @one_line_errors
 def import_command(
-    src: Path = typer.Argument(..., help="transforms.json (or its folder), or a COLMAP text model folder (or project with sparse/0)."),
+    src: Path = typer.Argument(
+        ..., help="transforms.json (or its folder), or a COLMAP text model folder (or a project with sparse/0)."
+    ),
     out: Path = typer.Option(..., "-o", "--out", help="Scene folder to create (must be new or empty)."),
     fmt: SourceFormat = typer.Option(SourceFormat.auto, "--format", help="Source format; auto detects it."),
-    images: Optional[Path] = typer.Option(None, "--images", help="Images folder (COLMAP: default images/ near the model; transforms: replaces the json's folder)."),
-    test_every: int = typer.Option(DEFAULT_TEST_EVERY, "--test-every", min=0, help="Every N-th frame (natural name order, from the first) goes to test; 0 = none."),
+    images: Optional[Path] = typer.Option(
+        None, "--images", help="Images folder (COLMAP: default images/ near the model; transforms: replaces the json's folder)."
+    ),
+    test_every: int = typer.Option(
+        DEFAULT_TEST_EVERY, "--test-every", min=0, help="Every N-th frame (natural name order, from the first) goes to test; 0 = none."
+    ),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the summary (counts, split rule, notes) as JSON."),
 ) -> None:
     """Import a scene into the ACE layout (OpenCV poses, undistorted images, train/test split)."""

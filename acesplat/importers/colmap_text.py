@@ -22,7 +22,7 @@ import numpy as np
 
 from ..core.errors import InputError
 from ..core.geometry import invert_pose, make_pose, quat_to_matrix, rigidity_problem
-from .common import DEFAULT_TEST_EVERY, CameraSpec, ImportSummary, Progress, SourceFrame, check_test_every, write_scene
+from .common import DEFAULT_TEST_EVERY, CameraSpec, ImportSummary, Progress, SourceFrame, check_output, check_test_every, write_scene
 
 MODEL_PARAMS = {
     "SIMPLE_PINHOLE": ("f", "cx", "cy"),
@@ -193,6 +193,7 @@ def import_colmap_text(
     image (natural name order, starting with the first) goes to test.
     """
     check_test_every(test_every)
+    check_output(out_scene)  # before parsing a large model
     model = find_colmap_model(Path(model_dir))
     images = find_images_dir(model) if images_dir is None else Path(images_dir)
     if not images.is_dir():

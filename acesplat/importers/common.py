@@ -171,7 +171,9 @@ def _safe_stem(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_-]+", "_", stem).strip("_") or "frame"
 
 
-def _check_out(out_scene: Path) -> None:
+def check_output(out_scene: str | Path) -> None:
+    """Refuse an output that already holds something: mixing two imports would break name pairing."""
+    out_scene = Path(out_scene)
     if out_scene.exists() and (not out_scene.is_dir() or any(out_scene.iterdir())):
         raise InputError(out_scene, "output exists and is not an empty folder (choose a new scene folder)")
 
@@ -193,7 +195,7 @@ def write_scene(
     lossless); distorted cameras are undistorted first.
     """
     out_scene = Path(out_scene)
-    _check_out(out_scene)
+    check_output(out_scene)
     if not frames:
         raise InputError(summary.source, "no frames to import")
     seen: dict[str, str] = {}

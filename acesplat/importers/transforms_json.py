@@ -28,6 +28,7 @@ from .common import (
     ImportSummary,
     Progress,
     SourceFrame,
+    check_output,
     check_test_every,
     find_image,
     write_scene,
@@ -176,6 +177,7 @@ def import_transforms_json(
     ``images_dir`` replaces the json's folder as the base of ``file_path`` (e.g. a downscaled copy).
     """
     check_test_every(test_every)
+    check_output(out_scene)  # before parsing a large model
     src = Path(transforms_path)
     images = None if images_dir is None else Path(images_dir)
     if images is not None and not images.is_dir():
