@@ -1,0 +1,490 @@
+"""Numba kernels, one Gaussian per iteration: projection to screen space (EWA) and its backward.
+
+Arrays come in the Gaussians' dtype (float32 or float64); scalars are computed in float64, so the
+float32 path only rounds when storing. Forward and backward share the helpers below, so every
+culling decision is recomputed bit-identically instead of being stored.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+from ._layout import (
+    BLUE, CA, CB, CC, DEPTH, EXT_X, EXT_Y, G_BLUE, G_CA, G_CB, G_CC, G_DEPTH, G_GREEN, G_MX, G_MY, G_OPAC,
+    G_RED, GRAD_WIDTH, GREEN, MAHA2, MX, MY, OPAC, POWER_MIN, RED,
+)
+
+DILATION = 0.3
+"""Added to the 2D covariance diagonal (pixels^2): the 3DGS low-pass filter, at least ~1 px footprint."""
+
+FRUSTUM_SLACK = 0.3
+"""The Jacobian is evaluated at x/z, y/z clamped this fraction of the half-FOV tangent past the image
+edge, as 3DGS does, so Gaussians far outside the view do not get huge affine approximations."""
+
+MAHA2_MAX = 9.0
+"""Squared Mahalanobis cut: a Gaussian is truncated at 3 sigma."""
+
+ALPHA_MIN = 1.0 / 255.0
+"""Contributions with alpha below this are skipped (3DGS)."""
+
+MAX_EXTENT = 1e7
+"""Gaussians whose cut-off ellipse reaches further than this many pixels are culled as degenerate
+(keeps every pixel index the kernels compute far inside integer and float32 range)."""
+
+# Real spherical-harmonics constants with the sign convention 3DGS uses (so PLYs render alike).
+SH_C0 = 0.5 / math.sqrt(math.pi)
+SH_C1 = math.sqrt(3.0 / (4.0 * math.pi))
+SH_C2_0 = 0.5 * math.sqrt(15.0 / math.pi)
+SH_C2_1 = -0.5 * math.sqrt(15.0 / math.pi)
+SH_C2_2 = 0.25 * math.sqrt(5.0 / math.pi)
+SH_C2_3 = -0.5 * math.sqrt(15.0 / math.pi)
+SH_C2_4 = 0.25 * math.sqrt(15.0 / math.pi)
+SH_C3_0 = -0.25 * math.sqrt(35.0 / (2.0 * math.pi))
+SH_C3_1 = 0.5 * math.sqrt(105.0 / math.pi)
+SH_C3_2 = -0.25 * math.sqrt(21.0 / (2.0 * math.pi))
+SH_C3_3 = 0.25 * math.sqrt(7.0 / math.pi)
+SH_C3_4 = -0.25 * math.sqrt(21.0 / (2.0 * math.pi))
+SH_C3_5 = 0.25 * math.sqrt(105.0 / math.pi)
+SH_C3_6 = -0.25 * math.sqrt(35.0 / (2.0 * math.pi))
+
+
+@njit(cache=True)
+def sh_basis(x, y, z):
+    """The 16 real SH basis values at unit direction (x, y, z), degree 0..3."""
+    xx, yy, zz = x * x, y * y, z * z
+    return (
+        SH_C0,
+        -SH_C1 * y, SH_C1 * z, -SH_C1 * x,
+        SH_C2_0 * x * y, SH_C2_1 * y * z, SH_C2_2 * (2.0 * zz - xx - yy), SH_C2_3 * x * z, SH_C2_4 * (xx - yy),
+        SH_C3_0 * y * (3.0 * xx - yy),
+        SH_C3_1 * x * y * z,
+        SH_C3_2 * y * (4.0 * zz - xx - yy),
+        SH_C3_3 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy),
+        SH_C3_4 * x * (4.0 * zz - xx - yy),
+        SH_C3_5 * z * (xx - yy),
+        SH_C3_6 * x * (xx - 3.0 * yy),
+    )
+
+
+@njit(cache=True)
+def _sh_basis_grad(x, y, z):
+    """d basis / d(x, y, z) treating the three components as independent: three 16-tuples."""
+    xx, yy, zz = x * x, y * y, z * z
+    gx = (
+        0.0, 0.0, 0.0, -SH_C1,
+        SH_C2_0 * y, 0.0, -2.0 * SH_C2_2 * x, SH_C2_3 * z, 2.0 * SH_C2_4 * x,
+        6.0 * SH_C3_0 * x * y,
+        SH_C3_1 * y * z,
+        -2.0 * SH_C3_2 * x * y,
+        -6.0 * SH_C3_3 * x * z,
+        SH_C3_4 * (4.0 * zz - 3.0 * xx - yy),
+        2.0 * SH_C3_5 * x * z,
+        SH_C3_6 * (3.0 * xx - 3.0 * yy),
+    )
+    gy = (
+        0.0, -SH_C1, 0.0, 0.0,
+        SH_C2_0 * x, SH_C2_1 * z, -2.0 * SH_C2_2 * y, 0.0, -2.0 * SH_C2_4 * y,
+        SH_C3_0 * (3.0 * xx - 3.0 * yy),
+        SH_C3_1 * x * z,
+        SH_C3_2 * (4.0 * zz - xx - 3.0 * yy),
+        -6.0 * SH_C3_3 * y * z,
+        -2.0 * SH_C3_4 * x * y,
+        -2.0 * SH_C3_5 * y * z,
+        -6.0 * SH_C3_6 * x * y,
+    )
+    gz = (
+        0.0, 0.0, SH_C1, 0.0,
+        0.0, SH_C2_1 * y, 4.0 * SH_C2_2 * z, SH_C2_3 * x, 0.0,
+        0.0,
+        SH_C3_1 * x * y,
+        8.0 * SH_C3_2 * y * z,
+        SH_C3_3 * (6.0 * zz - 3.0 * xx - 3.0 * yy),
+        8.0 * SH_C3_4 * x * z,
+        SH_C3_5 * (xx - yy),
+        0.0,
+    )
+    return gx, gy, gz
+
+
+@njit(cache=True)
+def _view_dir(means, i, campos):
+    """Unit direction from the camera centre to Gaussian i, and the distance."""
+    vx = means[i, 0] - campos[0]
+    vy = means[i, 1] - campos[1]
+    vz = means[i, 2] - campos[2]
+    n = math.sqrt(vx * vx + vy * vy + vz * vz)
+    inv = 1.0 / n if n > 0.0 else 0.0
+    return vx * inv, vy * inv, vz * inv, n
+
+
+@njit(cache=True)
+def _sh_raw_color(sh, i, degree, dx, dy, dz):
+    """Colour before the +0.5 offset and clamp: sum_k basis_k * sh[i, k, :]."""
+    basis = sh_basis(dx, dy, dz)
+    r = 0.0
+    g = 0.0
+    b = 0.0
+    for k in range((degree + 1) * (degree + 1)):
+        bk = basis[k]
+        r += bk * sh[i, k, 0]
+        g += bk * sh[i, k, 1]
+        b += bk * sh[i, k, 2]
+    return r, g, b
+
+
+@njit(cache=True)
+def _sigmoid(v):
+    if v >= 0.0:
+        return 1.0 / (1.0 + math.exp(-v))
+    e = math.exp(v)
+    return e / (1.0 + e)
+
+
+@njit(cache=True)
+def _unit_quat_rotation(quats, i):
+    """(ok, norm, w, x, y, z, R as 9 row-major values) of quaternion i; ok False for a zero/NaN quaternion."""
+    w = quats[i, 0] * 1.0
+    x = quats[i, 1] * 1.0
+    y = quats[i, 2] * 1.0
+    z = quats[i, 3] * 1.0
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    if not (n > 0.0 and n < math.inf):
+        return False, 1.0, 1.0, 0.0, 0.0, 0.0, (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+    w /= n
+    x /= n
+    y /= n
+    z /= n
+    R = (
+        1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y),
+        2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x),
+        2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y),
+    )
+    return True, n, w, x, y, z, R
+
+
+@njit(cache=True)
+def _camera_frame(means, log_scales, quats, i, view):
+    """Camera-frame mean p, world rotation R (9), scales s, T = Rview @ R @ diag(s) (9), cov_cam (6: xx xy xz yy yz zz)."""
+    mx = means[i, 0] * 1.0
+    my = means[i, 1] * 1.0
+    mz = means[i, 2] * 1.0
+    px = view[0, 0] * mx + view[0, 1] * my + view[0, 2] * mz + view[0, 3]
+    py = view[1, 0] * mx + view[1, 1] * my + view[1, 2] * mz + view[1, 3]
+    pz = view[2, 0] * mx + view[2, 1] * my + view[2, 2] * mz + view[2, 3]
+    ok, qn, qw, qx, qy, qz, R = _unit_quat_rotation(quats, i)
+    s0 = math.exp(log_scales[i, 0] * 1.0)
+    s1 = math.exp(log_scales[i, 1] * 1.0)
+    s2 = math.exp(log_scales[i, 2] * 1.0)
+    # M = R diag(s); T = view_R @ M
+    m00, m01, m02 = R[0] * s0, R[1] * s1, R[2] * s2
+    m10, m11, m12 = R[3] * s0, R[4] * s1, R[5] * s2
+    m20, m21, m22 = R[6] * s0, R[7] * s1, R[8] * s2
+    t00 = view[0, 0] * m00 + view[0, 1] * m10 + view[0, 2] * m20
+    t01 = view[0, 0] * m01 + view[0, 1] * m11 + view[0, 2] * m21
+    t02 = view[0, 0] * m02 + view[0, 1] * m12 + view[0, 2] * m22
+    t10 = view[1, 0] * m00 + view[1, 1] * m10 + view[1, 2] * m20
+    t11 = view[1, 0] * m01 + view[1, 1] * m11 + view[1, 2] * m21
+    t12 = view[1, 0] * m02 + view[1, 1] * m12 + view[1, 2] * m22
+    t20 = view[2, 0] * m00 + view[2, 1] * m10 + view[2, 2] * m20
+    t21 = view[2, 0] * m01 + view[2, 1] * m11 + view[2, 2] * m21
+    t22 = view[2, 0] * m02 + view[2, 1] * m12 + view[2, 2] * m22
+    T = (t00, t01, t02, t10, t11, t12, t20, t21, t22)
+    cov = (
+        t00 * t00 + t01 * t01 + t02 * t02,
+        t00 * t10 + t01 * t11 + t02 * t12,
+        t00 * t20 + t01 * t21 + t02 * t22,
+        t10 * t10 + t11 * t11 + t12 * t12,
+        t10 * t20 + t11 * t21 + t12 * t22,
+        t20 * t20 + t21 * t21 + t22 * t22,
+    )
+    return px, py, pz, ok, qn, (qw, qx, qy, qz), R, (s0, s1, s2), T, cov
+
+
+@njit(cache=True)
+def _jacobian(px, py, pz, fx, fy, lim_xn, lim_xp, lim_yn, lim_yp):
+    """EWA affine approximation of the projection at p: J = [[j00, 0, j02], [0, j11, j12]].
+
+    Also returns the clamped tangents and whether each was clamped (then x or y gets no gradient via J).
+    """
+    iz = 1.0 / pz
+    u = px * iz
+    v = py * iz
+    uc = min(max(u, -lim_xn), lim_xp)
+    vc = min(max(v, -lim_yn), lim_yp)
+    x_clamped = u < -lim_xn or u > lim_xp
+    y_clamped = v < -lim_yn or v > lim_yp
+    return fx * iz, -fx * uc * iz, fy * iz, -fy * vc * iz, uc, vc, x_clamped, y_clamped
+
+
+@njit(cache=True)
+def _cov2d(j00, j02, j11, j12, cov):
+    """J cov J^T as (a, b, c) = (xx, xy, yy), before dilation."""
+    sxx, sxy, sxz, syy, syz, szz = cov
+    a = j00 * j00 * sxx + 2.0 * j00 * j02 * sxz + j02 * j02 * szz
+    b = j00 * j11 * sxy + j00 * j12 * sxz + j02 * j11 * syz + j02 * j12 * szz
+    c = j11 * j11 * syy + 2.0 * j11 * j12 * syz + j12 * j12 * szz
+    return a, b, c
+
+
+@njit(parallel=True, cache=True)
+def project_forward(
+    means, log_scales, quats, opacity_logits, sh, sh_degree, view, campos,
+    fx, fy, cx, cy, width, height, near, far, rec, bbox, radii, visible,
+):
+    """Fill rec (N, REC_WIDTH), bbox (N, 4) pixel range x0 x1 y0 y1, radii (N,) and visible (N,)."""
+    n = means.shape[0]
+    lim_xn = cx / fx + FRUSTUM_SLACK * 0.5 * width / fx
+    lim_xp = (width - cx) / fx + FRUSTUM_SLACK * 0.5 * width / fx
+    lim_yn = cy / fy + FRUSTUM_SLACK * 0.5 * height / fy
+    lim_yp = (height - cy) / fy + FRUSTUM_SLACK * 0.5 * height / fy
+    for i in prange(n):
+        visible[i] = False
+        radii[i] = 0
+        px, py, pz, ok, qn, q, R, s, T, cov = _camera_frame(means, log_scales, quats, i, view)
+        if not (ok and pz >= near and pz <= far):
+            continue
+        op = _sigmoid(opacity_logits[i] * 1.0)
+        # Largest squared Mahalanobis distance at which alpha = op * exp(-d2 / 2) still reaches ALPHA_MIN.
+        maha2 = 2.0 * math.log(op / ALPHA_MIN) if op > ALPHA_MIN else 0.0
+        if not (maha2 > 0.0):
+            continue
+        maha2 = min(maha2, MAHA2_MAX)
+        j00, j02, j11, j12, uc, vc, xcl, ycl = _jacobian(px, py, pz, fx, fy, lim_xn, lim_xp, lim_yn, lim_yp)
+        a, b, c = _cov2d(j00, j02, j11, j12, cov)
+        a += DILATION
+        c += DILATION
+        det = a * c - b * b
+        if not (det > 0.0 and det < math.inf):
+            continue
+        mx = fx * px / pz + cx
+        my = fy * py / pz + cy
+        ex = math.sqrt(maha2 * a)
+        ey = math.sqrt(maha2 * c)
+        if not (ex <= MAX_EXTENT and ey <= MAX_EXTENT):
+            continue
+        # Pixel centres sit at integer coordinates; the ellipse's bounding box must hit the image.
+        if not (mx + ex >= 0.0 and mx - ex <= width - 1.0 and my + ey >= 0.0 and my - ey <= height - 1.0):
+            continue
+        x0 = int(max(0.0, math.ceil(mx - ex)))
+        x1 = int(min(width - 1.0, math.floor(mx + ex)))
+        y0 = int(max(0.0, math.ceil(my - ey)))
+        y1 = int(min(height - 1.0, math.floor(my + ey)))
+        if x0 > x1 or y0 > y1:
+            continue
+        if sh_degree > 0:
+            dx, dy, dz, _ = _view_dir(means, i, campos)
+        else:
+            dx, dy, dz = 0.0, 0.0, 1.0
+        r, g, bl = _sh_raw_color(sh, i, sh_degree, dx, dy, dz)
+        visible[i] = True
+        mid = 0.5 * (a + c)
+        lam = mid + math.sqrt(max(0.1, mid * mid - det))
+        radii[i] = int(math.ceil(3.0 * math.sqrt(lam)))
+        bbox[i, 0] = x0
+        bbox[i, 1] = x1
+        bbox[i, 2] = y0
+        bbox[i, 3] = y1
+        rec[i, MX] = mx
+        rec[i, MY] = my
+        rec[i, CA] = c / det
+        rec[i, CB] = -b / det
+        rec[i, CC] = a / det
+        rec[i, OPAC] = op
+        rec[i, RED] = max(r + 0.5, 0.0)
+        rec[i, GREEN] = max(g + 0.5, 0.0)
+        rec[i, BLUE] = max(bl + 0.5, 0.0)
+        rec[i, DEPTH] = pz
+        rec[i, POWER_MIN] = -0.5 * maha2
+        rec[i, MAHA2] = maha2
+        rec[i, EXT_X] = ex
+        rec[i, EXT_Y] = ey
+
+
+@njit(parallel=True, cache=True)
+def project_backward(
+    means, log_scales, quats, opacity_logits, sh, sh_degree, view, campos,
+    fx, fy, cx, cy, width, height, order, g_offsets, g_slots, slot_grads,
+    v_means, v_log_scales, v_quats, v_opacity_logits, v_sh, v_means2d,
+):
+    """Sum each visible Gaussian's per-tile gradients and chain them back to its parameters.
+
+    order (V,) maps depth-sorted position to Gaussian index; g_slots[g_offsets[s]:g_offsets[s+1]] are
+    the rows of slot_grads (M, GRAD_WIDTH) written by the tiles Gaussian s touched. Outputs are
+    (pre-zeroed) arrays indexed by Gaussian; invisible Gaussians stay zero.
+    """
+    lim_xn = cx / fx + FRUSTUM_SLACK * 0.5 * width / fx
+    lim_xp = (width - cx) / fx + FRUSTUM_SLACK * 0.5 * width / fx
+    lim_yn = cy / fy + FRUSTUM_SLACK * 0.5 * height / fy
+    lim_yp = (height - cy) / fy + FRUSTUM_SLACK * 0.5 * height / fy
+    for s_ in prange(order.shape[0]):
+        i = order[s_]
+        v_mx = 0.0
+        v_my = 0.0
+        v_ca = 0.0
+        v_cb = 0.0
+        v_cc = 0.0
+        v_r = 0.0
+        v_g = 0.0
+        v_b = 0.0
+        v_op = 0.0
+        v_z = 0.0
+        for j in range(g_offsets[s_], g_offsets[s_ + 1]):
+            row = g_slots[j]
+            v_mx += slot_grads[row, G_MX]
+            v_my += slot_grads[row, G_MY]
+            v_ca += slot_grads[row, G_CA]
+            v_cb += slot_grads[row, G_CB]
+            v_cc += slot_grads[row, G_CC]
+            v_r += slot_grads[row, G_RED]
+            v_g += slot_grads[row, G_GREEN]
+            v_b += slot_grads[row, G_BLUE]
+            v_op += slot_grads[row, G_OPAC]
+            v_z += slot_grads[row, G_DEPTH]
+        v_means2d[i, 0] = v_mx
+        v_means2d[i, 1] = v_my
+
+        px, py, pz, ok, qn, q, R, s, T, cov = _camera_frame(means, log_scales, quats, i, view)
+        j00, j02, j11, j12, uc, vc, xcl, ycl = _jacobian(px, py, pz, fx, fy, lim_xn, lim_xp, lim_yn, lim_yp)
+        a, b, c = _cov2d(j00, j02, j11, j12, cov)
+        a += DILATION
+        c += DILATION
+        det = a * c - b * b
+
+        # Opacity.
+        op = _sigmoid(opacity_logits[i] * 1.0)
+        v_opacity_logits[i] = v_op * op * (1.0 - op)
+
+        # Colour: SH evaluated along the view direction, +0.5, clamped at 0.
+        v_px = 0.0
+        v_py = 0.0
+        v_pz = v_z
+        if sh_degree > 0:
+            dx, dy, dz, dist = _view_dir(means, i, campos)
+        else:
+            dx, dy, dz, dist = 0.0, 0.0, 1.0, 1.0
+        r, g, bl = _sh_raw_color(sh, i, sh_degree, dx, dy, dz)
+        if r + 0.5 < 0.0:
+            v_r = 0.0
+        if g + 0.5 < 0.0:
+            v_g = 0.0
+        if bl + 0.5 < 0.0:
+            v_b = 0.0
+        basis = sh_basis(dx, dy, dz)
+        nk = (sh_degree + 1) * (sh_degree + 1)
+        for k in range(nk):
+            bk = basis[k]
+            v_sh[i, k, 0] = bk * v_r
+            v_sh[i, k, 1] = bk * v_g
+            v_sh[i, k, 2] = bk * v_b
+        v_wx = 0.0
+        v_wy = 0.0
+        v_wz = 0.0
+        if sh_degree > 0 and dist > 0.0:
+            gx, gy, gz = _sh_basis_grad(dx, dy, dz)
+            ux = 0.0
+            uy = 0.0
+            uz = 0.0
+            for k in range(1, nk):
+                w_k = sh[i, k, 0] * v_r + sh[i, k, 1] * v_g + sh[i, k, 2] * v_b
+                ux += w_k * gx[k]
+                uy += w_k * gy[k]
+                uz += w_k * gz[k]
+            # d(unit dir)/d(vector) = (I - d d^T) / |vector|
+            dot = ux * dx + uy * dy + uz * dz
+            v_wx = (ux - dot * dx) / dist
+            v_wy = (uy - dot * dy) / dist
+            v_wz = (uz - dot * dz) / dist
+
+        # Conic (inverse of [[a, b], [b, c]]) -> 2D covariance.
+        ca = c / det
+        cb = -b / det
+        cc = a / det
+        v_det = -(v_ca * ca + v_cb * cb + v_cc * cc) / det
+        v_a = v_cc / det + v_det * c
+        v_b2 = -v_cb / det - 2.0 * v_det * b
+        v_c = v_ca / det + v_det * a
+
+        # 2D covariance = J cov J^T.
+        sxx, sxy, sxz, syy, syz, szz = cov
+        v_sxx = v_a * j00 * j00
+        v_sxz = v_a * 2.0 * j00 * j02 + v_b2 * j00 * j12
+        v_szz = v_a * j02 * j02 + v_b2 * j02 * j12 + v_c * j12 * j12
+        v_sxy = v_b2 * j00 * j11
+        v_syz = v_b2 * j02 * j11 + v_c * 2.0 * j11 * j12
+        v_syy = v_c * j11 * j11
+        v_j00 = v_a * (2.0 * j00 * sxx + 2.0 * j02 * sxz) + v_b2 * (j11 * sxy + j12 * sxz)
+        v_j02 = v_a * (2.0 * j00 * sxz + 2.0 * j02 * szz) + v_b2 * (j11 * syz + j12 * szz)
+        v_j11 = v_b2 * (j00 * sxy + j02 * syz) + v_c * (2.0 * j11 * syy + 2.0 * j12 * syz)
+        v_j12 = v_b2 * (j00 * sxz + j02 * szz) + v_c * (2.0 * j11 * syz + 2.0 * j12 * szz)
+
+        # Jacobian entries -> camera point (x or y gets nothing through a clamped tangent).
+        iz = 1.0 / pz
+        iz2 = iz * iz
+        v_pz += -v_j00 * fx * iz2 + v_j02 * fx * uc * iz2 - v_j11 * fy * iz2 + v_j12 * fy * vc * iz2
+        v_uc = -v_j02 * fx * iz
+        v_vc = -v_j12 * fy * iz
+        if not xcl:
+            v_px += v_uc * iz
+            v_pz -= v_uc * px * iz2
+        if not ycl:
+            v_py += v_vc * iz
+            v_pz -= v_vc * py * iz2
+        # Projected mean.
+        v_px += v_mx * fx * iz
+        v_py += v_my * fy * iz
+        v_pz -= (v_mx * fx * px + v_my * fy * py) * iz2
+
+        # Camera covariance = T T^T with symmetric gradient G (off-diagonals halved): dL/dT = 2 G T.
+        g00 = v_sxx
+        g11 = v_syy
+        g22 = v_szz
+        g01 = 0.5 * v_sxy
+        g02 = 0.5 * v_sxz
+        g12 = 0.5 * v_syz
+        t00, t01, t02, t10, t11, t12, t20, t21, t22 = T
+        vt00 = 2.0 * (g00 * t00 + g01 * t10 + g02 * t20)
+        vt01 = 2.0 * (g00 * t01 + g01 * t11 + g02 * t21)
+        vt02 = 2.0 * (g00 * t02 + g01 * t12 + g02 * t22)
+        vt10 = 2.0 * (g01 * t00 + g11 * t10 + g12 * t20)
+        vt11 = 2.0 * (g01 * t01 + g11 * t11 + g12 * t21)
+        vt12 = 2.0 * (g01 * t02 + g11 * t12 + g12 * t22)
+        vt20 = 2.0 * (g02 * t00 + g12 * t10 + g22 * t20)
+        vt21 = 2.0 * (g02 * t01 + g12 * t11 + g22 * t21)
+        vt22 = 2.0 * (g02 * t02 + g12 * t12 + g22 * t22)
+        # T = Vr M  ->  dL/dM = Vr^T dL/dT
+        vm00 = view[0, 0] * vt00 + view[1, 0] * vt10 + view[2, 0] * vt20
+        vm01 = view[0, 0] * vt01 + view[1, 0] * vt11 + view[2, 0] * vt21
+        vm02 = view[0, 0] * vt02 + view[1, 0] * vt12 + view[2, 0] * vt22
+        vm10 = view[0, 1] * vt00 + view[1, 1] * vt10 + view[2, 1] * vt20
+        vm11 = view[0, 1] * vt01 + view[1, 1] * vt11 + view[2, 1] * vt21
+        vm12 = view[0, 1] * vt02 + view[1, 1] * vt12 + view[2, 1] * vt22
+        vm20 = view[0, 2] * vt00 + view[1, 2] * vt10 + view[2, 2] * vt20
+        vm21 = view[0, 2] * vt01 + view[1, 2] * vt11 + view[2, 2] * vt21
+        vm22 = view[0, 2] * vt02 + view[1, 2] * vt12 + view[2, 2] * vt22
+        # M = R diag(s)
+        s0, s1, s2 = s
+        v_log_scales[i, 0] = (vm00 * R[0] + vm10 * R[3] + vm20 * R[6]) * s0
+        v_log_scales[i, 1] = (vm01 * R[1] + vm11 * R[4] + vm21 * R[7]) * s1
+        v_log_scales[i, 2] = (vm02 * R[2] + vm12 * R[5] + vm22 * R[8]) * s2
+        G00, G01, G02 = vm00 * s0, vm01 * s1, vm02 * s2
+        G10, G11, G12 = vm10 * s0, vm11 * s1, vm12 * s2
+        G20, G21, G22 = vm20 * s0, vm21 * s1, vm22 * s2
+        qw, qx, qy, qz = q
+        vqw = 2.0 * (-qz * G01 + qy * G02 + qz * G10 - qx * G12 - qy * G20 + qx * G21)
+        vqx = 2.0 * (qy * G01 + qz * G02 + qy * G10 - 2.0 * qx * G11 - qw * G12 + qz * G20 + qw * G21 - 2.0 * qx * G22)
+        vqy = 2.0 * (-2.0 * qy * G00 + qx * G01 + qw * G02 + qx * G10 + qz * G12 - qw * G20 + qz * G21 - 2.0 * qy * G22)
+        vqz = 2.0 * (-2.0 * qz * G00 - qw * G01 + qx * G02 + qw * G10 - 2.0 * qz * G11 + qy * G12 + qx * G20 + qy * G21)
+        # Through the normalisation q / |q|.
+        dotq = vqw * qw + vqx * qx + vqy * qy + vqz * qz
+        v_quats[i, 0] = (vqw - dotq * qw) / qn
+        v_quats[i, 1] = (vqx - dotq * qx) / qn
+        v_quats[i, 2] = (vqy - dotq * qy) / qn
+        v_quats[i, 3] = (vqz - dotq * qz) / qn
+
+        # Camera point -> world mean (p = Vr m + t), plus the SH view-direction path.
+        v_means[i, 0] = view[0, 0] * v_px + view[1, 0] * v_py + view[2, 0] * v_pz + v_wx
+        v_means[i, 1] = view[0, 1] * v_px + view[1, 1] * v_py + view[2, 1] * v_pz + v_wy
+        v_means[i, 2] = view[0, 2] * v_px + view[1, 2] * v_py + view[2, 2] * v_pz + v_wz

@@ -1,0 +1,301 @@
+"""Numba kernels over 16x16 pixel tiles: binning, front-to-back compositing and its backward replay.
+
+Within a tile the loop runs over the tile's depth-sorted Gaussians and, for each, only over the
+pixels inside its cut-off ellipse (row spans solved exactly), so the cost follows the Gaussians'
+footprints rather than tile area. Each tile owns its pixels and its slots of the tile lists, so the
+parallel loop over tiles has no races and the per-Gaussian gradient sums are deterministic.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+from ._layout import (
+    BLUE, CA, CB, CC, DEPTH, EXT_X, EXT_Y, G_BLUE, G_CA, G_CB, G_CC, G_DEPTH, G_GREEN, G_MX, G_MY, G_OPAC,
+    G_RED, GREEN, MAHA2, MX, MY, OPAC, POWER_MIN, RED,
+)
+
+TILE = 16
+"""Tile edge in pixels."""
+
+ALPHA_MAX = 0.99
+"""Per-Gaussian alpha is clamped here so transmittance can be recovered by division in backward."""
+
+T_MIN = 1e-4
+"""Front-to-back compositing stops before transmittance would fall below this."""
+
+_SPAN_SLACK = 1e-3
+"""Pixels this close outside the solved ellipse span still get the exact exponent test."""
+
+
+@njit(cache=True)
+def bin_tiles(bbox, tiles_x, tiles_y):
+    """Per-tile lists of depth-sorted Gaussian positions (bbox rows are already in depth order).
+
+    Returns tile_offsets (n_tiles + 1,), tile_lists (M,), g_offsets (V + 1,), g_slots (M,): the list
+    positions each Gaussian occupies, so its per-tile gradients can be summed without searching.
+    A stable counting sort keeps every tile's list in depth order.
+    """
+    n_tiles = tiles_x * tiles_y
+    v = bbox.shape[0]
+    tile_offsets = np.zeros(n_tiles + 1, np.int64)
+    g_offsets = np.zeros(v + 1, np.int64)
+    for s in range(v):
+        tx0 = bbox[s, 0] // TILE
+        tx1 = bbox[s, 1] // TILE
+        ty0 = bbox[s, 2] // TILE
+        ty1 = bbox[s, 3] // TILE
+        for ty in range(ty0, ty1 + 1):
+            for tx in range(tx0, tx1 + 1):
+                tile_offsets[ty * tiles_x + tx + 1] += 1
+        g_offsets[s + 1] = g_offsets[s] + (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
+    for t in range(n_tiles):
+        tile_offsets[t + 1] += tile_offsets[t]
+    m = tile_offsets[n_tiles]
+    tile_lists = np.empty(m, np.int32)
+    g_slots = np.empty(m, np.int64)
+    cursor = tile_offsets[:n_tiles].copy()
+    for s in range(v):
+        tx0 = bbox[s, 0] // TILE
+        tx1 = bbox[s, 1] // TILE
+        ty0 = bbox[s, 2] // TILE
+        ty1 = bbox[s, 3] // TILE
+        j = g_offsets[s]
+        for ty in range(ty0, ty1 + 1):
+            for tx in range(tx0, tx1 + 1):
+                t = ty * tiles_x + tx
+                pos = cursor[t]
+                cursor[t] = pos + 1
+                tile_lists[pos] = s
+                g_slots[j] = pos
+                j += 1
+    return tile_offsets, tile_lists, g_offsets, g_slots
+
+
+@njit(cache=True)
+def _row_range(my, ey, ty0, ty1):
+    """Rows of the tile [ty0, ty1] the Gaussian's ellipse can reach."""
+    ya = int(max(ty0 * 1.0, math.ceil(my - ey)))
+    yb = int(min(ty1 * 1.0, math.floor(my + ey)))
+    return ya, yb
+
+
+@njit(cache=True)
+def _col_span(mx, dy, ca, cb, cc, maha2, tx0, tx1):
+    """Columns of row offset dy = my - y inside ca dx^2 + 2 cb dx dy + cc dy^2 <= maha2 (dx = mx - x)."""
+    q = cb * dy
+    disc = q * q - ca * (cc * dy * dy - maha2)
+    if disc < 0.0:
+        return 1, 0
+    root = math.sqrt(disc)
+    xa = int(max(tx0 * 1.0, math.ceil(mx + (q - root) / ca - _SPAN_SLACK)))
+    xb = int(min(tx1 * 1.0, math.floor(mx + (q + root) / ca + _SPAN_SLACK)))
+    return xa, xb
+
+
+@njit(parallel=True, cache=True)
+def composite_forward(
+    rec, tile_offsets, tile_lists, tile_order, tiles_x, width, height, background,
+    out_color, out_trans, out_depth, out_last, done,
+):
+    """Front-to-back alpha compositing per tile.
+
+    Writes out_color (H, W, 3) including background, out_trans (H, W) final transmittance,
+    out_depth (H, W) the alpha-weighted depth sum, and out_last (H, W) the number of list entries
+    up to and including the last contributor (what the backward replay starts from).
+    """
+    for oi in prange(tile_order.shape[0]):
+        tile = tile_order[oi]
+        ty = tile // tiles_x
+        tx = tile - ty * tiles_x
+        px0 = tx * TILE
+        py0 = ty * TILE
+        px1 = min(px0 + TILE, width) - 1
+        py1 = min(py0 + TILE, height) - 1
+        for y in range(py0, py1 + 1):
+            for x in range(px0, px1 + 1):
+                out_trans[y, x] = 1.0
+                out_color[y, x, 0] = 0.0
+                out_color[y, x, 1] = 0.0
+                out_color[y, x, 2] = 0.0
+                out_depth[y, x] = 0.0
+                out_last[y, x] = 0
+                done[y, x] = False
+        active = (px1 - px0 + 1) * (py1 - py0 + 1)
+        start = tile_offsets[tile]
+        end = tile_offsets[tile + 1]
+        for k in range(start, end):
+            if active == 0:
+                break
+            s = tile_lists[k]
+            mx = rec[s, MX] * 1.0
+            my = rec[s, MY] * 1.0
+            ca = rec[s, CA] * 1.0
+            cb = rec[s, CB] * 1.0
+            cc = rec[s, CC] * 1.0
+            op = rec[s, OPAC] * 1.0
+            cr = rec[s, RED] * 1.0
+            cg = rec[s, GREEN] * 1.0
+            cbl = rec[s, BLUE] * 1.0
+            z = rec[s, DEPTH] * 1.0
+            pmin = rec[s, POWER_MIN] * 1.0
+            maha2 = rec[s, MAHA2] * 1.0
+            ya, yb = _row_range(my, rec[s, EXT_Y] * 1.0, py0, py1)
+            n_in = k - start + 1
+            for y in range(ya, yb + 1):
+                dy = my - y
+                xa, xb = _col_span(mx, dy, ca, cb, cc, maha2, px0, px1)
+                for x in range(xa, xb + 1):
+                    if done[y, x]:
+                        continue
+                    dx = mx - x
+                    power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+                    if not (power >= pmin):
+                        continue
+                    alpha = min(ALPHA_MAX, op * math.exp(power))
+                    t = out_trans[y, x]
+                    t_next = t * (1.0 - alpha)
+                    if t_next < T_MIN:
+                        done[y, x] = True
+                        active -= 1
+                        continue
+                    w = alpha * t
+                    out_color[y, x, 0] += w * cr
+                    out_color[y, x, 1] += w * cg
+                    out_color[y, x, 2] += w * cbl
+                    out_depth[y, x] += w * z
+                    out_trans[y, x] = t_next
+                    out_last[y, x] = n_in
+        for y in range(py0, py1 + 1):
+            for x in range(px0, px1 + 1):
+                t = out_trans[y, x]
+                out_color[y, x, 0] += t * background[0]
+                out_color[y, x, 1] += t * background[1]
+                out_color[y, x, 2] += t * background[2]
+
+
+@njit(parallel=True, cache=True)
+def composite_backward(
+    rec, tile_offsets, tile_lists, tile_order, tiles_x, width, height, background,
+    final_trans, last, v_color, v_alpha, v_depth, scratch, slot_grads,
+):
+    """Replay each pixel back to front from its last contributor and write per-slot gradients.
+
+    v_color (H, W, 3), v_alpha (H, W) and v_depth (H, W) are the upstream gradients of colour,
+    alpha = 1 - final_trans and the alpha-weighted depth sum. scratch (H, W, 5) holds per pixel the
+    running transmittance and the colour/depth accumulated behind the current Gaussian.
+    slot_grads (M, GRAD_WIDTH): row k gets the summed gradient of tile-list entry k.
+    """
+    for oi in prange(tile_order.shape[0]):
+        tile = tile_order[oi]
+        ty = tile // tiles_x
+        tx = tile - ty * tiles_x
+        px0 = tx * TILE
+        py0 = ty * TILE
+        px1 = min(px0 + TILE, width) - 1
+        py1 = min(py0 + TILE, height) - 1
+        start = tile_offsets[tile]
+        end = tile_offsets[tile + 1]
+        n_max = 0
+        for y in range(py0, py1 + 1):
+            for x in range(px0, px1 + 1):
+                scratch[y, x, 0] = final_trans[y, x]
+                scratch[y, x, 1] = 0.0
+                scratch[y, x, 2] = 0.0
+                scratch[y, x, 3] = 0.0
+                scratch[y, x, 4] = 0.0
+                n_max = max(n_max, last[y, x])
+        for k in range(start + n_max, end):
+            for c in range(slot_grads.shape[1]):
+                slot_grads[k, c] = 0.0
+        bg0 = background[0]
+        bg1 = background[1]
+        bg2 = background[2]
+        for k in range(start + n_max - 1, start - 1, -1):
+            s = tile_lists[k]
+            kk = k - start
+            mx = rec[s, MX] * 1.0
+            my = rec[s, MY] * 1.0
+            ca = rec[s, CA] * 1.0
+            cb = rec[s, CB] * 1.0
+            cc = rec[s, CC] * 1.0
+            op = rec[s, OPAC] * 1.0
+            cr = rec[s, RED] * 1.0
+            cg = rec[s, GREEN] * 1.0
+            cbl = rec[s, BLUE] * 1.0
+            z = rec[s, DEPTH] * 1.0
+            pmin = rec[s, POWER_MIN] * 1.0
+            maha2 = rec[s, MAHA2] * 1.0
+            g_mx = 0.0
+            g_my = 0.0
+            g_ca = 0.0
+            g_cb = 0.0
+            g_cc = 0.0
+            g_r = 0.0
+            g_g = 0.0
+            g_b = 0.0
+            g_op = 0.0
+            g_z = 0.0
+            ya, yb = _row_range(my, rec[s, EXT_Y] * 1.0, py0, py1)
+            for y in range(ya, yb + 1):
+                dy = my - y
+                xa, xb = _col_span(mx, dy, ca, cb, cc, maha2, px0, px1)
+                for x in range(xa, xb + 1):
+                    if kk >= last[y, x]:
+                        continue
+                    dx = mx - x
+                    power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+                    if not (power >= pmin):
+                        continue
+                    gauss = math.exp(power)
+                    a_raw = op * gauss
+                    alpha = min(ALPHA_MAX, a_raw)
+                    one_minus = 1.0 - alpha
+                    t_before = scratch[y, x, 0] / one_minus
+                    w = alpha * t_before
+                    vr = v_color[y, x, 0] * 1.0
+                    vg = v_color[y, x, 1] * 1.0
+                    vb = v_color[y, x, 2] * 1.0
+                    vd = v_depth[y, x] * 1.0
+                    g_r += w * vr
+                    g_g += w * vg
+                    g_b += w * vb
+                    g_z += w * vd
+                    tf = final_trans[y, x]
+                    behind_r = scratch[y, x, 1]
+                    behind_g = scratch[y, x, 2]
+                    behind_b = scratch[y, x, 3]
+                    behind_d = scratch[y, x, 4]
+                    v_a = (
+                        (cr * t_before - (behind_r + tf * bg0) / one_minus) * vr
+                        + (cg * t_before - (behind_g + tf * bg1) / one_minus) * vg
+                        + (cbl * t_before - (behind_b + tf * bg2) / one_minus) * vb
+                        + (z * t_before - behind_d / one_minus) * vd
+                        + v_alpha[y, x] * tf / one_minus
+                    )
+                    scratch[y, x, 0] = t_before
+                    scratch[y, x, 1] = behind_r + w * cr
+                    scratch[y, x, 2] = behind_g + w * cg
+                    scratch[y, x, 3] = behind_b + w * cbl
+                    scratch[y, x, 4] = behind_d + w * z
+                    if a_raw < ALPHA_MAX:
+                        g_op += gauss * v_a
+                        v_pow = a_raw * v_a
+                        g_mx -= v_pow * (ca * dx + cb * dy)
+                        g_my -= v_pow * (cb * dx + cc * dy)
+                        g_ca -= 0.5 * v_pow * dx * dx
+                        g_cb -= v_pow * dx * dy
+                        g_cc -= 0.5 * v_pow * dy * dy
+            slot_grads[k, G_MX] = g_mx
+            slot_grads[k, G_MY] = g_my
+            slot_grads[k, G_CA] = g_ca
+            slot_grads[k, G_CB] = g_cb
+            slot_grads[k, G_CC] = g_cc
+            slot_grads[k, G_RED] = g_r
+            slot_grads[k, G_GREEN] = g_g
+            slot_grads[k, G_BLUE] = g_b
+            slot_grads[k, G_OPAC] = g_op
+            slot_grads[k, G_DEPTH] = g_z
