@@ -23,12 +23,16 @@ CONTRAST = 0.1
 
 @dataclass
 class AugmentedView:
-    """An augmented grayscale image (H, W) with its intrinsics, pose and per-cell validity (H/8, W/8)."""
+    """An augmented grayscale image (H, W) with its intrinsics, pose and per-cell validity (H/8, W/8).
+
+    ``pixel_map`` (3, 3) takes homogeneous pixels of the original image to the augmented one.
+    """
 
     gray: np.ndarray
     intrinsics: Intrinsics
     c2w: np.ndarray
     cell_valid: np.ndarray
+    pixel_map: np.ndarray
 
 
 def rotation_z(angle_rad: float) -> np.ndarray:
@@ -78,4 +82,6 @@ def augment(
     mean = f[mask > 0].mean() if mask.any() else 0.0
     f = (f - mean) * c + mean
     img = np.clip(f, 0, 255).astype(np.uint8) * mask
-    return AugmentedView(img, intr, c2w_aug, cell_validity(mask))
+    sx, sy = nw / w, nh / h
+    S = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
+    return AugmentedView(img, intr, c2w_aug, cell_validity(mask), H @ S)

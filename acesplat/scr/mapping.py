@@ -20,13 +20,14 @@ import torch
 
 from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import invert_pose
-from acesplat.core.pnp import cell_centers
+from acesplat.core.pnp import OUTPUT_STRIDE, cell_centers
 from acesplat.core.preprocess import size_for_short_side, to_gray_input
 from acesplat.core.scene import SceneSplit
 
 from .augment import augment
 from .loss import curriculum_threshold, reprojection_loss
 from .network import Encoder, Head, HeadConfig, normalize_gray
+from .targets import ImageTargets, triangulate_targets
 
 # ACE's defaults, and where this project departs from them for a CPU budget.
 ACE_IMAGE_SHORT_SIDE = 480
@@ -47,6 +48,10 @@ BUFFER_TIME_FRACTION = 0.25
 """At most this share of the budget fills the buffer; the rest trains the head."""
 ONE_CYCLE_WARMUP = 0.25
 """Share of training spent rising from LR_MIN to LR_MAX (cosine), then cosine annealing back down."""
+TARGET_WEIGHT = 10.0
+"""Weight of the triangulated-target term (metres) beside the reprojection term (pixels)."""
+TARGET_CLAMP_M = 2.0
+"""Target distances beyond this stop growing the loss, so a wrong match cannot dominate."""
 
 
 @dataclass
@@ -59,6 +64,8 @@ class MappingConfig:
     samples_per_image: int = SAMPLES_PER_IMAGE
     lr_min: float = LR_MIN
     lr_max: float = LR_MAX
+    triangulate: bool = True
+    """Add sparse coordinate targets triangulated from SIFT matches between training images (acesplat.scr.targets)."""
     iterations: int | None = None
     """Fixed iteration count instead of the wall-clock budget (tests, reproducible runs)."""
     seed: int = 0
@@ -74,6 +81,7 @@ class MappingResult:
     buffer_seconds: float
     iterations: int
     buffer_features: int
+    target_features: int
     final_loss: float
     final_valid_fraction: float
     history: list[dict] = field(default_factory=list)
@@ -84,6 +92,30 @@ class TrainingImage:
     gray: np.ndarray
     intrinsics: Intrinsics
     c2w: np.ndarray
+    targets: ImageTargets | None = None
+
+
+def cell_targets(im: TrainingImage, view, grid_hw: tuple[int, int]) -> np.ndarray:
+    """Target world coordinates (h * w, 3) for the cells of an augmented view that hold a triangulated keypoint.
+
+    The keypoint's depth is placed on the ray through the cell centre (not at the keypoint itself), so
+    the target is off only by the surface's depth change across half a cell, not by half a cell sideways.
+    """
+    gh, gw = grid_hw
+    out = np.full((gh * gw, 3), np.nan, np.float32)
+    t = im.targets
+    if t is None or len(t.pixels) == 0:
+        return out
+    ph = np.c_[t.pixels, np.ones(len(t.pixels))] @ view.pixel_map.T
+    uv = ph[:, :2] / ph[:, 2:3]
+    cx = np.floor(uv[:, 0] / OUTPUT_STRIDE).astype(int)
+    cy = np.floor(uv[:, 1] / OUTPUT_STRIDE).astype(int)
+    ok = (cx >= 0) & (cx < gw) & (cy >= 0) & (cy < gh) & (t.depths > 0)
+    cell = cy[ok] * gw + cx[ok]
+    centres = cell_centers(gh, gw)[cell]
+    Xc = view.intrinsics.unproject(centres, t.depths[ok])
+    out[cell] = (Xc @ view.c2w[:3, :3].T + view.c2w[:3, 3]).astype(np.float32)
+    return out
 
 
 ProgressFn = Callable[[str, float, dict], None]
@@ -120,7 +152,7 @@ def fill_buffer(
 ) -> dict[str, torch.Tensor]:
     """Encoder features of augmented views: feats (N, C) fp16, pixels (N, 2), view (N,), and per view w2c (V, 3, 4), K (V, 3, 3)."""
     encoder.eval()
-    feats, pixels, views, w2cs, Ks = [], [], [], [], []
+    feats, pixels, views, w2cs, Ks, targets = [], [], [], [], [], []
     total = 0
     order: list[int] = []
     while total < cfg.buffer_size:
@@ -136,6 +168,7 @@ def fill_buffer(
         if take.size == 0:
             continue
         centers = cell_centers(gh, gw)[take]
+        targets.append(torch.from_numpy(cell_targets(im, view, (gh, gw))[take]))
         feats.append(f.reshape(c, -1)[:, torch.from_numpy(take).to(f.device)].T.to(torch.float16).cpu())
         pixels.append(torch.from_numpy(centers.astype(np.float32)))
         views.append(torch.full((take.size,), len(w2cs), dtype=torch.int64))
@@ -152,6 +185,7 @@ def fill_buffer(
         "view": torch.cat(views),
         "w2c": torch.from_numpy(np.stack(w2cs)),
         "K": torch.from_numpy(np.stack(Ks)),
+        "target": torch.cat(targets),
     }
 
 
@@ -168,10 +202,10 @@ def train_head(
     opt = torch.optim.AdamW(head.parameters(), lr=cfg.lr_min, weight_decay=WEIGHT_DECAY)
     use_amp = dev.type == "cuda"
     scaler = torch.amp.GradScaler("cuda", enabled=use_amp)
-    feats, pixels, view = buffer["feats"], buffer["pixels"], buffer["view"]
+    feats, pixels, view, target = buffer["feats"], buffer["pixels"], buffer["view"], buffer["target"]
     w2c_all, K_all = buffer["w2c"].to(dev), buffer["K"].to(dev)
     if dev.type == "cuda":
-        feats, pixels, view = feats.to(dev), pixels.to(dev), view.to(dev)
+        feats, pixels, view, target = feats.to(dev), pixels.to(dev), view.to(dev), target.to(dev)
     n = feats.shape[0]
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
     start = time.monotonic()
@@ -194,12 +228,18 @@ def train_head(
         with torch.autocast(dev.type, dtype=torch.float16, enabled=use_amp):
             pred = head(f)[0, :, :, 0].T.float()  # (B, 3)
         parts = reprojection_loss(pred, w2c_all[v], K_all[v], pixels[idx], tau)
+        loss = parts.loss
+        tgt = target[idx]
+        has = torch.isfinite(tgt[:, 0])
+        if bool(has.any()):
+            d = torch.linalg.vector_norm(pred[has] - tgt[has], dim=1)
+            loss = loss + TARGET_WEIGHT * torch.clamp(d, max=TARGET_CLAMP_M).sum() / pred.shape[0]
         opt.zero_grad(set_to_none=True)
-        scaler.scale(parts.loss).backward()
+        scaler.scale(loss).backward()
         scaler.step(opt)
         scaler.update()
         it += 1
-        loss_v, valid_frac = float(parts.loss), parts.valid_fraction
+        loss_v, valid_frac = float(loss.detach()), parts.valid_fraction
         if it % 50 == 0 or it == 1:
             history.append({"iteration": it, "progress": p, "lr": lr, "threshold": tau, "loss": loss_v,
                             "valid": valid_frac, "reproj_px": parts.mean_reproj_px})
@@ -223,6 +263,12 @@ def map_scene(
     for p in encoder.parameters():
         p.requires_grad_(False)
     images = load_training_images(split, cfg.short_side)
+    if cfg.triangulate and len(images) > 1:
+        tg = triangulate_targets([im.gray for im in images], [im.intrinsics for im in images], [im.c2w for im in images])
+        for im, t in zip(images, tg):
+            im.targets = t
+        if progress:
+            progress("triangulate", 1.0, {"points": int(sum(len(t.points) for t in tg))})
     budget = cfg.minutes * 60.0
     buffer = fill_buffer(images, encoder, cfg, t0 + BUFFER_TIME_FRACTION * budget, rng, progress)
     t_buf = time.monotonic() - t0
@@ -238,6 +284,7 @@ def map_scene(
         buffer_seconds=t_buf,
         iterations=its,
         buffer_features=int(buffer["feats"].shape[0]),
+        target_features=int(torch.isfinite(buffer["target"][:, 0]).sum()),
         final_loss=loss_v,
         final_valid_fraction=valid,
         history=history,
