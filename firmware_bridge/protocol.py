@@ -6,11 +6,11 @@ A frame on the wire is ``COBS(header | payload | crc32) 0x00``:
 - payload: a fixed little-endian layout per type (POSE 48, STATUS 28, COMMAND 8, ACK 4 bytes);
 - CRC-32 (IEEE 802.3 / zlib) of header and payload, little-endian.
 
-CRC-32 rather than CRC-16: a frame that is mangled beyond the CRC's guaranteed detection (more
-than a few bit errors, a splice of two frames) passes a CRC-16 with probability 2^-16, so a
-noisy link carrying 100 frames/s would accept a corrupted pose every few minutes; with CRC-32 it
-is 2^-32 (decades at that rate). Two bytes more per frame is 2 % of a POSE frame, and zlib computes
-it in C on the host; the firmware uses a 16-entry table (64 bytes of flash) or the MCU's CRC unit.
+CRC-32 rather than CRC-16: both catch every short burst and every 1-3 bit error in frames this
+short; beyond that a corrupted frame passes a CRC-16 with probability 2^-16 and a CRC-32 with 2^-32.
+On a link that mangles one frame in ten at 100 frames/s that is one bad pose accepted about every
+two hours with CRC-16, and about one in fourteen years with CRC-32. It costs two bytes per frame
+(3 % of a POSE frame); zlib computes it in C on the host, the firmware uses a 64-byte nibble table.
 """
 
 from __future__ import annotations
