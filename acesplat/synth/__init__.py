@@ -1,0 +1,40 @@
+"""The built-in synthetic scene: a procedurally furnished, photo-textured room rendered by numpy ray casting.
+
+Torch-free. ``make_room`` builds a room from a seed, ``make_trajectory`` a camera pass through it,
+``render_view`` renders RGB and metric z-depth, ``synthesize`` writes the built-in scene in the ACE
+layout, ``random_scene_frames`` yields varied in-memory scenes for encoder pretraining.
+"""
+
+from .dataset import (
+    DEFAULT_IMAGE_SIZE,
+    DEFAULT_TEST_FRAMES,
+    DEFAULT_TRAIN_FRAMES,
+    SynthFrame,
+    default_intrinsics,
+    random_scene,
+    random_scene_frames,
+    render_frames,
+    synthesize,
+)
+from .render import render_view
+from .room import RoomScene, make_room
+from .trajectory import TEST_PASS, TRAIN_PASS, CameraPath, make_trajectory
+
+__all__ = [
+    "DEFAULT_IMAGE_SIZE",
+    "DEFAULT_TEST_FRAMES",
+    "DEFAULT_TRAIN_FRAMES",
+    "TEST_PASS",
+    "TRAIN_PASS",
+    "CameraPath",
+    "RoomScene",
+    "SynthFrame",
+    "default_intrinsics",
+    "make_room",
+    "make_trajectory",
+    "random_scene",
+    "random_scene_frames",
+    "render_frames",
+    "render_view",
+    "synthesize",
+]
