@@ -125,7 +125,7 @@ class MavlinkEncoder:
 
 
 class MavlinkDecoder:
-    """Bytes -> MAVLink messages for monitoring; never raises, counts what pymavlink calls bad data."""
+    """Bytes -> MAVLink messages for monitoring; never raises; counts bad data and unverifiable ids as rejected."""
 
     def __init__(self) -> None:
         self._m = load_dialect()
@@ -150,7 +150,9 @@ class MavlinkDecoder:
             return []
         good = []
         for msg in msgs:
-            if msg.get_type() == "BAD_DATA":
+            # UNKNOWN_<id>: an id outside the dialect, whose CRC cannot be checked (no CRC_EXTRA) --
+            # in practice noise that happened to contain a start byte.
+            if msg.get_type() == "BAD_DATA" or msg.get_type().startswith("UNKNOWN_"):
                 self.frames_rejected += 1
             else:
                 self.frames_ok += 1

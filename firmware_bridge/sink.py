@@ -293,11 +293,14 @@ class PoseSink:
     def _write_loop(self) -> None:
         next_hb = next_pose = 0.0
         resync = True  # after a (re)connect or a failed write
+        current = None
         while not self._stop.is_set():
             if not self._link.try_connect():
                 self._stop.wait(min(0.05, max(self._link.seconds_until_retry(), 0.005)))
                 continue
             port = self._link.port
+            if port is not current:  # a new port, whichever thread noticed the old one die
+                current, resync = port, True
             if resync:
                 next_hb = 0.0  # announce ourselves at once
             rec, submitted, acks, hb = self._next_batch(port, next_hb, next_pose)
