@@ -6,6 +6,7 @@ import typer
 
 from .importers.cli_cmd import import_command
 from .scr.cli_cmds import eval_command, map_command, pretrain_command
+from .synth.cli_cmd import synth_command
 
 app = typer.Typer(no_args_is_help=True, add_completion=False, help="ACEsplat desktop: make maps and splats, export bundles.")
 
@@ -15,6 +16,7 @@ def _root() -> None:
     """ACEsplat desktop: make maps and splats, export bundles."""
 
 
+app.command("synth")(synth_command)
 app.command("import")(import_command)
 app.command("map")(map_command)
 app.command("eval")(eval_command)
