@@ -20,8 +20,8 @@ Scalar = float | np.ndarray
 
 
 def _miss_unless(t: np.ndarray, hit: np.ndarray) -> np.ndarray:
-    """``t`` where ``hit``, else MISS (NaN in ``t`` counts as a miss)."""
-    return np.fmax(t, (~hit) * MISS)
+    """``t`` where ``hit``, else MISS (NaN or inf in ``t`` count as misses)."""
+    return np.fmin(np.fmax(t, (~hit) * MISS), MISS)
 
 
 def exit_room(ox: Scalar, oy: Scalar, oz: Scalar, dx: np.ndarray, dy: np.ndarray, dz: np.ndarray, size: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:

@@ -22,6 +22,9 @@ BAND = (0.80, 1.06)
 WALL_MARGIN_MAX = 1.1
 """Distance kept between the loop's nominal ellipse and the walls in a large room (metres)."""
 
+TURN_METRES = 0.5
+"""Metres of travel that count as much as one radian of turning when spacing frames along a pass."""
+
 TRAIN_PASS = {"radius_scale": 1.0, "height_offset": 0.0, "phase": 0.0}
 TEST_PASS = {"radius_scale": 0.87, "height_offset": 0.10, "phase": 0.5}
 
@@ -96,6 +99,15 @@ def _positions(path: CameraPath, theta: np.ndarray, radius_scale: float, height_
     return np.stack([x, y, z], axis=-1)
 
 
+def _yaw(path: CameraPath, theta: np.ndarray) -> np.ndarray:
+    """Heading at loop angle ``theta``: the direction of travel on the nominal ellipse plus slow sweeps."""
+    a, b = path.radii
+    yaw = np.arctan2(b * np.cos(theta), -a * np.sin(theta))
+    for amp, freq, ph in zip(path.yaw_amp, path.yaw_freq, path.yaw_phase):
+        yaw = yaw + amp * np.sin(freq * theta + ph)
+    return yaw
+
+
 def band_points(path: CameraPath, n_angles: int = 96, n_scales: int = 10) -> np.ndarray:
     """Floor points (M, 2) covering the band of :data:`BAND` scales, for keeping objects clear of every pass."""
     theta = np.linspace(0, 2 * np.pi, n_angles, endpoint=False)
@@ -121,14 +133,15 @@ def make_trajectory(
         raise ValueError(f"radius_scale {radius_scale} leaves the object-free band {BAND}")
     dense = np.linspace(0.0, 2 * np.pi, 4097)
     pts = _positions(path, dense, radius_scale, height_offset)
-    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
-    s = (np.arange(n_frames) + phase) / n_frames * arc[-1]
-    theta = np.interp(s, arc, dense)
+    # Frames are spaced evenly in combined motion (travel plus TURN_METRES per radian of heading change),
+    # so neither fast turns at the ends of the ellipse nor long straight stretches get too few frames.
+    turn = np.diff(np.unwrap(_yaw(path, dense)))
+    step = np.hypot(np.linalg.norm(np.diff(pts, axis=0), axis=1), TURN_METRES * turn)
+    progress = np.concatenate([[0.0], np.cumsum(step)])
+    s = (np.arange(n_frames) + phase) / n_frames * progress[-1]
+    theta = np.interp(s, progress, dense)
     eyes = _positions(path, theta, radius_scale, height_offset)
-    a, b = path.radii
-    yaw = np.arctan2(b * np.cos(theta), -a * np.sin(theta))  # direction of travel on the nominal ellipse
-    for amp, freq, ph in zip(path.yaw_amp, path.yaw_freq, path.yaw_phase):
-        yaw = yaw + amp * np.sin(freq * theta + ph)
+    yaw = _yaw(path, theta)
     pitch = path.pitch_mean + path.pitch_amp * np.sin(path.pitch_freq * theta + path.pitch_phase)
     roll = path.roll_amp * np.sin(path.roll_freq * theta + path.roll_phase)
     poses = np.empty((n_frames, 4, 4))
