@@ -18,7 +18,7 @@ from .primitives import MISS
 from .surfaces import PLANAR, SurfaceTable, surface_grid
 
 LIGHT_SPACING = 0.05
-"""Grid spacing (metres) at which lighting is evaluated before upsampling to texture resolution."""
+"""Finest grid spacing (metres) at which lighting is evaluated before upsampling to texture resolution."""
 AMBIENT = 0.45
 DIRECT = 0.8
 FALLOFF = 3.0
@@ -83,10 +83,10 @@ def irradiance(layout: RoomLayout, table: SurfaceTable, s: int, X: np.ndarray, N
     return (AMBIENT * SKY_COLOR[None] + direct[:, None] * LAMP_COLOR[None]) * ao[:, None]
 
 
-def light_map(layout: RoomLayout, table: SurfaceTable, s: int, h: int, w: int) -> np.ndarray:
-    """Light factor (h, w, 3) float32 for surface ``s`` with a texture of h x w texels."""
-    nu = int(np.clip(np.ceil(table.extent[s, 0] / LIGHT_SPACING), 2, w))
-    nv = int(np.clip(np.ceil(table.extent[s, 1] / LIGHT_SPACING), 2, h))
+def light_map(layout: RoomLayout, table: SurfaceTable, s: int, h: int, w: int, spacing: float = LIGHT_SPACING) -> np.ndarray:
+    """Light factor (h, w, 3) float32 for surface ``s`` with a texture of h x w texels, evaluated every ``spacing`` metres."""
+    nu = int(np.clip(np.ceil(table.extent[s, 0] / spacing), 2, w))
+    nv = int(np.clip(np.ceil(table.extent[s, 1] / spacing), 2, h))
     X, N = surface_grid(table, s, nu, nv)
     E = irradiance(layout, table, s, X.reshape(-1, 3), N.reshape(-1, 3)).reshape(nv, nu, 3).astype(np.float32)
     return cv2.resize(E, (w, h), interpolation=cv2.INTER_LINEAR)

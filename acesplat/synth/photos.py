@@ -51,6 +51,8 @@ class Photo:
     name: str
     image: np.ndarray
     gray_source: bool
+    brightness: float
+    """Mean intensity in [0, 1] (a night sky makes a poor floor)."""
 
     @property
     def is_material(self) -> bool:
@@ -109,7 +111,7 @@ def _load(path: Path) -> Photo | None:
         img = cv2.resize(img, (round(w * scale), round(h * scale)), interpolation=cv2.INTER_AREA)
     rgb = cv2.cvtColor(img, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
     gray = bool(np.abs(rgb - rgb.mean(axis=2, keepdims=True)).max() < 0.02)
-    return Photo(name=path.stem, image=rgb, gray_source=gray)
+    return Photo(name=path.stem, image=rgb, gray_source=gray, brightness=float(rgb.mean()))
 
 
 @functools.lru_cache(maxsize=1)

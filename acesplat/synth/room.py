@@ -9,7 +9,7 @@ import numpy as np
 
 from .atlas import TextureAtlas, build_atlas
 from .layout import Objects, RoomLayout, make_layout
-from .lighting import light_map
+from .lighting import LIGHT_SPACING, light_map
 from .photos import load_photos
 from .surfaces import CYLINDER_SIDE, ROLE_CEILING, ROLE_FLOOR, ROLE_WALL, SPHERE, SurfaceTable, build_surfaces
 from .textures import ceiling_texture, floor_texture, object_texture, wall_texture
@@ -77,6 +77,7 @@ def make_room(
     rng = np.random.default_rng([seed, 1])
     photos = load_photos()
     recipes = {ROLE_WALL: wall_texture, ROLE_FLOOR: floor_texture, ROLE_CEILING: ceiling_texture}
+    light_spacing = float(np.clip(8.0 / texel_density, LIGHT_SPACING, 0.15))  # coarse textures need no fine light
     textures = []
     rhos = np.zeros(len(table), dtype=np.float32)
     for s in range(len(table)):
@@ -84,7 +85,7 @@ def make_room(
         rho = float(np.sqrt(h * w / (table.extent[s, 0] * table.extent[s, 1])))
         rhos[s] = rho
         albedo = recipes.get(int(table.role[s]), object_texture)(rng, photos, h, w, rho)
-        textures.append(albedo * light_map(layout, table, s, h, w))
+        textures.append(albedo * light_map(layout, table, s, h, w, spacing=light_spacing))
     atlas = build_atlas(textures, wrap_u=[int(k) in (CYLINDER_SIDE, SPHERE) for k in table.kind])
     return RoomScene(
         seed=seed, layout=layout, surfaces=table, atlas=atlas, texel_density=texel_density, photo_count=len(photos),

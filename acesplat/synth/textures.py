@@ -93,11 +93,15 @@ def photo_region(rng: np.random.Generator, photo: Photo, h: int, w: int, mag: fl
     return cv2.resize(crop, (w, h), interpolation=interp)
 
 
-def _pick(rng: np.random.Generator, photos: Sequence[Photo], material: bool | None = None, min_side: int = 0) -> Photo | None:
+def _pick(
+    rng: np.random.Generator, photos: Sequence[Photo], material: bool | None = None, min_side: int = 0, min_brightness: float = 0.0
+) -> Photo | None:
     if not photos:
         return None
     pool = [
-        p for p in photos if (material is None or p.is_material == material) and min(p.image.shape[:2]) >= min_side
+        p
+        for p in photos
+        if (material is None or p.is_material == material) and min(p.image.shape[:2]) >= min_side and p.brightness >= min_brightness
     ] or list(photos)
     return pool[int(rng.integers(len(pool)))]
 
@@ -110,9 +114,18 @@ def _procedural_fill(rng: np.random.Generator, h: int, w: int, rho: float) -> np
     return (a + m * (b - a)).astype(np.float32)
 
 
-def fill(rng: np.random.Generator, photos: Sequence[Photo], h: int, w: int, rho: float, material: bool | None, mag_m: tuple[float, float]) -> np.ndarray:
+def fill(
+    rng: np.random.Generator,
+    photos: Sequence[Photo],
+    h: int,
+    w: int,
+    rho: float,
+    material: bool | None,
+    mag_m: tuple[float, float],
+    min_brightness: float = 0.0,
+) -> np.ndarray:
     """A recoloured photo crop (or procedural fill) of (h, w, 3); ``mag_m`` is the photo pixel size range in metres."""
-    photo = _pick(rng, photos, material)
+    photo = _pick(rng, photos, material, min_brightness=min_brightness)
     if photo is None:
         return _procedural_fill(rng, h, w, rho)
     mag = rho * rng.uniform(*mag_m)
@@ -244,9 +257,10 @@ def wall_texture(rng: np.random.Generator, photos: Sequence[Photo], h: int, w: i
 
 def floor_texture(rng: np.random.Generator, photos: Sequence[Photo], h: int, w: int, rho: float) -> np.ndarray:
     """Tiles or planks, each cut from a different place of a material photograph, plus a rug and marks."""
-    material = fill(rng, photos, max(h, w), max(h, w), rho, True, (0.002, 0.008))
+    material = fill(rng, photos, max(h, w), max(h, w), rho, True, (0.002, 0.006), min_brightness=0.25)
     tint = random_color(rng, (0.1, 0.6), (0.35, 0.8), hue=(5, 30)) if rng.random() < 0.7 else random_color(rng, (0.0, 0.15), (0.3, 0.8))
     material = 0.35 * material + 0.65 * (1.3 * gray(material)[..., None] * tint)
+    material *= np.float32(rng.uniform(0.35, 0.6) / max(float(np.mean(cv2.mean(material)[:3])), 0.05))  # no black floors
     if rng.random() < 0.5:
         tw = th = int(max(4, rng.uniform(0.25, 0.7) * rho))
         stagger = 0.0
@@ -305,7 +319,7 @@ def ceiling_texture(rng: np.random.Generator, photos: Sequence[Photo], h: int, w
 
 def object_texture(rng: np.random.Generator, photos: Sequence[Photo], h: int, w: int, rho: float) -> np.ndarray:
     """One face of an object: a recoloured photo crop, sometimes striped, labelled and marked."""
-    img = fill(rng, photos, h, w, rho, None, (0.001, 0.006))
+    img = fill(rng, photos, h, w, rho, None, (0.001, 0.004))
     img = _grain(rng, img, rho, rng.uniform(0.05, 0.2))
     if rng.random() < 0.35:
         period = max(2, int(rng.uniform(0.04, 0.2) * rho))
