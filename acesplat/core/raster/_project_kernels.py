@@ -70,46 +70,6 @@ def sh_basis(x, y, z):
 
 
 @njit(cache=True)
-def _sh_basis_grad(x, y, z):
-    """d basis / d(x, y, z) treating the three components as independent: three 16-tuples."""
-    xx, yy, zz = x * x, y * y, z * z
-    gx = (
-        0.0, 0.0, 0.0, -SH_C1,
-        SH_C2_0 * y, 0.0, -2.0 * SH_C2_2 * x, SH_C2_3 * z, 2.0 * SH_C2_4 * x,
-        6.0 * SH_C3_0 * x * y,
-        SH_C3_1 * y * z,
-        -2.0 * SH_C3_2 * x * y,
-        -6.0 * SH_C3_3 * x * z,
-        SH_C3_4 * (4.0 * zz - 3.0 * xx - yy),
-        2.0 * SH_C3_5 * x * z,
-        SH_C3_6 * (3.0 * xx - 3.0 * yy),
-    )
-    gy = (
-        0.0, -SH_C1, 0.0, 0.0,
-        SH_C2_0 * x, SH_C2_1 * z, -2.0 * SH_C2_2 * y, 0.0, -2.0 * SH_C2_4 * y,
-        SH_C3_0 * (3.0 * xx - 3.0 * yy),
-        SH_C3_1 * x * z,
-        SH_C3_2 * (4.0 * zz - xx - 3.0 * yy),
-        -6.0 * SH_C3_3 * y * z,
-        -2.0 * SH_C3_4 * x * y,
-        -2.0 * SH_C3_5 * y * z,
-        -6.0 * SH_C3_6 * x * y,
-    )
-    gz = (
-        0.0, 0.0, SH_C1, 0.0,
-        0.0, SH_C2_1 * y, 4.0 * SH_C2_2 * z, SH_C2_3 * x, 0.0,
-        0.0,
-        SH_C3_1 * x * y,
-        8.0 * SH_C3_2 * y * z,
-        SH_C3_3 * (6.0 * zz - 3.0 * xx - 3.0 * yy),
-        8.0 * SH_C3_4 * x * z,
-        SH_C3_5 * (xx - yy),
-        0.0,
-    )
-    return gx, gy, gz
-
-
-@njit(cache=True)
 def _view_dir(means, i, campos):
     """Unit direction from the camera centre to Gaussian i, and the distance."""
     vx = means[i, 0] - campos[0]
@@ -121,18 +81,112 @@ def _view_dir(means, i, campos):
 
 
 @njit(cache=True)
-def _sh_raw_color(sh, i, degree, dx, dy, dz):
-    """Colour before the +0.5 offset and clamp: sum_k basis_k * sh[i, k, :]."""
-    basis = sh_basis(dx, dy, dz)
-    r = 0.0
-    g = 0.0
-    b = 0.0
-    for k in range((degree + 1) * (degree + 1)):
-        bk = basis[k]
-        r += bk * sh[i, k, 0]
-        g += bk * sh[i, k, 1]
-        b += bk * sh[i, k, 2]
+def _madd(sh, i, k, bk, r, g, b):
+    return r + bk * sh[i, k, 0], g + bk * sh[i, k, 1], b + bk * sh[i, k, 2]
+
+
+@njit(cache=True)
+def _sh_raw_color(sh, i, degree, x, y, z):
+    """Colour before the +0.5 offset and clamp: sum_k basis_k * sh[i, k, :] (unrolled: literal
+    tuple indices compile to registers, a loop index would spill the tuple to memory)."""
+    bs = sh_basis(x, y, z)
+    r, g, b = bs[0] * sh[i, 0, 0], bs[0] * sh[i, 0, 1], bs[0] * sh[i, 0, 2]
+    if degree >= 1:
+        r, g, b = _madd(sh, i, 1, bs[1], r, g, b)
+        r, g, b = _madd(sh, i, 2, bs[2], r, g, b)
+        r, g, b = _madd(sh, i, 3, bs[3], r, g, b)
+    if degree >= 2:
+        r, g, b = _madd(sh, i, 4, bs[4], r, g, b)
+        r, g, b = _madd(sh, i, 5, bs[5], r, g, b)
+        r, g, b = _madd(sh, i, 6, bs[6], r, g, b)
+        r, g, b = _madd(sh, i, 7, bs[7], r, g, b)
+        r, g, b = _madd(sh, i, 8, bs[8], r, g, b)
+    if degree >= 3:
+        r, g, b = _madd(sh, i, 9, bs[9], r, g, b)
+        r, g, b = _madd(sh, i, 10, bs[10], r, g, b)
+        r, g, b = _madd(sh, i, 11, bs[11], r, g, b)
+        r, g, b = _madd(sh, i, 12, bs[12], r, g, b)
+        r, g, b = _madd(sh, i, 13, bs[13], r, g, b)
+        r, g, b = _madd(sh, i, 14, bs[14], r, g, b)
+        r, g, b = _madd(sh, i, 15, bs[15], r, g, b)
     return r, g, b
+
+
+@njit(cache=True)
+def _put3(v_sh, i, k, bk, vr, vg, vb):
+    v_sh[i, k, 0] = bk * vr
+    v_sh[i, k, 1] = bk * vg
+    v_sh[i, k, 2] = bk * vb
+
+
+@njit(cache=True)
+def _dot3(sh, i, k, vr, vg, vb):
+    return sh[i, k, 0] * vr + sh[i, k, 1] * vg + sh[i, k, 2] * vb
+
+
+@njit(cache=True)
+def _sh_backward(sh, i, degree, x, y, z, vr, vg, vb, v_sh):
+    """Write dL/dsh[i] for colour gradient (vr, vg, vb); return dL/d(unit direction)."""
+    bs = sh_basis(x, y, z)
+    _put3(v_sh, i, 0, bs[0], vr, vg, vb)
+    ux = 0.0
+    uy = 0.0
+    uz = 0.0
+    if degree >= 1:
+        _put3(v_sh, i, 1, bs[1], vr, vg, vb)
+        _put3(v_sh, i, 2, bs[2], vr, vg, vb)
+        _put3(v_sh, i, 3, bs[3], vr, vg, vb)
+        w1 = _dot3(sh, i, 1, vr, vg, vb)
+        w2 = _dot3(sh, i, 2, vr, vg, vb)
+        w3 = _dot3(sh, i, 3, vr, vg, vb)
+        ux -= SH_C1 * w3
+        uy -= SH_C1 * w1
+        uz += SH_C1 * w2
+    if degree >= 2:
+        _put3(v_sh, i, 4, bs[4], vr, vg, vb)
+        _put3(v_sh, i, 5, bs[5], vr, vg, vb)
+        _put3(v_sh, i, 6, bs[6], vr, vg, vb)
+        _put3(v_sh, i, 7, bs[7], vr, vg, vb)
+        _put3(v_sh, i, 8, bs[8], vr, vg, vb)
+        w4 = _dot3(sh, i, 4, vr, vg, vb)
+        w5 = _dot3(sh, i, 5, vr, vg, vb)
+        w6 = _dot3(sh, i, 6, vr, vg, vb)
+        w7 = _dot3(sh, i, 7, vr, vg, vb)
+        w8 = _dot3(sh, i, 8, vr, vg, vb)
+        ux += SH_C2_0 * y * w4 - 2.0 * SH_C2_2 * x * w6 + SH_C2_3 * z * w7 + 2.0 * SH_C2_4 * x * w8
+        uy += SH_C2_0 * x * w4 + SH_C2_1 * z * w5 - 2.0 * SH_C2_2 * y * w6 - 2.0 * SH_C2_4 * y * w8
+        uz += SH_C2_1 * y * w5 + 4.0 * SH_C2_2 * z * w6 + SH_C2_3 * x * w7
+    if degree >= 3:
+        _put3(v_sh, i, 9, bs[9], vr, vg, vb)
+        _put3(v_sh, i, 10, bs[10], vr, vg, vb)
+        _put3(v_sh, i, 11, bs[11], vr, vg, vb)
+        _put3(v_sh, i, 12, bs[12], vr, vg, vb)
+        _put3(v_sh, i, 13, bs[13], vr, vg, vb)
+        _put3(v_sh, i, 14, bs[14], vr, vg, vb)
+        _put3(v_sh, i, 15, bs[15], vr, vg, vb)
+        w9 = _dot3(sh, i, 9, vr, vg, vb)
+        w10 = _dot3(sh, i, 10, vr, vg, vb)
+        w11 = _dot3(sh, i, 11, vr, vg, vb)
+        w12 = _dot3(sh, i, 12, vr, vg, vb)
+        w13 = _dot3(sh, i, 13, vr, vg, vb)
+        w14 = _dot3(sh, i, 14, vr, vg, vb)
+        w15 = _dot3(sh, i, 15, vr, vg, vb)
+        xx, yy, zz = x * x, y * y, z * z
+        ux += (
+            6.0 * SH_C3_0 * x * y * w9 + SH_C3_1 * y * z * w10 - 2.0 * SH_C3_2 * x * y * w11
+            - 6.0 * SH_C3_3 * x * z * w12 + SH_C3_4 * (4.0 * zz - 3.0 * xx - yy) * w13
+            + 2.0 * SH_C3_5 * x * z * w14 + SH_C3_6 * (3.0 * xx - 3.0 * yy) * w15
+        )
+        uy += (
+            SH_C3_0 * (3.0 * xx - 3.0 * yy) * w9 + SH_C3_1 * x * z * w10 + SH_C3_2 * (4.0 * zz - xx - 3.0 * yy) * w11
+            - 6.0 * SH_C3_3 * y * z * w12 - 2.0 * SH_C3_4 * x * y * w13 - 2.0 * SH_C3_5 * y * z * w14
+            - 6.0 * SH_C3_6 * x * y * w15
+        )
+        uz += (
+            SH_C3_1 * x * y * w10 + 8.0 * SH_C3_2 * y * z * w11 + SH_C3_3 * (6.0 * zz - 3.0 * xx - 3.0 * yy) * w12
+            + 8.0 * SH_C3_4 * x * z * w13 + SH_C3_5 * (xx - yy) * w14
+        )
+    return ux, uy, uz
 
 
 @njit(cache=True)
@@ -306,21 +360,22 @@ def project_forward(
 @njit(parallel=True, cache=True)
 def project_backward(
     means, log_scales, quats, opacity_logits, sh, sh_degree, view, campos,
-    fx, fy, cx, cy, width, height, order, g_offsets, g_slots, slot_grads,
+    fx, fy, cx, cy, width, height, g_offsets, slot_grads,
     v_means, v_log_scales, v_quats, v_opacity_logits, v_sh, v_means2d,
 ):
     """Sum each visible Gaussian's per-tile gradients and chain them back to its parameters.
 
-    order (V,) maps depth-sorted position to Gaussian index; g_slots[g_offsets[s]:g_offsets[s+1]] are
-    the rows of slot_grads (M, GRAD_WIDTH) written by the tiles Gaussian s touched. Outputs are
-    (pre-zeroed) arrays indexed by Gaussian; invisible Gaussians stay zero.
+    slot_grads[g_offsets[i]:g_offsets[i + 1]] (GRAD_WIDTH columns) are the gradients the tiles
+    Gaussian i touched wrote; none for a culled Gaussian. Gaussians are visited in index order so
+    parameter reads and gradient writes stream. Outputs are pre-zeroed; culled Gaussians stay zero.
     """
     lim_xn = cx / fx + FRUSTUM_SLACK * 0.5 * width / fx
     lim_xp = (width - cx) / fx + FRUSTUM_SLACK * 0.5 * width / fx
     lim_yn = cy / fy + FRUSTUM_SLACK * 0.5 * height / fy
     lim_yp = (height - cy) / fy + FRUSTUM_SLACK * 0.5 * height / fy
-    for s_ in prange(order.shape[0]):
-        i = order[s_]
+    for i in prange(means.shape[0]):
+        if g_offsets[i] == g_offsets[i + 1]:
+            continue
         v_mx = 0.0
         v_my = 0.0
         v_ca = 0.0
@@ -331,8 +386,7 @@ def project_backward(
         v_b = 0.0
         v_op = 0.0
         v_z = 0.0
-        for j in range(g_offsets[s_], g_offsets[s_ + 1]):
-            row = g_slots[j]
+        for row in range(g_offsets[i], g_offsets[i + 1]):
             v_mx += slot_grads[row, G_MX]
             v_my += slot_grads[row, G_MY]
             v_ca += slot_grads[row, G_CA]
@@ -372,26 +426,11 @@ def project_backward(
             v_g = 0.0
         if bl + 0.5 < 0.0:
             v_b = 0.0
-        basis = sh_basis(dx, dy, dz)
-        nk = (sh_degree + 1) * (sh_degree + 1)
-        for k in range(nk):
-            bk = basis[k]
-            v_sh[i, k, 0] = bk * v_r
-            v_sh[i, k, 1] = bk * v_g
-            v_sh[i, k, 2] = bk * v_b
+        ux, uy, uz = _sh_backward(sh, i, sh_degree, dx, dy, dz, v_r, v_g, v_b, v_sh)
         v_wx = 0.0
         v_wy = 0.0
         v_wz = 0.0
         if sh_degree > 0 and dist > 0.0:
-            gx, gy, gz = _sh_basis_grad(dx, dy, dz)
-            ux = 0.0
-            uy = 0.0
-            uz = 0.0
-            for k in range(1, nk):
-                w_k = sh[i, k, 0] * v_r + sh[i, k, 1] * v_g + sh[i, k, 2] * v_b
-                ux += w_k * gx[k]
-                uy += w_k * gy[k]
-                uz += w_k * gz[k]
             # d(unit dir)/d(vector) = (I - d d^T) / |vector|
             dot = ux * dx + uy * dy + uz * dz
             v_wx = (ux - dot * dx) / dist

@@ -32,18 +32,26 @@ _SPAN_SLACK = 1e-3
 
 
 @njit(cache=True)
-def bin_tiles(bbox, tiles_x, tiles_y):
-    """Per-tile lists of depth-sorted Gaussian positions (bbox rows are already in depth order).
+def bin_tiles(rec, bbox, order, n, tiles_x, tiles_y):
+    """Bin the V visible Gaussians into per-tile lists.
 
-    Returns tile_offsets (n_tiles + 1,), tile_lists (M,), g_offsets (V + 1,), g_slots (M,): the list
-    positions each Gaussian occupies, so its per-tile gradients can be summed without searching.
-    A stable counting sort keeps every tile's list in depth order.
+    rec (V, REC_WIDTH) and bbox (V, 4) are already in depth order; order (V,) gives each one's
+    index among all n Gaussians.
+
+    Returns
+    - tile_offsets (n_tiles + 1,) and tile_rec (M, REC_WIDTH): each tile's records copied
+      contiguously in depth order (a stable counting sort), so compositing streams through memory
+      instead of chasing depth-sorted indices across the record array (measured: that random
+      access cost more than the compositing arithmetic);
+    - g_offsets (N + 1,) over Gaussian index and entry_slot (M,): tile entry k's gradient goes to
+      slot entry_slot[k], and Gaussian i's slots are g_offsets[i]:g_offsets[i + 1], contiguous, so
+      the per-Gaussian reduction reads sequentially (the scattered side is the cheaper writes).
     """
     n_tiles = tiles_x * tiles_y
-    v = bbox.shape[0]
     tile_offsets = np.zeros(n_tiles + 1, np.int64)
-    g_offsets = np.zeros(v + 1, np.int64)
-    for s in range(v):
+    g_offsets = np.zeros(n + 1, np.int64)
+    for s in range(order.shape[0]):
+        i = order[s]
         tx0 = bbox[s, 0] // TILE
         tx1 = bbox[s, 1] // TILE
         ty0 = bbox[s, 2] // TILE
@@ -51,28 +59,31 @@ def bin_tiles(bbox, tiles_x, tiles_y):
         for ty in range(ty0, ty1 + 1):
             for tx in range(tx0, tx1 + 1):
                 tile_offsets[ty * tiles_x + tx + 1] += 1
-        g_offsets[s + 1] = g_offsets[s] + (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
+        g_offsets[i + 1] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
     for t in range(n_tiles):
         tile_offsets[t + 1] += tile_offsets[t]
+    for i in range(n):
+        g_offsets[i + 1] += g_offsets[i]
     m = tile_offsets[n_tiles]
-    tile_lists = np.empty(m, np.int32)
-    g_slots = np.empty(m, np.int64)
+    tile_rec = np.empty((m, rec.shape[1]), rec.dtype)
+    entry_slot = np.empty(m, np.int64)
     cursor = tile_offsets[:n_tiles].copy()
-    for s in range(v):
+    for s in range(order.shape[0]):
+        i = order[s]
         tx0 = bbox[s, 0] // TILE
         tx1 = bbox[s, 1] // TILE
         ty0 = bbox[s, 2] // TILE
         ty1 = bbox[s, 3] // TILE
-        j = g_offsets[s]
+        j = g_offsets[i]
         for ty in range(ty0, ty1 + 1):
             for tx in range(tx0, tx1 + 1):
                 t = ty * tiles_x + tx
                 pos = cursor[t]
                 cursor[t] = pos + 1
-                tile_lists[pos] = s
-                g_slots[j] = pos
+                tile_rec[pos, :] = rec[s, :]
+                entry_slot[pos] = j
                 j += 1
-    return tile_offsets, tile_lists, g_offsets, g_slots
+    return tile_offsets, tile_rec, g_offsets, entry_slot
 
 
 @njit(cache=True)
@@ -98,7 +109,7 @@ def _col_span(mx, dy, ca, cb, cc, maha2, tx0, tx1):
 
 @njit(parallel=True, cache=True)
 def composite_forward(
-    rec, tile_offsets, tile_lists, tile_order, tiles_x, width, height, background,
+    tile_rec, tile_offsets, tile_order, tiles_x, width, height, background,
     out_color, out_trans, out_depth, out_last, done,
 ):
     """Front-to-back alpha compositing per tile.
@@ -130,20 +141,19 @@ def composite_forward(
         for k in range(start, end):
             if active == 0:
                 break
-            s = tile_lists[k]
-            mx = rec[s, MX] * 1.0
-            my = rec[s, MY] * 1.0
-            ca = rec[s, CA] * 1.0
-            cb = rec[s, CB] * 1.0
-            cc = rec[s, CC] * 1.0
-            op = rec[s, OPAC] * 1.0
-            cr = rec[s, RED] * 1.0
-            cg = rec[s, GREEN] * 1.0
-            cbl = rec[s, BLUE] * 1.0
-            z = rec[s, DEPTH] * 1.0
-            pmin = rec[s, POWER_MIN] * 1.0
-            maha2 = rec[s, MAHA2] * 1.0
-            ya, yb = _row_range(my, rec[s, EXT_Y] * 1.0, py0, py1)
+            mx = tile_rec[k, MX] * 1.0
+            my = tile_rec[k, MY] * 1.0
+            ca = tile_rec[k, CA] * 1.0
+            cb = tile_rec[k, CB] * 1.0
+            cc = tile_rec[k, CC] * 1.0
+            op = tile_rec[k, OPAC] * 1.0
+            cr = tile_rec[k, RED] * 1.0
+            cg = tile_rec[k, GREEN] * 1.0
+            cbl = tile_rec[k, BLUE] * 1.0
+            z = tile_rec[k, DEPTH] * 1.0
+            pmin = tile_rec[k, POWER_MIN] * 1.0
+            maha2 = tile_rec[k, MAHA2] * 1.0
+            ya, yb = _row_range(my, tile_rec[k, EXT_Y] * 1.0, py0, py1)
             n_in = k - start + 1
             for y in range(ya, yb + 1):
                 dy = my - y
@@ -179,15 +189,15 @@ def composite_forward(
 
 @njit(parallel=True, cache=True)
 def composite_backward(
-    rec, tile_offsets, tile_lists, tile_order, tiles_x, width, height, background,
-    final_trans, last, v_color, v_alpha, v_depth, scratch, slot_grads,
+    tile_rec, tile_offsets, tile_order, tiles_x, width, height, background,
+    final_trans, last, v_color, v_alpha, v_depth, entry_slot, scratch, slot_grads,
 ):
     """Replay each pixel back to front from its last contributor and write per-slot gradients.
 
     v_color (H, W, 3), v_alpha (H, W) and v_depth (H, W) are the upstream gradients of colour,
     alpha = 1 - final_trans and the alpha-weighted depth sum. scratch (H, W, 5) holds per pixel the
     running transmittance and the colour/depth accumulated behind the current Gaussian.
-    slot_grads (M, GRAD_WIDTH): row k gets the summed gradient of tile-list entry k.
+    slot_grads (M, GRAD_WIDTH): row entry_slot[k] gets the summed gradient of tile entry k.
     """
     for oi in prange(tile_order.shape[0]):
         tile = tile_order[oi]
@@ -209,26 +219,26 @@ def composite_backward(
                 scratch[y, x, 4] = 0.0
                 n_max = max(n_max, last[y, x])
         for k in range(start + n_max, end):
+            row = entry_slot[k]
             for c in range(slot_grads.shape[1]):
-                slot_grads[k, c] = 0.0
+                slot_grads[row, c] = 0.0
         bg0 = background[0]
         bg1 = background[1]
         bg2 = background[2]
         for k in range(start + n_max - 1, start - 1, -1):
-            s = tile_lists[k]
             kk = k - start
-            mx = rec[s, MX] * 1.0
-            my = rec[s, MY] * 1.0
-            ca = rec[s, CA] * 1.0
-            cb = rec[s, CB] * 1.0
-            cc = rec[s, CC] * 1.0
-            op = rec[s, OPAC] * 1.0
-            cr = rec[s, RED] * 1.0
-            cg = rec[s, GREEN] * 1.0
-            cbl = rec[s, BLUE] * 1.0
-            z = rec[s, DEPTH] * 1.0
-            pmin = rec[s, POWER_MIN] * 1.0
-            maha2 = rec[s, MAHA2] * 1.0
+            mx = tile_rec[k, MX] * 1.0
+            my = tile_rec[k, MY] * 1.0
+            ca = tile_rec[k, CA] * 1.0
+            cb = tile_rec[k, CB] * 1.0
+            cc = tile_rec[k, CC] * 1.0
+            op = tile_rec[k, OPAC] * 1.0
+            cr = tile_rec[k, RED] * 1.0
+            cg = tile_rec[k, GREEN] * 1.0
+            cbl = tile_rec[k, BLUE] * 1.0
+            z = tile_rec[k, DEPTH] * 1.0
+            pmin = tile_rec[k, POWER_MIN] * 1.0
+            maha2 = tile_rec[k, MAHA2] * 1.0
             g_mx = 0.0
             g_my = 0.0
             g_ca = 0.0
@@ -239,7 +249,7 @@ def composite_backward(
             g_b = 0.0
             g_op = 0.0
             g_z = 0.0
-            ya, yb = _row_range(my, rec[s, EXT_Y] * 1.0, py0, py1)
+            ya, yb = _row_range(my, tile_rec[k, EXT_Y] * 1.0, py0, py1)
             for y in range(ya, yb + 1):
                 dy = my - y
                 xa, xb = _col_span(mx, dy, ca, cb, cc, maha2, px0, px1)
@@ -253,8 +263,8 @@ def composite_backward(
                     gauss = math.exp(power)
                     a_raw = op * gauss
                     alpha = min(ALPHA_MAX, a_raw)
-                    one_minus = 1.0 - alpha
-                    t_before = scratch[y, x, 0] / one_minus
+                    inv_om = 1.0 / (1.0 - alpha)
+                    t_before = scratch[y, x, 0] * inv_om
                     w = alpha * t_before
                     vr = v_color[y, x, 0] * 1.0
                     vg = v_color[y, x, 1] * 1.0
@@ -269,12 +279,14 @@ def composite_backward(
                     behind_g = scratch[y, x, 2]
                     behind_b = scratch[y, x, 3]
                     behind_d = scratch[y, x, 4]
+                    # d(out)/d(alpha): own colour times transmittance in front, minus everything
+                    # behind (background included) divided by (1 - alpha).
                     v_a = (
-                        (cr * t_before - (behind_r + tf * bg0) / one_minus) * vr
-                        + (cg * t_before - (behind_g + tf * bg1) / one_minus) * vg
-                        + (cbl * t_before - (behind_b + tf * bg2) / one_minus) * vb
-                        + (z * t_before - behind_d / one_minus) * vd
-                        + v_alpha[y, x] * tf / one_minus
+                        (cr * t_before - (behind_r + tf * bg0) * inv_om) * vr
+                        + (cg * t_before - (behind_g + tf * bg1) * inv_om) * vg
+                        + (cbl * t_before - (behind_b + tf * bg2) * inv_om) * vb
+                        + (z * t_before - behind_d * inv_om) * vd
+                        + v_alpha[y, x] * tf * inv_om
                     )
                     scratch[y, x, 0] = t_before
                     scratch[y, x, 1] = behind_r + w * cr
@@ -289,13 +301,14 @@ def composite_backward(
                         g_ca -= 0.5 * v_pow * dx * dx
                         g_cb -= v_pow * dx * dy
                         g_cc -= 0.5 * v_pow * dy * dy
-            slot_grads[k, G_MX] = g_mx
-            slot_grads[k, G_MY] = g_my
-            slot_grads[k, G_CA] = g_ca
-            slot_grads[k, G_CB] = g_cb
-            slot_grads[k, G_CC] = g_cc
-            slot_grads[k, G_RED] = g_r
-            slot_grads[k, G_GREEN] = g_g
-            slot_grads[k, G_BLUE] = g_b
-            slot_grads[k, G_OPAC] = g_op
-            slot_grads[k, G_DEPTH] = g_z
+            row = entry_slot[k]
+            slot_grads[row, G_MX] = g_mx
+            slot_grads[row, G_MY] = g_my
+            slot_grads[row, G_CA] = g_ca
+            slot_grads[row, G_CB] = g_cb
+            slot_grads[row, G_CC] = g_cc
+            slot_grads[row, G_RED] = g_r
+            slot_grads[row, G_GREEN] = g_g
+            slot_grads[row, G_BLUE] = g_b
+            slot_grads[row, G_OPAC] = g_op
+            slot_grads[row, G_DEPTH] = g_z

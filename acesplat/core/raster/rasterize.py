@@ -46,12 +46,11 @@ class RasterContext:
     campos: np.ndarray  # (3,) camera centre in world
     intrinsics: Intrinsics
     background: np.ndarray  # (3,) float64
-    rec: np.ndarray  # (V, REC_WIDTH) depth-sorted screen-space records of the visible Gaussians
-    order: np.ndarray  # (V,) Gaussian index of each record
-    tile_offsets: np.ndarray
-    tile_lists: np.ndarray
-    g_offsets: np.ndarray
-    g_slots: np.ndarray
+    order: np.ndarray  # (V,) visible Gaussian indices in depth order
+    tile_offsets: np.ndarray  # (n_tiles + 1,) each tile's range of tile_rec rows
+    tile_rec: np.ndarray  # (M, REC_WIDTH) screen-space records, per tile in depth order
+    g_offsets: np.ndarray  # (N + 1,) each Gaussian's range of gradient slots
+    entry_slot: np.ndarray  # (M,) gradient slot of each tile_rec row
     tile_order: np.ndarray
     final_trans: np.ndarray  # (H, W) float64
     last: np.ndarray  # (H, W) int32, list entries up to the last contributor
@@ -134,11 +133,13 @@ def rasterize(
             float(near), float(far), rec, bbox, radii, visible,
         )
     vis_idx = np.flatnonzero(visible)
-    order = vis_idx[np.argsort(rec[vis_idx, L.DEPTH], kind="stable")]
-    rec_sorted = np.ascontiguousarray(rec[order])
+    order = _depth_order(rec[vis_idx, L.DEPTH], vis_idx)
     tiles_x = -(-width // TILE)
     tiles_y = -(-height // TILE)
-    tile_offsets, tile_lists, g_offsets, g_slots = bin_tiles(np.ascontiguousarray(bbox[order]), tiles_x, tiles_y)
+    # Gather to depth order first (numpy's take overlaps its cache misses) so binning reads sequentially.
+    tile_offsets, tile_rec, g_offsets, entry_slot = bin_tiles(
+        np.take(rec, order, axis=0), np.take(bbox, order, axis=0), order, n, tiles_x, tiles_y
+    )
     tile_order = _tile_order(tiles_x * tiles_y)
 
     color = np.empty((height, width, 3), np.float64)
@@ -147,7 +148,7 @@ def rasterize(
     last = np.empty((height, width), np.int32)
     done = np.empty((height, width), np.bool_)
     composite_forward(
-        rec_sorted, tile_offsets, tile_lists, tile_order, tiles_x, width, height, bg,
+        tile_rec, tile_offsets, tile_order, tiles_x, width, height, bg,
         color, trans, depth_sum, last, done,
     )
     alpha = 1.0 - trans
@@ -158,8 +159,8 @@ def rasterize(
     means2d[vis_idx] = rec[vis_idx, L.MX : L.MY + 1]
     ctx = RasterContext(
         gaussians=g, sh_degree=deg, view=view, campos=campos, intrinsics=intrinsics, background=bg,
-        rec=rec_sorted, order=order, tile_offsets=tile_offsets, tile_lists=tile_lists,
-        g_offsets=g_offsets, g_slots=g_slots, tile_order=tile_order, final_trans=trans, last=last,
+        order=order, tile_offsets=tile_offsets, tile_rec=tile_rec,
+        g_offsets=g_offsets, entry_slot=entry_slot, tile_order=tile_order, final_trans=trans, last=last,
         depth_sum=depth_sum,
     )
     return RenderResult(
@@ -205,11 +206,11 @@ def rasterize_backward(
 
     dtype = g.dtype
     k = c.intrinsics
-    slot_grads = np.empty((len(c.tile_lists), L.GRAD_WIDTH), dtype)
+    slot_grads = np.empty((len(c.tile_rec), L.GRAD_WIDTH), dtype)
     scratch = np.empty((h, w, 5), np.float64)
     composite_backward(
-        c.rec, c.tile_offsets, c.tile_lists, c.tile_order, -(-w // TILE), w, h, c.background,
-        c.final_trans, c.last, v_color, v_alpha, v_depth_sum, scratch, slot_grads,
+        c.tile_rec, c.tile_offsets, c.tile_order, -(-w // TILE), w, h, c.background,
+        c.final_trans, c.last, v_color, v_alpha, v_depth_sum, c.entry_slot, scratch, slot_grads,
     )
     n = len(g)
     out = RasterGradients(
@@ -224,7 +225,7 @@ def rasterize_backward(
         project_backward(
             g.means, g.log_scales, g.quats, g.opacity_logits, g.sh, c.sh_degree, c.view, c.campos,
             float(k.fx), float(k.fy), float(k.cx), float(k.cy), float(w), float(h),
-            c.order, c.g_offsets, c.g_slots, slot_grads,
+            c.g_offsets, slot_grads,
             out.means, out.log_scales, out.quats, out.opacity_logits, out.sh, out.means2d,
         )
     return out
@@ -293,6 +294,19 @@ def _check_image_grad(name: str, v: np.ndarray, shape: tuple[int, ...]) -> np.nd
     if not np.issubdtype(v.dtype, np.floating):
         raise TypeError(f"{name} must be floating point, got {v.dtype}")
     return np.ascontiguousarray(v, dtype=np.float64)
+
+
+def _depth_order(depth: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """``index`` sorted by ``depth`` (all >= near > 0), ties in index order (a stable sort).
+
+    For float32 one unstable sort of 64-bit keys (depth bits above index) is several times faster
+    than a stable argsort; positive IEEE floats order like their bit patterns.
+    """
+    if depth.dtype == np.float32 and index.size and index[-1] < 2**32:
+        keys = (depth.view(np.uint32).astype(np.uint64) << np.uint64(32)) | index.astype(np.uint64)
+        keys.sort()
+        return (keys & np.uint64(0xFFFFFFFF)).astype(np.int64)
+    return index[np.argsort(depth, kind="stable")]
 
 
 @functools.lru_cache(maxsize=16)
