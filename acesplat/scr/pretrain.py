@@ -28,7 +28,7 @@ from .network import Encoder, EncoderConfig, Head, HeadConfig, normalize_gray
 EDGE_ENCODER = EncoderConfig(c1=16, c2=32, c3=64, c4=128, res2=256, out=512)
 """The project's default encoder: a fifth of ACE's multiply-accumulates (bench/encoder_choice.md)."""
 PRETRAIN_HEAD = HeadConfig(width=128, blocks=1, homogeneous=True)
-CROP_HW = (192, 256)
+CROP_HW = (128, 160)
 BATCH_IMAGES = 8
 LR = 1e-3
 LR_FINAL_FRACTION = 0.05
@@ -201,7 +201,7 @@ def pretrain(
         torch.nn.utils.clip_grad_norm_(params, 10.0)
         opt.step()
         step += 1
-        running.append(float(loss))
+        running.append(float(loss.detach()))
         if step % 100 == 0:
             history.append({"step": step, "loss_m": float(np.mean(running)), "lr": lr})
             running = []

@@ -1,0 +1,48 @@
+"""What machine a number was measured on: printed beside every benchmark and profile."""
+
+from __future__ import annotations
+
+import os
+import platform
+from importlib import metadata
+
+
+def cpu_model() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def library_versions(names: tuple[str, ...] = ("numpy", "opencv-python-headless", "onnxruntime", "torch", "numba")) -> dict[str, str]:
+    """Installed versions read from package metadata, without importing the packages (the edge has no torch)."""
+    out = {}
+    for n in names:
+        try:
+            out[n] = metadata.version(n)
+        except metadata.PackageNotFoundError:
+            out[n] = "not installed"
+    return out
+
+
+def machine_info() -> dict:
+    """CPU model, logical cores, Python, OS and library versions."""
+    load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
+    return {
+        "cpu": cpu_model(),
+        "cores": os.cpu_count(),
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "load_average_1m": round(load[0], 2),
+        "libraries": library_versions(),
+    }
+
+
+def machine_line() -> str:
+    m = machine_info()
+    libs = ", ".join(f"{k} {v}" for k, v in m["libraries"].items())
+    return f"{m['cpu']}, {m['cores']} cores, load {m['load_average_1m']}; Python {m['python']}; {libs}"
