@@ -12,7 +12,6 @@ import pytest
 from typer.testing import CliRunner
 
 from acesplat.cli import app
-from acesplat.core.camera import Intrinsics
 from acesplat.core.errors import InputError
 from acesplat.core.geometry import invert_pose, look_at, rigidity_problem, transform_points
 from acesplat.core.scene import read_split
@@ -182,7 +181,13 @@ def test_views_are_geometrically_and_photometrically_consistent(small_room) -> N
         pb = K.project(Xb)
         u0, v0 = np.floor(pb[:, 0]).astype(int), np.floor(pb[:, 1]).astype(int)
         inside = (Xb[:, 2] > 0.1) & (u0 >= 0) & (u0 < K.width - 1) & (v0 >= 0) & (v0 < K.height - 1)
-        u0, v0, fu, fv, zt = u0[inside], v0[inside], pb[inside, 0] - u0[inside], pb[inside, 1] - v0[inside], Xb[inside, 2]
+        u0, v0, fu, fv, zt = (
+            u0[inside],
+            v0[inside],
+            pb[inside, 0] - u0[inside],
+            pb[inside, 1] - v0[inside],
+            Xb[inside, 2],
+        )
         quad = np.stack([depth_b[v0, u0], depth_b[v0, u0 + 1], depth_b[v0 + 1, u0], depth_b[v0 + 1, u0 + 1]], 1)
         # Inverse depth is bilinear in the image on a plane: interpolate it among four neighbours on one surface.
         smooth = quad.max(1) < 1.02 * quad.min(1)
@@ -212,7 +217,9 @@ def test_rendering_and_rooms_are_deterministic_for_a_seed() -> None:
     ra, da = render_view(a, pose, K)
     rb, db = render_view(b, pose, K)
     assert np.array_equal(ra, rb) and np.array_equal(da, db)
-    assert not np.array_equal(a.atlas.image.shape, c.atlas.image.shape) or not np.array_equal(a.atlas.image, c.atlas.image)
+    assert not np.array_equal(a.atlas.image.shape, c.atlas.image.shape) or not np.array_equal(
+        a.atlas.image, c.atlas.image
+    )
 
 
 def test_textures_are_rich(small_room) -> None:

@@ -9,8 +9,8 @@ instead of aliased (aliasing flickers between views and hurts matching and splat
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import cv2
 import numpy as np
@@ -84,7 +84,9 @@ def build_atlas(textures: Sequence[np.ndarray], wrap_u: Sequence[bool]) -> Textu
         shelf = max(shelf, th)
     height = y + shelf
     if height > MAX_ATLAS_HEIGHT:
-        raise ValueError(f"textures need an atlas {height} texels high (max {MAX_ATLAS_HEIGHT}); lower the texel density")
+        raise ValueError(
+            f"textures need an atlas {height} texels high (max {MAX_ATLAS_HEIGHT}); lower the texel density"
+        )
     image = np.zeros((height, ATLAS_WIDTH, 3), dtype=np.uint8)
     x0 = np.zeros((S, L), np.float32)
     y0 = np.zeros((S, L), np.float32)
@@ -129,8 +131,11 @@ def sample(atlas: TextureAtlas, sid: np.ndarray, un: np.ndarray, vn: np.ndarray,
     for k in range(2):
         mapx[k, :n], mapy[k, :n] = maps[k]
     both = cv2.remap(
-        atlas.image, mapx.reshape(2 * rows, REMAP_COLS), mapy.reshape(2 * rows, REMAP_COLS),
-        interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE,
+        atlas.image,
+        mapx.reshape(2 * rows, REMAP_COLS),
+        mapy.reshape(2 * rows, REMAP_COLS),
+        interpolation=cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REPLICATE,
     ).reshape(2, rows * REMAP_COLS, 3)
     c0 = both[0, :n].astype(np.float32)
     c1 = both[1, :n].astype(np.float32)

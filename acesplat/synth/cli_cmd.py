@@ -19,10 +19,16 @@ def synth_command(
     out: Path = typer.Argument(..., help="Scene folder to create (must be new or empty unless --overwrite)."),
     seed: int = typer.Option(0, "--seed", help="Room, textures and camera path all follow from this seed."),
     frames: int = typer.Option(DEFAULT_TRAIN_FRAMES, "--frames", help="Training frames (one pass around the room)."),
-    test_frames: int = typer.Option(DEFAULT_TEST_FRAMES, "--test-frames", help="Test frames (a separate, offset pass)."),
+    test_frames: int = typer.Option(
+        DEFAULT_TEST_FRAMES, "--test-frames", help="Test frames (a separate, offset pass)."
+    ),
     size: str = typer.Option("240x320", "--size", help="Image size HxW."),
     supersample: int = typer.Option(
-        DEFAULT_SUPERSAMPLE, "--supersample", min=1, max=4, help="Rays per pixel side on surface boundaries (antialiasing)."
+        DEFAULT_SUPERSAMPLE,
+        "--supersample",
+        min=1,
+        max=4,
+        help="Rays per pixel side on surface boundaries (antialiasing).",
     ),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing non-empty OUT."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the summary (counts, timings, room) as JSON."),

@@ -10,8 +10,9 @@ from __future__ import annotations
 import os
 import shutil
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
@@ -145,7 +146,11 @@ def synthesize(
             "photos": scene.photo_count,
             "texel_density_per_m": scene.texel_density,
             "depth_range_m": [depth_lo, depth_hi],
-            "test_to_train_distance_m": {"min": float(gap.min()), "median": float(np.median(gap)), "max": float(gap.max())},
+            "test_to_train_distance_m": {
+                "min": float(gap.min()),
+                "median": float(np.median(gap)),
+                "max": float(gap.max()),
+            },
             "room_seconds": room_seconds,
             "render_ms_per_frame": 1000.0 * render_s / total,
             "write_ms_per_frame": 1000.0 * write_s / total,
@@ -170,7 +175,9 @@ def _move_into_place(tmp: Path, out_dir: Path) -> None:
         os.replace(tmp, out_dir)
 
 
-def render_frames(scene: RoomScene, poses: np.ndarray, intrinsics: Intrinsics, supersample: int = 1) -> list[SynthFrame]:
+def render_frames(
+    scene: RoomScene, poses: np.ndarray, intrinsics: Intrinsics, supersample: int = 1
+) -> list[SynthFrame]:
     """Render ``poses`` (N, 4, 4) of ``scene`` in memory."""
     frames = []
     for pose in poses:
@@ -190,7 +197,9 @@ def random_scene(seed: int, size: tuple[int, int] = DEFAULT_IMAGE_SIZE) -> tuple
     room = np.array([rng.uniform(3.0, 8.0), rng.uniform(3.0, 8.0), rng.uniform(2.5, 3.5)])
     K = default_intrinsics((h, w), hfov_deg=float(rng.uniform(55.0, 75.0)))
     n_objects = int(rng.integers(2, max(3, int(room[0] * room[1] * 0.6))))
-    scene = make_room(int(rng.integers(2**31)), size=room, texel_density=texel_density_for(K), n_objects=n_objects, wide=True)
+    scene = make_room(
+        int(rng.integers(2**31)), size=room, texel_density=texel_density_for(K), n_objects=n_objects, wide=True
+    )
     pass_params = {
         "radius_scale": float(rng.uniform(0.84, 1.01)),
         "height_offset": float(rng.uniform(-0.15, 0.15)),

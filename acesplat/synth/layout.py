@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .primitives import hit_box, hit_cylinder, hit_sphere, sdf_box, sdf_box_xy, sdf_cylinder, sdf_sphere
+from .primitives import Scalar, hit_box, hit_cylinder, hit_sphere, sdf_box, sdf_box_xy, sdf_cylinder, sdf_sphere
 from .trajectory import CameraPath, band_points, random_path
 
 CAMERA_CLEARANCE = 0.35
@@ -46,19 +46,24 @@ class Objects:
         """Signed distances (K, ...) from points ``X`` (..., 3) to each object, in global id order."""
         out = [sdf_box(X, c, h, y) for c, h, y in zip(self.box_center, self.box_half, self.box_yaw)]
         out += [
-            sdf_cylinder(X, c, r, a, b) for c, r, a, b in zip(self.cyl_center, self.cyl_radius, self.cyl_z0, self.cyl_z1)
+            sdf_cylinder(X, c, r, a, b)
+            for c, r, a, b in zip(self.cyl_center, self.cyl_radius, self.cyl_z0, self.cyl_z1)
         ]
         out += [sdf_sphere(X, c, r) for c, r in zip(self.sph_center, self.sph_radius)]
         return np.stack(out) if out else np.zeros((0,) + X.shape[:-1])
 
-    def hit(self, k: int, ox, oy, oz, dx: np.ndarray, dy: np.ndarray, dz: np.ndarray) -> np.ndarray:  # noqa: ANN001
+    def hit(
+        self, k: int, ox: Scalar, oy: Scalar, oz: Scalar, dx: np.ndarray, dy: np.ndarray, dz: np.ndarray
+    ) -> np.ndarray:
         """Nearest hit distance (MISS where none) of rays on object ``k`` (global id); see :mod:`.primitives`."""
         nb, nc, _ = self.counts
         if k < nb:
             return hit_box(ox, oy, oz, dx, dy, dz, self.box_center[k], self.box_half[k], self.box_yaw[k])
         if k < nb + nc:
             k -= nb
-            return hit_cylinder(ox, oy, oz, dx, dy, dz, self.cyl_center[k], self.cyl_radius[k], self.cyl_z0[k], self.cyl_z1[k])
+            return hit_cylinder(
+                ox, oy, oz, dx, dy, dz, self.cyl_center[k], self.cyl_radius[k], self.cyl_z0[k], self.cyl_z1[k]
+            )
         k -= nb + nc
         return hit_sphere(ox, oy, oz, dx, dy, dz, self.sph_center[k], self.sph_radius[k])
 
@@ -179,12 +184,18 @@ class _Builder:
         )
 
 
-def make_layout(rng: np.random.Generator, size: np.ndarray, n_objects: int | None = None, wide: bool = False) -> RoomLayout:
+def make_layout(
+    rng: np.random.Generator, size: np.ndarray, n_objects: int | None = None, wide: bool = False
+) -> RoomLayout:
     """A random room of ``size`` (3,) metres with about ``n_objects`` floor objects (default: by floor area)."""
     size = np.asarray(size, dtype=np.float64)
     path = random_path(rng, size, wide=wide)
     light = np.array(
-        [size[0] / 2 + rng.uniform(-0.3, 0.3) * size[0] / 6, size[1] / 2 + rng.uniform(-0.3, 0.3) * size[1] / 4, size[2] - 0.35]
+        [
+            size[0] / 2 + rng.uniform(-0.3, 0.3) * size[0] / 6,
+            size[1] / 2 + rng.uniform(-0.3, 0.3) * size[1] / 4,
+            size[2] - 0.35,
+        ]
     )
     b = _Builder(rng, size, path, light)
     target = n_objects if n_objects is not None else int(round(size[0] * size[1] * rng.uniform(0.3, 0.45)))
@@ -201,7 +212,9 @@ def make_layout(rng: np.random.Generator, size: np.ndarray, n_objects: int | Non
                 b.stack_on(*b.boxes[-1])
         elif kind == "cabinet":
             wall = int(rng.integers(4))
-            half = np.array([rng.uniform(0.25, 0.7), rng.uniform(0.15, 0.25), 0.5 * rng.uniform(0.9, min(2.2, size[2] - 0.5))])
+            half = np.array(
+                [rng.uniform(0.25, 0.7), rng.uniform(0.15, 0.25), 0.5 * rng.uniform(0.9, min(2.2, size[2] - 0.5))]
+            )
             axis = wall // 2  # 0: walls x = 0 / x = Lx, 1: walls y = 0 / y = Ly
             along = rng.uniform(half[0], size[1 - axis] - half[0])
             depth = half[1] + 0.01
@@ -223,6 +236,8 @@ def make_layout(rng: np.random.Generator, size: np.ndarray, n_objects: int | Non
                 b.cyls.append((xy, rng.uniform(0.03, 0.07), 0.0, height - 0.04))
                 if rng.random() < 0.6:
                     r = rng.uniform(0.08, 0.18)
-                    b.sphs.append((np.array([xy[0] + rng.uniform(-0.1, 0.1), xy[1] + rng.uniform(-0.1, 0.1), height + r]), r))
+                    b.sphs.append(
+                        (np.array([xy[0] + rng.uniform(-0.1, 0.1), xy[1] + rng.uniform(-0.1, 0.1), height + r]), r)
+                    )
         placed += int(ok)
     return RoomLayout(size=size, objects=b.objects(), light=light, path=path)

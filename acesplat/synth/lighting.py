@@ -43,8 +43,8 @@ def lamp_points(light: np.ndarray) -> np.ndarray:
 def shadow_visibility(layout: RoomLayout, X: np.ndarray, N: np.ndarray) -> np.ndarray:
     """Fraction (M,) of lamp points visible from surface points ``X`` (M, 3) with normals ``N`` (M, 3)."""
     ob = layout.objects
-    O = (X + 0.01 * N).astype(np.float32)
-    ox, oy, oz = O[:, 0].copy(), O[:, 1].copy(), O[:, 2].copy()
+    start = (X + 0.01 * N).astype(np.float32)
+    ox, oy, oz = start[:, 0].copy(), start[:, 1].copy(), start[:, 2].copy()
     vis = np.zeros(len(X), dtype=np.float32)
     for lp in lamp_points(layout.light).astype(np.float32):
         dx, dy, dz = lp[0] - ox, lp[1] - oy, lp[2] - oz
@@ -83,8 +83,10 @@ def irradiance(layout: RoomLayout, table: SurfaceTable, s: int, X: np.ndarray, N
     return (AMBIENT * SKY_COLOR[None] + direct[:, None] * LAMP_COLOR[None]) * ao[:, None]
 
 
-def light_map(layout: RoomLayout, table: SurfaceTable, s: int, h: int, w: int, spacing: float = LIGHT_SPACING) -> np.ndarray:
-    """Light factor (h, w, 3) float32 for surface ``s`` with a texture of h x w texels, evaluated every ``spacing`` metres."""
+def light_map(
+    layout: RoomLayout, table: SurfaceTable, s: int, h: int, w: int, spacing: float = LIGHT_SPACING
+) -> np.ndarray:
+    """Light factor (h, w, 3) float32 for surface ``s`` with an h x w texture, evaluated every ``spacing`` metres."""
     nu = int(np.clip(np.ceil(table.extent[s, 0] / spacing), 2, w))
     nv = int(np.clip(np.ceil(table.extent[s, 1] / spacing), 2, h))
     X, N = surface_grid(table, s, nu, nv)

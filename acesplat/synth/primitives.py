@@ -24,7 +24,9 @@ def _miss_unless(t: np.ndarray, hit: np.ndarray) -> np.ndarray:
     return np.fmin(np.fmax(t, (~hit) * MISS), MISS)
 
 
-def exit_room(ox: Scalar, oy: Scalar, oz: Scalar, dx: np.ndarray, dy: np.ndarray, dz: np.ndarray, size: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
+def exit_room(
+    ox: Scalar, oy: Scalar, oz: Scalar, dx: np.ndarray, dy: np.ndarray, dz: np.ndarray, size: np.ndarray
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Distances to the planes through which rays from inside the box [0, size] leave it, per axis.
 
     Returns ([t_x, t_y, t_z], [hit max side x, y, z]); the exit is the smallest of the three.
@@ -40,8 +42,15 @@ def exit_room(ox: Scalar, oy: Scalar, oz: Scalar, dx: np.ndarray, dy: np.ndarray
 
 
 def hit_box(
-    ox: Scalar, oy: Scalar, oz: Scalar, dx: np.ndarray, dy: np.ndarray, dz: np.ndarray,
-    center: np.ndarray, half: np.ndarray, yaw: float,
+    ox: Scalar,
+    oy: Scalar,
+    oz: Scalar,
+    dx: np.ndarray,
+    dy: np.ndarray,
+    dz: np.ndarray,
+    center: np.ndarray,
+    half: np.ndarray,
+    yaw: float,
 ) -> np.ndarray:
     """Entry distance into a box rotated by ``yaw`` about world z (slab method in the box frame).
 
@@ -65,8 +74,16 @@ def hit_box(
 
 
 def hit_cylinder(
-    ox: Scalar, oy: Scalar, oz: Scalar, dx: np.ndarray, dy: np.ndarray, dz: np.ndarray,
-    center: np.ndarray, radius: float, z0: float, z1: float,
+    ox: Scalar,
+    oy: Scalar,
+    oz: Scalar,
+    dx: np.ndarray,
+    dy: np.ndarray,
+    dz: np.ndarray,
+    center: np.ndarray,
+    radius: float,
+    z0: float,
+    z1: float,
 ) -> np.ndarray:
     """Nearest hit on a closed vertical cylinder (axis at ``center`` (2,) in xy, z in [z0, z1])."""
     r2 = np.float32(radius * radius)
@@ -88,7 +105,14 @@ def hit_cylinder(
 
 
 def hit_sphere(
-    ox: Scalar, oy: Scalar, oz: Scalar, dx: np.ndarray, dy: np.ndarray, dz: np.ndarray, center: np.ndarray, radius: float
+    ox: Scalar,
+    oy: Scalar,
+    oz: Scalar,
+    dx: np.ndarray,
+    dy: np.ndarray,
+    dz: np.ndarray,
+    center: np.ndarray,
+    radius: float,
 ) -> np.ndarray:
     """Entry distance into a sphere."""
     px, py, pz = ox - np.float32(center[0]), oy - np.float32(center[1]), oz - np.float32(center[2])

@@ -29,7 +29,7 @@ _SHIFT = 16
 
 @functools.lru_cache(maxsize=8)
 def pixel_rays(fx: float, fy: float, cx: float, cy: float, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """Camera-frame ray slopes x/z, y/z (H, W) float32 through the pixel centres (integer coordinates, as in :class:`Intrinsics`)."""
+    """Camera-frame ray slopes x/z, y/z (H, W) float32 through pixel centres (integer coordinates, as in Intrinsics)."""
     u = np.arange(width, dtype=np.float64)
     v = np.arange(height, dtype=np.float64)
     x = np.broadcast_to(((u - cx) / fx).astype(np.float32)[None], (height, width)).copy()
@@ -43,7 +43,9 @@ def _key(t: np.ndarray, code: int | np.ndarray) -> np.ndarray:
     return (t.view(np.int32).astype(np.int64) << _SHIFT) | code
 
 
-def screen_rect(center_cam: np.ndarray, radius: float, fx: float, fy: float, cx: float, cy: float, width: int, height: int) -> tuple[int, int, int, int] | None:
+def screen_rect(
+    center_cam: np.ndarray, radius: float, fx: float, fy: float, cx: float, cy: float, width: int, height: int
+) -> tuple[int, int, int, int] | None:
     """Conservative pixel rectangle (v0, v1, u0, u1) covering a sphere in camera coordinates, None if not in view."""
     X, Y, Z = center_cam
     if Z + radius <= 0:
@@ -118,7 +120,9 @@ def surface_ids(scene: RoomScene, code: np.ndarray, x: np.ndarray, y: np.ndarray
     if idx.size:
         kc = g[idx] - nb
         rr = np.hypot(x[idx] - ob.cyl_center[kc, 0], y[idx] - ob.cyl_center[kc, 1])
-        dist = np.stack([np.abs(rr - ob.cyl_radius[kc]), np.abs(z[idx] - ob.cyl_z0[kc]), np.abs(z[idx] - ob.cyl_z1[kc])], axis=1)
+        dist = np.stack(
+            [np.abs(rr - ob.cyl_radius[kc]), np.abs(z[idx] - ob.cyl_z0[kc]), np.abs(z[idx] - ob.cyl_z1[kc])], axis=1
+        )
         sid[idx] = table.cyl_base + 3 * kc + np.argmin(dist, axis=1)
     idx = np.flatnonzero(g >= nb + nc)
     if idx.size:
@@ -143,7 +147,9 @@ def _check(scene: RoomScene, pose: np.ndarray, intrinsics: Intrinsics, ss: int) 
     return pose
 
 
-def _shade(scene: RoomScene, pose: np.ndarray, depth: np.ndarray, code: np.ndarray, dirs: tuple, focal: float) -> tuple[np.ndarray, np.ndarray]:
+def _shade(
+    scene: RoomScene, pose: np.ndarray, depth: np.ndarray, code: np.ndarray, dirs: tuple, focal: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Colours (P, 3) float32 in [0, 255] and surface ids (P,) of the hits of one cast."""
     dx, dy, dz = (d.reshape(-1) for d in dirs)
     t = depth.reshape(-1)
@@ -154,7 +160,9 @@ def _shade(scene: RoomScene, pose: np.ndarray, depth: np.ndarray, code: np.ndarr
     cos = np.abs(nx * dx + ny * dy + nz * dz)
     # Pixel footprint on the surface: z / (f sqrt|n . d|) metres for directions with camera z = 1.
     footprint = t / (np.float32(focal) * np.sqrt(np.maximum(cos, np.float32(1e-3))))
-    level = np.log2(np.maximum(footprint * np.take(scene.texels_per_metre, sid), np.float32(1e-6))) + np.float32(MIP_BIAS)
+    level = np.log2(np.maximum(footprint * np.take(scene.texels_per_metre, sid), np.float32(1e-6))) + np.float32(
+        MIP_BIAS
+    )
     return sample(scene.atlas, sid, un, vn, level), sid
 
 

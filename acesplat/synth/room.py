@@ -88,6 +88,11 @@ def make_room(
         textures.append(albedo * light_map(layout, table, s, h, w, spacing=light_spacing))
     atlas = build_atlas(textures, wrap_u=[int(k) in (CYLINDER_SIDE, SPHERE) for k in table.kind])
     return RoomScene(
-        seed=seed, layout=layout, surfaces=table, atlas=atlas, texel_density=texel_density, photo_count=len(photos),
+        seed=seed,
+        layout=layout,
+        surfaces=table,
+        atlas=atlas,
+        texel_density=texel_density,
+        photo_count=len(photos),
         texels_per_metre=rhos,
     )

@@ -50,21 +50,56 @@ class SurfaceTable:
         return len(self.kind)
 
 
-def _planar(rows: list[dict], role: int, owner: int, center: np.ndarray, normal: np.ndarray, eu: np.ndarray, half_u: float, half_v: float) -> None:
+def _planar(
+    rows: list[dict],
+    role: int,
+    owner: int,
+    center: np.ndarray,
+    normal: np.ndarray,
+    eu: np.ndarray,
+    half_u: float,
+    half_v: float,
+) -> None:
     ev = np.cross(eu, normal)
     rows.append(
         dict(
-            kind=PLANAR, role=role, owner=owner, origin=center - half_u * eu - half_v * ev, eu=eu, ev=ev, normal=normal,
-            extent=(2 * half_u, 2 * half_v), center=np.zeros(3), radius=0.0, zspan=(0.0, 0.0),
+            kind=PLANAR,
+            role=role,
+            owner=owner,
+            origin=center - half_u * eu - half_v * ev,
+            eu=eu,
+            ev=ev,
+            normal=normal,
+            extent=(2 * half_u, 2 * half_v),
+            center=np.zeros(3),
+            radius=0.0,
+            zspan=(0.0, 0.0),
         )
     )
 
 
-def _curved(rows: list[dict], kind: int, owner: int, center: np.ndarray, radius: float, zspan: tuple[float, float], extent: tuple[float, float]) -> None:
+def _curved(
+    rows: list[dict],
+    kind: int,
+    owner: int,
+    center: np.ndarray,
+    radius: float,
+    zspan: tuple[float, float],
+    extent: tuple[float, float],
+) -> None:
     rows.append(
         dict(
-            kind=kind, role=ROLE_OBJECT, owner=owner, origin=np.zeros(3), eu=np.zeros(3), ev=np.zeros(3), normal=np.zeros(3),
-            extent=extent, center=center, radius=radius, zspan=zspan,
+            kind=kind,
+            role=ROLE_OBJECT,
+            owner=owner,
+            origin=np.zeros(3),
+            eu=np.zeros(3),
+            ev=np.zeros(3),
+            normal=np.zeros(3),
+            extent=extent,
+            center=center,
+            radius=radius,
+            zspan=zspan,
         )
     )
 
@@ -91,7 +126,9 @@ def build_surfaces(layout: RoomLayout) -> SurfaceTable:
                 _planar(rows, ROLE_WALL, -1, center, normal, eu, size[1 - axis] / 2, size[2] / 2)
             else:
                 eu = np.array([1.0, 0.0, 0.0])
-                _planar(rows, ROLE_FLOOR if side == 0 else ROLE_CEILING, -1, center, normal, eu, size[0] / 2, size[1] / 2)
+                _planar(
+                    rows, ROLE_FLOOR if side == 0 else ROLE_CEILING, -1, center, normal, eu, size[0] / 2, size[1] / 2
+                )
     box_base = len(rows)
     for b, (c, h, yaw) in enumerate(zip(ob.box_center, ob.box_half, ob.box_yaw)):
         axes = np.array([[np.cos(yaw), np.sin(yaw), 0.0], [-np.sin(yaw), np.cos(yaw), 0.0], [0.0, 0.0, 1.0]])
@@ -110,7 +147,9 @@ def build_surfaces(layout: RoomLayout) -> SurfaceTable:
     nb = len(ob.box_center)
     for k, (c, r, z0, z1) in enumerate(zip(ob.cyl_center, ob.cyl_radius, ob.cyl_z0, ob.cyl_z1)):
         owner = nb + k
-        _curved(rows, CYLINDER_SIDE, owner, np.array([c[0], c[1], 0.5 * (z0 + z1)]), r, (z0, z1), (2 * np.pi * r, z1 - z0))
+        _curved(
+            rows, CYLINDER_SIDE, owner, np.array([c[0], c[1], 0.5 * (z0 + z1)]), r, (z0, z1), (2 * np.pi * r, z1 - z0)
+        )
         _planar(rows, ROLE_OBJECT, owner, np.array([c[0], c[1], z0]), -Z, np.array([1.0, 0.0, 0.0]), r, r)
         _planar(rows, ROLE_OBJECT, owner, np.array([c[0], c[1], z1]), Z, np.array([1.0, 0.0, 0.0]), r, r)
     sph_base = len(rows)
@@ -122,10 +161,20 @@ def build_surfaces(layout: RoomLayout) -> SurfaceTable:
         return np.array([r[key] for r in rows], dtype=dtype)
 
     return SurfaceTable(
-        kind=col("kind", np.int64), role=col("role", np.int64), owner=col("owner", np.int64),
-        origin=col("origin"), eu=col("eu"), ev=col("ev"), normal=col("normal"), extent=col("extent"),
-        center=col("center"), radius=col("radius"), zspan=col("zspan"),
-        box_base=box_base, cyl_base=cyl_base, sph_base=sph_base,
+        kind=col("kind", np.int64),
+        role=col("role", np.int64),
+        owner=col("owner", np.int64),
+        origin=col("origin"),
+        eu=col("eu"),
+        ev=col("ev"),
+        normal=col("normal"),
+        extent=col("extent"),
+        center=col("center"),
+        radius=col("radius"),
+        zspan=col("zspan"),
+        box_base=box_base,
+        cyl_base=cyl_base,
+        sph_base=sph_base,
     )
 
 

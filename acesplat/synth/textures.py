@@ -10,7 +10,7 @@ variation, posters, shapes and text make each surface distinct. Textures are flo
 from __future__ import annotations
 
 import string
-from typing import Sequence
+from collections.abc import Sequence
 
 import cv2
 import numpy as np
@@ -27,7 +27,9 @@ FONTS = (
 GLYPHS = string.ascii_uppercase + string.digits
 
 
-def value_noise(rng: np.random.Generator, h: int, w: int, cell: float, octaves: int = 4, gain: float = 0.55) -> np.ndarray:
+def value_noise(
+    rng: np.random.Generator, h: int, w: int, cell: float, octaves: int = 4, gain: float = 0.55
+) -> np.ndarray:
     """Multi-octave smooth noise (h, w) with roughly unit spread; ``cell`` is the coarsest feature size in texels."""
     out = np.zeros((h, w), dtype=np.float32)
     amp, total = 1.0, 0.0
@@ -44,7 +46,10 @@ def value_noise(rng: np.random.Generator, h: int, w: int, cell: float, octaves: 
 
 
 def random_color(
-    rng: np.random.Generator, sat: tuple[float, float], val: tuple[float, float], hue: tuple[float, float] = (0.0, 180.0)
+    rng: np.random.Generator,
+    sat: tuple[float, float],
+    val: tuple[float, float],
+    hue: tuple[float, float] = (0.0, 180.0),
 ) -> np.ndarray:
     """An RGB colour (3,) from random hue (OpenCV's 0..180 scale), saturation and value in ranges."""
     hsv = np.array([[[rng.uniform(*hue), rng.uniform(*sat) * 255, rng.uniform(*val) * 255]]], dtype=np.float32)
@@ -61,7 +66,9 @@ def recolor(rng: np.random.Generator, img: np.ndarray, gray_source: bool, streng
     if gray_source:
         dark = random_color(rng, (0.1, 0.6), (0.05, 0.45))
         light = random_color(rng, (0.05, 0.4), (0.6, 1.0))
-        out = cv2.transform(np.ascontiguousarray(img, dtype=np.float32), np.diag(light - dark).astype(np.float32)) + dark
+        out = (
+            cv2.transform(np.ascontiguousarray(img, dtype=np.float32), np.diag(light - dark).astype(np.float32)) + dark
+        )
     else:
         mix = np.eye(3, dtype=np.float32) + rng.normal(0.0, 0.15 * strength, (3, 3)).astype(np.float32)
         mix /= mix.sum(axis=1, keepdims=True)
@@ -76,7 +83,7 @@ def recolor(rng: np.random.Generator, img: np.ndarray, gray_source: bool, streng
 
 
 def photo_region(rng: np.random.Generator, photo: Photo, h: int, w: int, mag: float) -> np.ndarray:
-    """A random crop of ``photo`` resized to (h, w, 3) at ``mag`` texels per photo pixel (raised if the photo is too small)."""
+    """A random crop of ``photo`` resized to (h, w, 3) at ``mag`` texels per photo pixel (more if it is small)."""
     img = photo.image
     k = int(rng.integers(4))
     if k and photo.is_material:  # pictures stay upright
@@ -94,14 +101,20 @@ def photo_region(rng: np.random.Generator, photo: Photo, h: int, w: int, mag: fl
 
 
 def _pick(
-    rng: np.random.Generator, photos: Sequence[Photo], material: bool | None = None, min_side: int = 0, min_brightness: float = 0.0
+    rng: np.random.Generator,
+    photos: Sequence[Photo],
+    material: bool | None = None,
+    min_side: int = 0,
+    min_brightness: float = 0.0,
 ) -> Photo | None:
     if not photos:
         return None
     pool = [
         p
         for p in photos
-        if (material is None or p.is_material == material) and min(p.image.shape[:2]) >= min_side and p.brightness >= min_brightness
+        if (material is None or p.is_material == material)
+        and min(p.image.shape[:2]) >= min_side
+        and p.brightness >= min_brightness
     ] or list(photos)
     return pool[int(rng.integers(len(pool)))]
 
@@ -202,7 +215,9 @@ def _frame(rng: np.random.Generator, h: int, w: int, rho: float, pic: np.ndarray
     return out
 
 
-def _strips(rng: np.random.Generator, photos: Sequence[Photo], h: int, w: int, rho: float, tint: np.ndarray) -> np.ndarray:
+def _strips(
+    rng: np.random.Generator, photos: Sequence[Photo], h: int, w: int, rho: float, tint: np.ndarray
+) -> np.ndarray:
     """Wallpaper-like vertical strips, each from its own photo, orientation and offset, under one tint.
 
     One magnified photo cannot cover a whole wall at a fine scale without repeating; strips of
@@ -241,7 +256,9 @@ def wall_texture(rng: np.random.Generator, photos: Sequence[Photo], h: int, w: i
             img[h - wh : h - wh + max(1, int(0.02 * rho))] *= 0.6
     img = _grain(rng, np.clip(img, 0, 1), rho, rng.uniform(0.08, 0.2))
     sk = max(2, int(rng.uniform(0.06, 0.12) * rho))
-    img[h - sk :] = random_color(rng, (0.0, 0.4), (0.2, 0.9)) * (0.9 + 0.1 * value_noise(rng, sk, w, cell=0.1 * rho)[..., None])
+    img[h - sk :] = random_color(rng, (0.0, 0.4), (0.2, 0.9)) * (
+        0.9 + 0.1 * value_noise(rng, sk, w, cell=0.1 * rho)[..., None]
+    )
     area = h * w / rho**2
     for _ in range(int(rng.integers(2, 4 + int(area / 3)))):
         pw, ph = int(rng.uniform(0.3, 1.2) * rho), int(rng.uniform(0.3, 0.9) * rho)
@@ -258,9 +275,15 @@ def wall_texture(rng: np.random.Generator, photos: Sequence[Photo], h: int, w: i
 def floor_texture(rng: np.random.Generator, photos: Sequence[Photo], h: int, w: int, rho: float) -> np.ndarray:
     """Tiles or planks, each cut from a different place of a material photograph, plus a rug and marks."""
     material = fill(rng, photos, max(h, w), max(h, w), rho, True, (0.002, 0.006), min_brightness=0.25)
-    tint = random_color(rng, (0.1, 0.6), (0.35, 0.8), hue=(5, 30)) if rng.random() < 0.7 else random_color(rng, (0.0, 0.15), (0.3, 0.8))
+    tint = (
+        random_color(rng, (0.1, 0.6), (0.35, 0.8), hue=(5, 30))
+        if rng.random() < 0.7
+        else random_color(rng, (0.0, 0.15), (0.3, 0.8))
+    )
     material = 0.35 * material + 0.65 * (1.3 * gray(material)[..., None] * tint)
-    material *= np.float32(rng.uniform(0.35, 0.6) / max(float(np.mean(cv2.mean(material)[:3])), 0.05))  # no black floors
+    material *= np.float32(
+        rng.uniform(0.35, 0.6) / max(float(np.mean(cv2.mean(material)[:3])), 0.05)
+    )  # no black floors
     if rng.random() < 0.5:
         tw = th = int(max(4, rng.uniform(0.25, 0.7) * rho))
         stagger = 0.0
