@@ -12,7 +12,6 @@ import pytest
 from typer.testing import CliRunner
 
 from acesplat.cli import app
-from acesplat.core.camera import Intrinsics
 from acesplat.core.errors import InputError
 from acesplat.core.geometry import invert_pose, look_at, rigidity_problem, transform_points
 from acesplat.core.scene import read_split
