@@ -273,17 +273,7 @@ def wall_texture(rng: np.random.Generator, photos: Sequence[Photo], h: int, w: i
 
 
 def floor_texture(rng: np.random.Generator, photos: Sequence[Photo], h: int, w: int, rho: float) -> np.ndarray:
-    """Tiles or planks, each cut from a different place of a material photograph, plus a rug and marks."""
-    material = fill(rng, photos, max(h, w), max(h, w), rho, True, (0.002, 0.006), min_brightness=0.25)
-    tint = (
-        random_color(rng, (0.1, 0.6), (0.35, 0.8), hue=(5, 30))
-        if rng.random() < 0.7
-        else random_color(rng, (0.0, 0.15), (0.3, 0.8))
-    )
-    material = 0.35 * material + 0.65 * (1.3 * gray(material)[..., None] * tint)
-    material *= np.float32(
-        rng.uniform(0.35, 0.6) / max(float(np.mean(cv2.mean(material)[:3])), 0.05)
-    )  # no black floors
+    """Tiles or planks, each cut from its own (disjoint) cell of a material photograph, plus a rug and marks."""
     if rng.random() < 0.5:
         tw = th = int(max(4, rng.uniform(0.25, 0.7) * rho))
         stagger = 0.0
@@ -291,13 +281,23 @@ def floor_texture(rng: np.random.Generator, photos: Sequence[Photo], h: int, w: 
         th = int(max(3, rng.uniform(0.12, 0.25) * rho))
         tw = int(max(6, rng.uniform(0.8, 1.6) * rho))
         stagger = rng.uniform(0.25, 0.5)
+    rows, cols = -(-h // th), -(-w // tw) + 1
+    # One source cell per tile, never shared: overlapping crops would repeat texture across the floor.
+    material = fill(rng, photos, rows * th, cols * tw, rho, True, (0.002, 0.006), min_brightness=0.25)
+    tint = (
+        random_color(rng, (0.1, 0.6), (0.35, 0.8), hue=(5, 30))
+        if rng.random() < 0.7
+        else random_color(rng, (0.0, 0.15), (0.3, 0.8))
+    )
+    material = 0.35 * material + 0.65 * (1.3 * gray(material)[..., None] * tint)
+    material *= np.float32(rng.uniform(0.35, 0.6) / max(float(np.mean(cv2.mean(material)[:3])), 0.05))  # not black
+    cells = iter(rng.permutation(rows * cols))
     img = np.empty((h, w, 3), dtype=np.float32)
-    mh, mw = material.shape[:2]
     for row, y in enumerate(range(0, h, th)):
         shift = int((row * stagger % 1.0) * tw)
         for x in range(-shift, w, tw):
-            cy = int(rng.integers(0, max(1, mh - th)))
-            cx = int(rng.integers(0, max(1, mw - tw)))
+            cell = int(next(cells))
+            cy, cx = (cell // cols) * th, (cell % cols) * tw
             tile = material[cy : cy + th, cx : cx + tw] * np.float32(rng.uniform(0.8, 1.15))
             tile = tile * (1.0 + rng.normal(0, 0.04, 3)).astype(np.float32)
             _paste(img, tile, x, y)
