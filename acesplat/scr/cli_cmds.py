@@ -153,13 +153,15 @@ def pretrain_command(
     frames: int = typer.Option(60, help="Frames per scene."),
     size: str = typer.Option("240x320", help="Rendered frame size HxW."),
     seed: int = typer.Option(0),
+    threads: int = typer.Option(0, help="CPU threads (0 = all cores); 1 is faster when other jobs share the cores."),
 ) -> None:
     """Pretrain the project's own encoder on procedural scenes (resumable)."""
     import torch
 
     from .pretrain import PretrainConfig, pretrain
 
-    torch.set_num_threads(max(1, torch.get_num_threads()))
+    if threads > 0:
+        torch.set_num_threads(threads)
     cfg = PretrainConfig(scenes=scenes, frames_per_scene=frames, image_hw=parse_size(size), steps=steps, seed=seed)
     with PhaseProgress("pretrain ") as bar:
         summary = pretrain(out, cfg, minutes, bar)

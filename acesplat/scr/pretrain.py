@@ -179,7 +179,7 @@ def pretrain(
     while step < cfg.steps and time.monotonic() < deadline:
         p = step / cfg.steps
         lr = LR * (LR_FINAL_FRACTION + (1 - LR_FINAL_FRACTION) * 0.5 * (1 + np.cos(np.pi * p)))
-        lr *= min(1.0, (step + 1) / 200)
+        lr = float(lr * min(1.0, (step + 1) / 200))
         for g in opt.param_groups:
             g["lr"] = lr
         ids = rng.integers(0, len(scenes), cfg.batch_images)

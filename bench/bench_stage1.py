@@ -1,0 +1,92 @@
+"""Stage 1 on the built-in synthetic scene and on ../shared/data/herzjesu25: mapping time and localization accuracy.
+
+Runs `acesplat map` and `acesplat eval` through their library functions with default settings, in one
+process, one scene after the other, and prints one table plus the machine it ran on.
+
+    python bench/bench_stage1.py [--herz-minutes 10] [--synth-minutes 4] [--out runs/bench_stage1]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import torch
+
+from acesplat.core.atomic import write_json
+from acesplat.core.machine import machine_info, machine_line
+from acesplat.core.scene import read_split
+from acesplat.scr.encoders import load_encoder
+from acesplat.scr.localize import Localizer, evaluate
+from acesplat.scr.mapping import IMAGE_SHORT_SIDE, MappingConfig, map_scene
+from acesplat.synth import synthesize
+
+ROOT = Path(__file__).resolve().parents[1]
+HERZ = ROOT.parent / "shared" / "data" / "herzjesu25"
+
+
+def run(scene: Path, minutes: float, triangulate: bool, encoder_path: Path | None) -> dict:
+    enc, ident = load_encoder(encoder_path)
+    train, test = read_split(scene, "train"), read_split(scene, "test")
+    f0 = train.frames[0].intrinsics
+    side = min(IMAGE_SHORT_SIDE, f0.width, f0.height)
+    cfg = MappingConfig(minutes=minutes, short_side=side, triangulate=triangulate)
+    res = map_scene(train, enc, cfg)
+    from acesplat.scr.network import SCRNetwork
+
+    loc = Localizer(SCRNetwork(enc, res.head).eval(), side, {})
+    out = {"scene": scene.name, "triangulate": triangulate, "map_seconds": res.seconds, "iterations": res.iterations,
+           "buffer_features": res.buffer_features, "target_features": res.target_features}
+    for split in (test, train):
+        ev = evaluate(split, loc)
+        ev.pop("estimates")
+        out[split.split] = ev
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--synth-minutes", type=float, default=4.0)
+    ap.add_argument("--herz-minutes", type=float, default=10.0)
+    ap.add_argument("--out", type=Path, default=ROOT / "runs" / "bench_stage1")
+    ap.add_argument("--encoder", type=Path, default=None)
+    ap.add_argument("--ablate-triangulation", action="store_true", help="Also map without triangulated targets.")
+    ap.add_argument("--skip-synth", action="store_true")
+    ap.add_argument("--skip-herz", action="store_true")
+    args = ap.parse_args()
+    torch.set_num_threads(torch.get_num_threads())
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    scenes = []
+    if not args.skip_synth:
+        synth = args.out / "synth"
+        if not (synth / "train").is_dir():
+            synthesize(synth, seed=0, overwrite=True)
+        scenes.append((synth, args.synth_minutes))
+    if not args.skip_herz and HERZ.is_dir():
+        scenes.append((HERZ, args.herz_minutes))
+    for scene, minutes in scenes:
+        for tri in ([True, False] if args.ablate_triangulation else [True]):
+            t0 = time.monotonic()
+            r = run(scene, minutes, tri, args.encoder)
+            r["wall_seconds"] = time.monotonic() - t0
+            rows.append(r)
+            print(json.dumps({k: v for k, v in r.items() if k not in ("test", "train")}))
+    print(f"\nmachine: {machine_line()}")
+    hdr = f"{'scene':12s} {'tri':>4s} {'map s':>6s} {'split':>5s} {'loc':>6s} {'med cm':>8s} {'med deg':>8s} {'5cm5d':>6s} {'10cm5d':>7s} {'25cm2d':>7s} {'ms':>6s}"
+    print(hdr)
+    for r in rows:
+        for split in ("test", "train"):
+            e = r[split]
+            mt = "-" if e["median_translation_m"] is None else f"{100 * e['median_translation_m']:.2f}"
+            mr = "-" if e["median_rotation_deg"] is None else f"{e['median_rotation_deg']:.3f}"
+            print(f"{r['scene']:12s} {str(r['triangulate'])[0]:>4s} {r['map_seconds']:6.0f} {split:>5s} "
+                  f"{e['localized']:>3d}/{e['frames']:<3d}{mt:>8s} {mr:>8s} {e['recall_5cm_5deg']:6.1f} "
+                  f"{e['recall_10cm_5deg']:7.1f} {e['recall_25cm_2deg']:7.1f} {e['mean_ms']:6.0f}")
+    write_json(args.out / "results.json", {"machine": machine_info(), "rows": rows})
+
+
+if __name__ == "__main__":
+    main()
