@@ -102,7 +102,7 @@ def build_atlas(textures: Sequence[np.ndarray], wrap_u: Sequence[bool]) -> Textu
 
 
 def sample(atlas: TextureAtlas, sid: np.ndarray, un: np.ndarray, vn: np.ndarray, level: np.ndarray) -> np.ndarray:
-    """Trilinear lookup: RGB (..., 3) float32 in [0, 255] for surfaces ``sid`` at normalised (u, v).
+    """Trilinear lookup: RGB uint8 (..., 3) for surfaces ``sid`` at normalised (u, v).
 
     ``sid``, ``un``, ``vn``, ``level`` share one shape (e.g. (H, W)); u, v in [0, 1] (u may wrap);
     ``level`` is the continuous mip level (0 = full resolution), clamped to each surface's chain.
@@ -118,26 +118,23 @@ def sample(atlas: TextureAtlas, sid: np.ndarray, un: np.ndarray, vn: np.ndarray,
     L = atlas.x0.shape[1]
     un = np.asarray(un, np.float32).reshape(-1)
     vn = np.asarray(vn, np.float32).reshape(-1)
-    maps = []
-    for lvl in (l0, l1):
-        flat = sid * L + lvl
-        w = np.take(atlas.width, flat)
-        h = np.take(atlas.height, flat)
-        maps.append((np.take(atlas.x0, flat) + un * w - 0.5, np.take(atlas.y0, flat) + vn * h - 0.5))
     n = len(sid)
     rows = -(-n // REMAP_COLS)
     mapx = np.zeros((2, rows * REMAP_COLS), np.float32)
     mapy = np.zeros((2, rows * REMAP_COLS), np.float32)
-    for k in range(2):
-        mapx[k, :n], mapy[k, :n] = maps[k]
+    for k, lvl in enumerate((l0, l1)):
+        flat = sid * L + lvl
+        mapx[k, :n] = np.take(atlas.x0, flat) + un * np.take(atlas.width, flat) - 0.5
+        mapy[k, :n] = np.take(atlas.y0, flat) + vn * np.take(atlas.height, flat) - 0.5
     both = cv2.remap(
         atlas.image,
         mapx.reshape(2 * rows, REMAP_COLS),
         mapy.reshape(2 * rows, REMAP_COLS),
         interpolation=cv2.INTER_LINEAR,
         borderMode=cv2.BORDER_REPLICATE,
-    ).reshape(2, rows * REMAP_COLS, 3)
-    c0 = both[0, :n].astype(np.float32)
-    c1 = both[1, :n].astype(np.float32)
-    out = c0 + frac[:, None] * (c1 - c0)
-    return out.reshape(shape + (3,))
+    )
+    w1 = np.zeros(rows * REMAP_COLS, np.float32)
+    w1[:n] = frac
+    w1 = w1.reshape(rows, REMAP_COLS)
+    out = cv2.blendLinear(both[:rows], both[rows:], 1.0 - w1, w1)  # per-pixel blend of the two mip levels
+    return out.reshape(-1, 3)[:n].reshape(shape + (3,))

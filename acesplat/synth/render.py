@@ -150,7 +150,7 @@ def _check(scene: RoomScene, pose: np.ndarray, intrinsics: Intrinsics, ss: int) 
 def _shade(
     scene: RoomScene, pose: np.ndarray, depth: np.ndarray, code: np.ndarray, dirs: tuple, focal: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Colours (P, 3) float32 in [0, 255] and surface ids (P,) of the hits of one cast."""
+    """Colours (P, 3) uint8 and surface ids (P,) of the hits of one cast."""
     dx, dy, dz = (d.reshape(-1) for d in dirs)
     t = depth.reshape(-1)
     o = pose[:3, 3].astype(np.float32)
@@ -206,6 +206,5 @@ def render_view(
             sy = ((v - np.float32(k.cy)) / np.float32(k.fy)).reshape(1, -1)
             d2, c2, dirs2 = cast(scene, pose, sx, sy, k, cull=False)
             fine, _ = _shade(scene, pose, d2, c2, dirs2, k.fx * s)
-            rgb[idx] = fine.reshape(idx.size, s * s, 3).mean(axis=1)
-    rgb = np.clip(rgb.reshape(H, W, 3) + 0.5, 0, 255).astype(np.uint8)
-    return rgb, depth
+            rgb[idx] = (fine.reshape(idx.size, s * s, 3).mean(axis=1) + 0.5).astype(np.uint8)
+    return rgb.reshape(H, W, 3), depth
