@@ -1,1 +1,11 @@
-"""Firmware bridge: poses to a microcontroller or flight controller over serial. Imports neither torch nor onnx."""
+"""Firmware bridge: poses to a microcontroller or flight controller over serial. Imports neither torch nor onnx.
+
+The edge runtime needs only ``open_sink`` (see sink.py); PROTOCOL.md documents the bytes.
+"""
+
+from .mavlink import MavlinkConfig
+from .ned import CameraMount
+from .protocol import CommandCode, RuntimeState
+from .sink import CommandEvent, PoseSink, SinkStats, open_sink
+
+__all__ = ["CameraMount", "CommandCode", "CommandEvent", "MavlinkConfig", "PoseSink", "RuntimeState", "SinkStats", "open_sink"]

@@ -58,6 +58,20 @@ class MavlinkConfig:
     pos_std_m: float | None = None
     ang_std_rad: float | None = None
 
+    @classmethod
+    def from_flags(
+        cls, message: str = "vision_position_estimate", mount: str = "forward", offset: str = "0,0,0",
+        pitch_deg: float = 0.0, world_frame: str = "enu",
+    ) -> "MavlinkConfig":
+        """From command-line text, e.g. ``--mount forward --mount-offset 0.1,0,-0.05 --world-frame enu``."""
+        try:
+            xyz = tuple(float(v) for v in offset.split(","))
+        except ValueError:
+            xyz = ()
+        if len(xyz) != 3 or not all(math.isfinite(v) for v in xyz):
+            raise InputError(None, f"camera offset must be three numbers x,y,z in metres (body FRD), got {offset!r}")
+        return cls(message, CameraMount.preset(mount, xyz, pitch_deg=pitch_deg), world_frame)  # type: ignore[arg-type]
+
     def __post_init__(self) -> None:
         if self.message not in MESSAGES:
             raise InputError(None, f"unknown MAVLink message {self.message!r}; choose one of {', '.join(MESSAGES)}")

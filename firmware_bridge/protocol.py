@@ -95,8 +95,9 @@ class Pose:
         """Wire form of a PoseRecord; out-of-range counters are clamped or wrapped so encoding never fails."""
         T = np.asarray(rec.T_c2w, dtype=np.float64)
         state = TrackingState(int(rec.state))
-        if np.isfinite(T).all():
-            position = tuple(T[:3, 3].tolist())
+        rows = T.tolist()  # scalar checks on a list beat numpy calls on a 4x4 (this runs per pose)
+        if all(math.isfinite(v) for row in rows for v in row):
+            position = (rows[0][3], rows[1][3], rows[2][3])
             quat = tuple(matrix_to_quat(T[:3, :3]).tolist())
         else:
             position, quat, state = (math.nan,) * 3, (math.nan,) * 4, TrackingState.LOST

@@ -92,6 +92,20 @@ def test_mount_presets_and_tilt() -> None:
         CameraMount(np.eye(3), np.array([0.0, math.nan, 0.0]))
 
 
+def test_config_from_command_line_flags() -> None:
+    cfg = MavlinkConfig.from_flags("odometry", "down", "0.1,0,-0.05", world_frame="flu")
+    assert cfg.message == "odometry" and cfg.world_frame == "flu"
+    np.testing.assert_allclose(cfg.mount.t_body_cam, [0.1, 0, -0.05])
+    np.testing.assert_allclose(cfg.mount.R_body_cam, CameraMount.preset("down").R_body_cam)
+    for bad in ("0.1,0", "a,b,c", "0,0,nan"):
+        with pytest.raises(InputError, match="offset"):
+            MavlinkConfig.from_flags(offset=bad)
+    with pytest.raises(InputError, match="MAVLink message"):
+        MavlinkConfig.from_flags(message="gps_input")
+    with pytest.raises(InputError, match="world frame"):
+        MavlinkConfig.from_flags(world_frame="ecef")
+
+
 def _parse(data: bytes) -> list:
     dec = MavlinkDecoder()
     msgs = dec.feed(data)
