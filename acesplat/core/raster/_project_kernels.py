@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from ._layout import (
     BLUE, CA, CB, CC, DEPTH, EXT_X, EXT_Y, G_BLUE, G_CA, G_CB, G_CC, G_DEPTH, G_GREEN, G_MX, G_MY, G_OPAC,
@@ -81,96 +81,110 @@ def _view_dir(means, i, campos):
 
 
 @njit(cache=True)
-def _madd(sh, i, k, bk, r, g, b):
-    return r + bk * sh[i, k, 0], g + bk * sh[i, k, 1], b + bk * sh[i, k, 2]
-
-
-@njit(cache=True)
 def _sh_raw_color(sh, i, degree, x, y, z):
-    """Colour before the +0.5 offset and clamp: sum_k basis_k * sh[i, k, :] (unrolled: literal
-    tuple indices compile to registers, a loop index would spill the tuple to memory)."""
+    """Colour before the +0.5 offset and clamp: sum_k basis_k * sh[i, k, :].
+
+    Written out term by term: literal tuple indices stay in registers, and small helpers called
+    with literal arguments would each compile once per literal.
+    """
     bs = sh_basis(x, y, z)
-    r, g, b = bs[0] * sh[i, 0, 0], bs[0] * sh[i, 0, 1], bs[0] * sh[i, 0, 2]
+    r = bs[0] * sh[i, 0, 0]
+    g = bs[0] * sh[i, 0, 1]
+    b = bs[0] * sh[i, 0, 2]
     if degree >= 1:
-        r, g, b = _madd(sh, i, 1, bs[1], r, g, b)
-        r, g, b = _madd(sh, i, 2, bs[2], r, g, b)
-        r, g, b = _madd(sh, i, 3, bs[3], r, g, b)
+        r += bs[1] * sh[i, 1, 0] + bs[2] * sh[i, 2, 0] + bs[3] * sh[i, 3, 0]
+        g += bs[1] * sh[i, 1, 1] + bs[2] * sh[i, 2, 1] + bs[3] * sh[i, 3, 1]
+        b += bs[1] * sh[i, 1, 2] + bs[2] * sh[i, 2, 2] + bs[3] * sh[i, 3, 2]
     if degree >= 2:
-        r, g, b = _madd(sh, i, 4, bs[4], r, g, b)
-        r, g, b = _madd(sh, i, 5, bs[5], r, g, b)
-        r, g, b = _madd(sh, i, 6, bs[6], r, g, b)
-        r, g, b = _madd(sh, i, 7, bs[7], r, g, b)
-        r, g, b = _madd(sh, i, 8, bs[8], r, g, b)
+        r += bs[4] * sh[i, 4, 0] + bs[5] * sh[i, 5, 0] + bs[6] * sh[i, 6, 0] + bs[7] * sh[i, 7, 0] + bs[8] * sh[i, 8, 0]
+        g += bs[4] * sh[i, 4, 1] + bs[5] * sh[i, 5, 1] + bs[6] * sh[i, 6, 1] + bs[7] * sh[i, 7, 1] + bs[8] * sh[i, 8, 1]
+        b += bs[4] * sh[i, 4, 2] + bs[5] * sh[i, 5, 2] + bs[6] * sh[i, 6, 2] + bs[7] * sh[i, 7, 2] + bs[8] * sh[i, 8, 2]
     if degree >= 3:
-        r, g, b = _madd(sh, i, 9, bs[9], r, g, b)
-        r, g, b = _madd(sh, i, 10, bs[10], r, g, b)
-        r, g, b = _madd(sh, i, 11, bs[11], r, g, b)
-        r, g, b = _madd(sh, i, 12, bs[12], r, g, b)
-        r, g, b = _madd(sh, i, 13, bs[13], r, g, b)
-        r, g, b = _madd(sh, i, 14, bs[14], r, g, b)
-        r, g, b = _madd(sh, i, 15, bs[15], r, g, b)
+        r += bs[9] * sh[i, 9, 0] + bs[10] * sh[i, 10, 0] + bs[11] * sh[i, 11, 0] + bs[12] * sh[i, 12, 0] + bs[13] * sh[i, 13, 0] + bs[14] * sh[i, 14, 0] + bs[15] * sh[i, 15, 0]
+        g += bs[9] * sh[i, 9, 1] + bs[10] * sh[i, 10, 1] + bs[11] * sh[i, 11, 1] + bs[12] * sh[i, 12, 1] + bs[13] * sh[i, 13, 1] + bs[14] * sh[i, 14, 1] + bs[15] * sh[i, 15, 1]
+        b += bs[9] * sh[i, 9, 2] + bs[10] * sh[i, 10, 2] + bs[11] * sh[i, 11, 2] + bs[12] * sh[i, 12, 2] + bs[13] * sh[i, 13, 2] + bs[14] * sh[i, 14, 2] + bs[15] * sh[i, 15, 2]
     return r, g, b
-
-
-@njit(cache=True)
-def _put3(v_sh, i, k, bk, vr, vg, vb):
-    v_sh[i, k, 0] = bk * vr
-    v_sh[i, k, 1] = bk * vg
-    v_sh[i, k, 2] = bk * vb
-
-
-@njit(cache=True)
-def _dot3(sh, i, k, vr, vg, vb):
-    return sh[i, k, 0] * vr + sh[i, k, 1] * vg + sh[i, k, 2] * vb
 
 
 @njit(cache=True)
 def _sh_backward(sh, i, degree, x, y, z, vr, vg, vb, v_sh):
     """Write dL/dsh[i] for colour gradient (vr, vg, vb); return dL/d(unit direction)."""
     bs = sh_basis(x, y, z)
-    _put3(v_sh, i, 0, bs[0], vr, vg, vb)
+    v_sh[i, 0, 0] = bs[0] * vr
+    v_sh[i, 0, 1] = bs[0] * vg
+    v_sh[i, 0, 2] = bs[0] * vb
     ux = 0.0
     uy = 0.0
     uz = 0.0
     if degree >= 1:
-        _put3(v_sh, i, 1, bs[1], vr, vg, vb)
-        _put3(v_sh, i, 2, bs[2], vr, vg, vb)
-        _put3(v_sh, i, 3, bs[3], vr, vg, vb)
-        w1 = _dot3(sh, i, 1, vr, vg, vb)
-        w2 = _dot3(sh, i, 2, vr, vg, vb)
-        w3 = _dot3(sh, i, 3, vr, vg, vb)
+        v_sh[i, 1, 0] = bs[1] * vr
+        v_sh[i, 1, 1] = bs[1] * vg
+        v_sh[i, 1, 2] = bs[1] * vb
+        v_sh[i, 2, 0] = bs[2] * vr
+        v_sh[i, 2, 1] = bs[2] * vg
+        v_sh[i, 2, 2] = bs[2] * vb
+        v_sh[i, 3, 0] = bs[3] * vr
+        v_sh[i, 3, 1] = bs[3] * vg
+        v_sh[i, 3, 2] = bs[3] * vb
+        w1 = sh[i, 1, 0] * vr + sh[i, 1, 1] * vg + sh[i, 1, 2] * vb
+        w2 = sh[i, 2, 0] * vr + sh[i, 2, 1] * vg + sh[i, 2, 2] * vb
+        w3 = sh[i, 3, 0] * vr + sh[i, 3, 1] * vg + sh[i, 3, 2] * vb
         ux -= SH_C1 * w3
         uy -= SH_C1 * w1
         uz += SH_C1 * w2
     if degree >= 2:
-        _put3(v_sh, i, 4, bs[4], vr, vg, vb)
-        _put3(v_sh, i, 5, bs[5], vr, vg, vb)
-        _put3(v_sh, i, 6, bs[6], vr, vg, vb)
-        _put3(v_sh, i, 7, bs[7], vr, vg, vb)
-        _put3(v_sh, i, 8, bs[8], vr, vg, vb)
-        w4 = _dot3(sh, i, 4, vr, vg, vb)
-        w5 = _dot3(sh, i, 5, vr, vg, vb)
-        w6 = _dot3(sh, i, 6, vr, vg, vb)
-        w7 = _dot3(sh, i, 7, vr, vg, vb)
-        w8 = _dot3(sh, i, 8, vr, vg, vb)
+        v_sh[i, 4, 0] = bs[4] * vr
+        v_sh[i, 4, 1] = bs[4] * vg
+        v_sh[i, 4, 2] = bs[4] * vb
+        v_sh[i, 5, 0] = bs[5] * vr
+        v_sh[i, 5, 1] = bs[5] * vg
+        v_sh[i, 5, 2] = bs[5] * vb
+        v_sh[i, 6, 0] = bs[6] * vr
+        v_sh[i, 6, 1] = bs[6] * vg
+        v_sh[i, 6, 2] = bs[6] * vb
+        v_sh[i, 7, 0] = bs[7] * vr
+        v_sh[i, 7, 1] = bs[7] * vg
+        v_sh[i, 7, 2] = bs[7] * vb
+        v_sh[i, 8, 0] = bs[8] * vr
+        v_sh[i, 8, 1] = bs[8] * vg
+        v_sh[i, 8, 2] = bs[8] * vb
+        w4 = sh[i, 4, 0] * vr + sh[i, 4, 1] * vg + sh[i, 4, 2] * vb
+        w5 = sh[i, 5, 0] * vr + sh[i, 5, 1] * vg + sh[i, 5, 2] * vb
+        w6 = sh[i, 6, 0] * vr + sh[i, 6, 1] * vg + sh[i, 6, 2] * vb
+        w7 = sh[i, 7, 0] * vr + sh[i, 7, 1] * vg + sh[i, 7, 2] * vb
+        w8 = sh[i, 8, 0] * vr + sh[i, 8, 1] * vg + sh[i, 8, 2] * vb
         ux += SH_C2_0 * y * w4 - 2.0 * SH_C2_2 * x * w6 + SH_C2_3 * z * w7 + 2.0 * SH_C2_4 * x * w8
         uy += SH_C2_0 * x * w4 + SH_C2_1 * z * w5 - 2.0 * SH_C2_2 * y * w6 - 2.0 * SH_C2_4 * y * w8
         uz += SH_C2_1 * y * w5 + 4.0 * SH_C2_2 * z * w6 + SH_C2_3 * x * w7
     if degree >= 3:
-        _put3(v_sh, i, 9, bs[9], vr, vg, vb)
-        _put3(v_sh, i, 10, bs[10], vr, vg, vb)
-        _put3(v_sh, i, 11, bs[11], vr, vg, vb)
-        _put3(v_sh, i, 12, bs[12], vr, vg, vb)
-        _put3(v_sh, i, 13, bs[13], vr, vg, vb)
-        _put3(v_sh, i, 14, bs[14], vr, vg, vb)
-        _put3(v_sh, i, 15, bs[15], vr, vg, vb)
-        w9 = _dot3(sh, i, 9, vr, vg, vb)
-        w10 = _dot3(sh, i, 10, vr, vg, vb)
-        w11 = _dot3(sh, i, 11, vr, vg, vb)
-        w12 = _dot3(sh, i, 12, vr, vg, vb)
-        w13 = _dot3(sh, i, 13, vr, vg, vb)
-        w14 = _dot3(sh, i, 14, vr, vg, vb)
-        w15 = _dot3(sh, i, 15, vr, vg, vb)
+        v_sh[i, 9, 0] = bs[9] * vr
+        v_sh[i, 9, 1] = bs[9] * vg
+        v_sh[i, 9, 2] = bs[9] * vb
+        v_sh[i, 10, 0] = bs[10] * vr
+        v_sh[i, 10, 1] = bs[10] * vg
+        v_sh[i, 10, 2] = bs[10] * vb
+        v_sh[i, 11, 0] = bs[11] * vr
+        v_sh[i, 11, 1] = bs[11] * vg
+        v_sh[i, 11, 2] = bs[11] * vb
+        v_sh[i, 12, 0] = bs[12] * vr
+        v_sh[i, 12, 1] = bs[12] * vg
+        v_sh[i, 12, 2] = bs[12] * vb
+        v_sh[i, 13, 0] = bs[13] * vr
+        v_sh[i, 13, 1] = bs[13] * vg
+        v_sh[i, 13, 2] = bs[13] * vb
+        v_sh[i, 14, 0] = bs[14] * vr
+        v_sh[i, 14, 1] = bs[14] * vg
+        v_sh[i, 14, 2] = bs[14] * vb
+        v_sh[i, 15, 0] = bs[15] * vr
+        v_sh[i, 15, 1] = bs[15] * vg
+        v_sh[i, 15, 2] = bs[15] * vb
+        w9 = sh[i, 9, 0] * vr + sh[i, 9, 1] * vg + sh[i, 9, 2] * vb
+        w10 = sh[i, 10, 0] * vr + sh[i, 10, 1] * vg + sh[i, 10, 2] * vb
+        w11 = sh[i, 11, 0] * vr + sh[i, 11, 1] * vg + sh[i, 11, 2] * vb
+        w12 = sh[i, 12, 0] * vr + sh[i, 12, 1] * vg + sh[i, 12, 2] * vb
+        w13 = sh[i, 13, 0] * vr + sh[i, 13, 1] * vg + sh[i, 13, 2] * vb
+        w14 = sh[i, 14, 0] * vr + sh[i, 14, 1] * vg + sh[i, 14, 2] * vb
+        w15 = sh[i, 15, 0] * vr + sh[i, 15, 1] * vg + sh[i, 15, 2] * vb
         xx, yy, zz = x * x, y * y, z * z
         ux += (
             6.0 * SH_C3_0 * x * y * w9 + SH_C3_1 * y * z * w10 - 2.0 * SH_C3_2 * x * y * w11
@@ -283,83 +297,265 @@ def _cov2d(j00, j02, j11, j12, cov):
     return a, b, c
 
 
-@njit(parallel=True, cache=True)
+@njit(cache=True)
+def _tangent_limits(fx, fy, cx, cy, width, height):
+    """x/z and y/z bounds at which the EWA Jacobian is clamped."""
+    return (
+        cx / fx + FRUSTUM_SLACK * 0.5 * width / fx,
+        (width - cx) / fx + FRUSTUM_SLACK * 0.5 * width / fx,
+        cy / fy + FRUSTUM_SLACK * 0.5 * height / fy,
+        (height - cy) / fy + FRUSTUM_SLACK * 0.5 * height / fy,
+    )
+
+
+@njit(cache=True)
+def _project_one(
+    i, means, log_scales, quats, opacity_logits, sh, sh_degree, view, campos,
+    fx, fy, cx, cy, width, height, near, far, lims, rec, bbox, radii, visible,
+):
+    lim_xn, lim_xp, lim_yn, lim_yp = lims
+    visible[i] = False
+    radii[i] = 0
+    px, py, pz, ok, qn, q, R, s, T, cov = _camera_frame(means, log_scales, quats, i, view)
+    if not (ok and pz >= near and pz <= far):
+        return
+    op = _sigmoid(opacity_logits[i] * 1.0)
+    # Largest squared Mahalanobis distance at which alpha = op * exp(-d2 / 2) still reaches ALPHA_MIN.
+    maha2 = 2.0 * math.log(op / ALPHA_MIN) if op > ALPHA_MIN else 0.0
+    if not (maha2 > 0.0):
+        return
+    maha2 = min(maha2, MAHA2_MAX)
+    j00, j02, j11, j12, uc, vc, xcl, ycl = _jacobian(px, py, pz, fx, fy, lim_xn, lim_xp, lim_yn, lim_yp)
+    a, b, c = _cov2d(j00, j02, j11, j12, cov)
+    a += DILATION
+    c += DILATION
+    det = a * c - b * b
+    if not (det > 0.0 and det < math.inf):
+        return
+    mx = fx * px / pz + cx
+    my = fy * py / pz + cy
+    ex = math.sqrt(maha2 * a)
+    ey = math.sqrt(maha2 * c)
+    if not (ex <= MAX_EXTENT and ey <= MAX_EXTENT):
+        return
+    # Pixel centres sit at integer coordinates; the ellipse's bounding box must hit the image.
+    if not (mx + ex >= 0.0 and mx - ex <= width - 1.0 and my + ey >= 0.0 and my - ey <= height - 1.0):
+        return
+    x0 = int(max(0.0, math.ceil(mx - ex)))
+    x1 = int(min(width - 1.0, math.floor(mx + ex)))
+    y0 = int(max(0.0, math.ceil(my - ey)))
+    y1 = int(min(height - 1.0, math.floor(my + ey)))
+    if x0 > x1 or y0 > y1:
+        return
+    if sh_degree > 0:
+        dx, dy, dz, _ = _view_dir(means, i, campos)
+    else:
+        dx, dy, dz = 0.0, 0.0, 1.0
+    r, g, bl = _sh_raw_color(sh, i, sh_degree, dx, dy, dz)
+    visible[i] = True
+    mid = 0.5 * (a + c)
+    lam = mid + math.sqrt(max(0.1, mid * mid - det))
+    radii[i] = int(math.ceil(3.0 * math.sqrt(lam)))
+    bbox[i, 0] = x0
+    bbox[i, 1] = x1
+    bbox[i, 2] = y0
+    bbox[i, 3] = y1
+    rec[i, MX] = mx
+    rec[i, MY] = my
+    rec[i, CA] = c / det
+    rec[i, CB] = -b / det
+    rec[i, CC] = a / det
+    rec[i, OPAC] = op
+    rec[i, RED] = max(r + 0.5, 0.0)
+    rec[i, GREEN] = max(g + 0.5, 0.0)
+    rec[i, BLUE] = max(bl + 0.5, 0.0)
+    rec[i, DEPTH] = pz
+    rec[i, POWER_MIN] = -0.5 * maha2
+    rec[i, MAHA2] = maha2
+    rec[i, EXT_X] = ex
+    rec[i, EXT_Y] = ey
+
+
+@njit(nogil=True, cache=True)
 def project_forward(
-    means, log_scales, quats, opacity_logits, sh, sh_degree, view, campos,
+    lo, hi, means, log_scales, quats, opacity_logits, sh, sh_degree, view, campos,
     fx, fy, cx, cy, width, height, near, far, rec, bbox, radii, visible,
 ):
-    """Fill rec (N, REC_WIDTH), bbox (N, 4) pixel range x0 x1 y0 y1, radii (N,) and visible (N,)."""
-    n = means.shape[0]
-    lim_xn = cx / fx + FRUSTUM_SLACK * 0.5 * width / fx
-    lim_xp = (width - cx) / fx + FRUSTUM_SLACK * 0.5 * width / fx
-    lim_yn = cy / fy + FRUSTUM_SLACK * 0.5 * height / fy
-    lim_yp = (height - cy) / fy + FRUSTUM_SLACK * 0.5 * height / fy
-    for i in prange(n):
-        visible[i] = False
-        radii[i] = 0
-        px, py, pz, ok, qn, q, R, s, T, cov = _camera_frame(means, log_scales, quats, i, view)
-        if not (ok and pz >= near and pz <= far):
-            continue
-        op = _sigmoid(opacity_logits[i] * 1.0)
-        # Largest squared Mahalanobis distance at which alpha = op * exp(-d2 / 2) still reaches ALPHA_MIN.
-        maha2 = 2.0 * math.log(op / ALPHA_MIN) if op > ALPHA_MIN else 0.0
-        if not (maha2 > 0.0):
-            continue
-        maha2 = min(maha2, MAHA2_MAX)
-        j00, j02, j11, j12, uc, vc, xcl, ycl = _jacobian(px, py, pz, fx, fy, lim_xn, lim_xp, lim_yn, lim_yp)
-        a, b, c = _cov2d(j00, j02, j11, j12, cov)
-        a += DILATION
-        c += DILATION
-        det = a * c - b * b
-        if not (det > 0.0 and det < math.inf):
-            continue
-        mx = fx * px / pz + cx
-        my = fy * py / pz + cy
-        ex = math.sqrt(maha2 * a)
-        ey = math.sqrt(maha2 * c)
-        if not (ex <= MAX_EXTENT and ey <= MAX_EXTENT):
-            continue
-        # Pixel centres sit at integer coordinates; the ellipse's bounding box must hit the image.
-        if not (mx + ex >= 0.0 and mx - ex <= width - 1.0 and my + ey >= 0.0 and my - ey <= height - 1.0):
-            continue
-        x0 = int(max(0.0, math.ceil(mx - ex)))
-        x1 = int(min(width - 1.0, math.floor(mx + ex)))
-        y0 = int(max(0.0, math.ceil(my - ey)))
-        y1 = int(min(height - 1.0, math.floor(my + ey)))
-        if x0 > x1 or y0 > y1:
-            continue
-        if sh_degree > 0:
-            dx, dy, dz, _ = _view_dir(means, i, campos)
-        else:
-            dx, dy, dz = 0.0, 0.0, 1.0
-        r, g, bl = _sh_raw_color(sh, i, sh_degree, dx, dy, dz)
-        visible[i] = True
-        mid = 0.5 * (a + c)
-        lam = mid + math.sqrt(max(0.1, mid * mid - det))
-        radii[i] = int(math.ceil(3.0 * math.sqrt(lam)))
-        bbox[i, 0] = x0
-        bbox[i, 1] = x1
-        bbox[i, 2] = y0
-        bbox[i, 3] = y1
-        rec[i, MX] = mx
-        rec[i, MY] = my
-        rec[i, CA] = c / det
-        rec[i, CB] = -b / det
-        rec[i, CC] = a / det
-        rec[i, OPAC] = op
-        rec[i, RED] = max(r + 0.5, 0.0)
-        rec[i, GREEN] = max(g + 0.5, 0.0)
-        rec[i, BLUE] = max(bl + 0.5, 0.0)
-        rec[i, DEPTH] = pz
-        rec[i, POWER_MIN] = -0.5 * maha2
-        rec[i, MAHA2] = maha2
-        rec[i, EXT_X] = ex
-        rec[i, EXT_Y] = ey
+    """For Gaussians lo..hi-1 fill rec (N, REC_WIDTH), bbox (N, 4) pixel range x0 x1 y0 y1,
+    radii (N,) and visible (N,). Releases the GIL: chunks run on a thread pool."""
+    lims = _tangent_limits(fx, fy, cx, cy, width, height)
+    for i in range(lo, hi):
+        _project_one(
+            i, means, log_scales, quats, opacity_logits, sh, sh_degree, view, campos,
+            fx, fy, cx, cy, width, height, near, far, lims, rec, bbox, radii, visible,
+        )
 
 
-@njit(parallel=True, cache=True)
+@njit(cache=True)
+def _project_backward_one(
+    i, means, log_scales, quats, opacity_logits, sh, sh_degree, view, campos,
+    fx, fy, lims, g_offsets, slot_grads,
+    v_means, v_log_scales, v_quats, v_opacity_logits, v_sh, v_means2d,
+):
+    lim_xn, lim_xp, lim_yn, lim_yp = lims
+    if g_offsets[i] == g_offsets[i + 1]:
+        return
+    v_mx = 0.0
+    v_my = 0.0
+    v_ca = 0.0
+    v_cb = 0.0
+    v_cc = 0.0
+    v_r = 0.0
+    v_g = 0.0
+    v_b = 0.0
+    v_op = 0.0
+    v_z = 0.0
+    for row in range(g_offsets[i], g_offsets[i + 1]):
+        v_mx += slot_grads[row, G_MX]
+        v_my += slot_grads[row, G_MY]
+        v_ca += slot_grads[row, G_CA]
+        v_cb += slot_grads[row, G_CB]
+        v_cc += slot_grads[row, G_CC]
+        v_r += slot_grads[row, G_RED]
+        v_g += slot_grads[row, G_GREEN]
+        v_b += slot_grads[row, G_BLUE]
+        v_op += slot_grads[row, G_OPAC]
+        v_z += slot_grads[row, G_DEPTH]
+    v_means2d[i, 0] = v_mx
+    v_means2d[i, 1] = v_my
+
+    px, py, pz, ok, qn, q, R, s, T, cov = _camera_frame(means, log_scales, quats, i, view)
+    j00, j02, j11, j12, uc, vc, xcl, ycl = _jacobian(px, py, pz, fx, fy, lim_xn, lim_xp, lim_yn, lim_yp)
+    a, b, c = _cov2d(j00, j02, j11, j12, cov)
+    a += DILATION
+    c += DILATION
+    det = a * c - b * b
+
+    # Opacity.
+    op = _sigmoid(opacity_logits[i] * 1.0)
+    v_opacity_logits[i] = v_op * op * (1.0 - op)
+
+    # Colour: SH evaluated along the view direction, +0.5, clamped at 0.
+    v_px = 0.0
+    v_py = 0.0
+    v_pz = v_z
+    if sh_degree > 0:
+        dx, dy, dz, dist = _view_dir(means, i, campos)
+    else:
+        dx, dy, dz, dist = 0.0, 0.0, 1.0, 1.0
+    r, g, bl = _sh_raw_color(sh, i, sh_degree, dx, dy, dz)
+    if r + 0.5 < 0.0:
+        v_r = 0.0
+    if g + 0.5 < 0.0:
+        v_g = 0.0
+    if bl + 0.5 < 0.0:
+        v_b = 0.0
+    ux, uy, uz = _sh_backward(sh, i, sh_degree, dx, dy, dz, v_r, v_g, v_b, v_sh)
+    v_wx = 0.0
+    v_wy = 0.0
+    v_wz = 0.0
+    if sh_degree > 0 and dist > 0.0:
+        # d(unit dir)/d(vector) = (I - d d^T) / |vector|
+        dot = ux * dx + uy * dy + uz * dz
+        v_wx = (ux - dot * dx) / dist
+        v_wy = (uy - dot * dy) / dist
+        v_wz = (uz - dot * dz) / dist
+
+    # Conic (inverse of [[a, b], [b, c]]) -> 2D covariance.
+    ca = c / det
+    cb = -b / det
+    cc = a / det
+    v_det = -(v_ca * ca + v_cb * cb + v_cc * cc) / det
+    v_a = v_cc / det + v_det * c
+    v_b2 = -v_cb / det - 2.0 * v_det * b
+    v_c = v_ca / det + v_det * a
+
+    # 2D covariance = J cov J^T.
+    sxx, sxy, sxz, syy, syz, szz = cov
+    v_sxx = v_a * j00 * j00
+    v_sxz = v_a * 2.0 * j00 * j02 + v_b2 * j00 * j12
+    v_szz = v_a * j02 * j02 + v_b2 * j02 * j12 + v_c * j12 * j12
+    v_sxy = v_b2 * j00 * j11
+    v_syz = v_b2 * j02 * j11 + v_c * 2.0 * j11 * j12
+    v_syy = v_c * j11 * j11
+    v_j00 = v_a * (2.0 * j00 * sxx + 2.0 * j02 * sxz) + v_b2 * (j11 * sxy + j12 * sxz)
+    v_j02 = v_a * (2.0 * j00 * sxz + 2.0 * j02 * szz) + v_b2 * (j11 * syz + j12 * szz)
+    v_j11 = v_b2 * (j00 * sxy + j02 * syz) + v_c * (2.0 * j11 * syy + 2.0 * j12 * syz)
+    v_j12 = v_b2 * (j00 * sxz + j02 * szz) + v_c * (2.0 * j11 * syz + 2.0 * j12 * szz)
+
+    # Jacobian entries -> camera point (x or y gets nothing through a clamped tangent).
+    iz = 1.0 / pz
+    iz2 = iz * iz
+    v_pz += -v_j00 * fx * iz2 + v_j02 * fx * uc * iz2 - v_j11 * fy * iz2 + v_j12 * fy * vc * iz2
+    v_uc = -v_j02 * fx * iz
+    v_vc = -v_j12 * fy * iz
+    if not xcl:
+        v_px += v_uc * iz
+        v_pz -= v_uc * px * iz2
+    if not ycl:
+        v_py += v_vc * iz
+        v_pz -= v_vc * py * iz2
+    # Projected mean.
+    v_px += v_mx * fx * iz
+    v_py += v_my * fy * iz
+    v_pz -= (v_mx * fx * px + v_my * fy * py) * iz2
+
+    # Camera covariance = T T^T with symmetric gradient G (off-diagonals halved): dL/dT = 2 G T.
+    g00 = v_sxx
+    g11 = v_syy
+    g22 = v_szz
+    g01 = 0.5 * v_sxy
+    g02 = 0.5 * v_sxz
+    g12 = 0.5 * v_syz
+    t00, t01, t02, t10, t11, t12, t20, t21, t22 = T
+    vt00 = 2.0 * (g00 * t00 + g01 * t10 + g02 * t20)
+    vt01 = 2.0 * (g00 * t01 + g01 * t11 + g02 * t21)
+    vt02 = 2.0 * (g00 * t02 + g01 * t12 + g02 * t22)
+    vt10 = 2.0 * (g01 * t00 + g11 * t10 + g12 * t20)
+    vt11 = 2.0 * (g01 * t01 + g11 * t11 + g12 * t21)
+    vt12 = 2.0 * (g01 * t02 + g11 * t12 + g12 * t22)
+    vt20 = 2.0 * (g02 * t00 + g12 * t10 + g22 * t20)
+    vt21 = 2.0 * (g02 * t01 + g12 * t11 + g22 * t21)
+    vt22 = 2.0 * (g02 * t02 + g12 * t12 + g22 * t22)
+    # T = Vr M  ->  dL/dM = Vr^T dL/dT
+    vm00 = view[0, 0] * vt00 + view[1, 0] * vt10 + view[2, 0] * vt20
+    vm01 = view[0, 0] * vt01 + view[1, 0] * vt11 + view[2, 0] * vt21
+    vm02 = view[0, 0] * vt02 + view[1, 0] * vt12 + view[2, 0] * vt22
+    vm10 = view[0, 1] * vt00 + view[1, 1] * vt10 + view[2, 1] * vt20
+    vm11 = view[0, 1] * vt01 + view[1, 1] * vt11 + view[2, 1] * vt21
+    vm12 = view[0, 1] * vt02 + view[1, 1] * vt12 + view[2, 1] * vt22
+    vm20 = view[0, 2] * vt00 + view[1, 2] * vt10 + view[2, 2] * vt20
+    vm21 = view[0, 2] * vt01 + view[1, 2] * vt11 + view[2, 2] * vt21
+    vm22 = view[0, 2] * vt02 + view[1, 2] * vt12 + view[2, 2] * vt22
+    # M = R diag(s)
+    s0, s1, s2 = s
+    v_log_scales[i, 0] = (vm00 * R[0] + vm10 * R[3] + vm20 * R[6]) * s0
+    v_log_scales[i, 1] = (vm01 * R[1] + vm11 * R[4] + vm21 * R[7]) * s1
+    v_log_scales[i, 2] = (vm02 * R[2] + vm12 * R[5] + vm22 * R[8]) * s2
+    G00, G01, G02 = vm00 * s0, vm01 * s1, vm02 * s2
+    G10, G11, G12 = vm10 * s0, vm11 * s1, vm12 * s2
+    G20, G21, G22 = vm20 * s0, vm21 * s1, vm22 * s2
+    qw, qx, qy, qz = q
+    vqw = 2.0 * (-qz * G01 + qy * G02 + qz * G10 - qx * G12 - qy * G20 + qx * G21)
+    vqx = 2.0 * (qy * G01 + qz * G02 + qy * G10 - 2.0 * qx * G11 - qw * G12 + qz * G20 + qw * G21 - 2.0 * qx * G22)
+    vqy = 2.0 * (-2.0 * qy * G00 + qx * G01 + qw * G02 + qx * G10 + qz * G12 - qw * G20 + qz * G21 - 2.0 * qy * G22)
+    vqz = 2.0 * (-2.0 * qz * G00 - qw * G01 + qx * G02 + qw * G10 - 2.0 * qz * G11 + qy * G12 + qx * G20 + qy * G21)
+    # Through the normalisation q / |q|.
+    dotq = vqw * qw + vqx * qx + vqy * qy + vqz * qz
+    v_quats[i, 0] = (vqw - dotq * qw) / qn
+    v_quats[i, 1] = (vqx - dotq * qx) / qn
+    v_quats[i, 2] = (vqy - dotq * qy) / qn
+    v_quats[i, 3] = (vqz - dotq * qz) / qn
+
+    # Camera point -> world mean (p = Vr m + t), plus the SH view-direction path.
+    v_means[i, 0] = view[0, 0] * v_px + view[1, 0] * v_py + view[2, 0] * v_pz + v_wx
+    v_means[i, 1] = view[0, 1] * v_px + view[1, 1] * v_py + view[2, 1] * v_pz + v_wy
+    v_means[i, 2] = view[0, 2] * v_px + view[1, 2] * v_py + view[2, 2] * v_pz + v_wz
+
+
+@njit(nogil=True, cache=True)
 def project_backward(
-    means, log_scales, quats, opacity_logits, sh, sh_degree, view, campos,
+    lo, hi, means, log_scales, quats, opacity_logits, sh, sh_degree, view, campos,
     fx, fy, cx, cy, width, height, g_offsets, slot_grads,
     v_means, v_log_scales, v_quats, v_opacity_logits, v_sh, v_means2d,
 ):
@@ -368,162 +564,12 @@ def project_backward(
     slot_grads[g_offsets[i]:g_offsets[i + 1]] (GRAD_WIDTH columns) are the gradients the tiles
     Gaussian i touched wrote; none for a culled Gaussian. Gaussians are visited in index order so
     parameter reads and gradient writes stream. Outputs are pre-zeroed; culled Gaussians stay zero.
+    Handles Gaussians lo..hi-1 and releases the GIL.
     """
-    lim_xn = cx / fx + FRUSTUM_SLACK * 0.5 * width / fx
-    lim_xp = (width - cx) / fx + FRUSTUM_SLACK * 0.5 * width / fx
-    lim_yn = cy / fy + FRUSTUM_SLACK * 0.5 * height / fy
-    lim_yp = (height - cy) / fy + FRUSTUM_SLACK * 0.5 * height / fy
-    for i in prange(means.shape[0]):
-        if g_offsets[i] == g_offsets[i + 1]:
-            continue
-        v_mx = 0.0
-        v_my = 0.0
-        v_ca = 0.0
-        v_cb = 0.0
-        v_cc = 0.0
-        v_r = 0.0
-        v_g = 0.0
-        v_b = 0.0
-        v_op = 0.0
-        v_z = 0.0
-        for row in range(g_offsets[i], g_offsets[i + 1]):
-            v_mx += slot_grads[row, G_MX]
-            v_my += slot_grads[row, G_MY]
-            v_ca += slot_grads[row, G_CA]
-            v_cb += slot_grads[row, G_CB]
-            v_cc += slot_grads[row, G_CC]
-            v_r += slot_grads[row, G_RED]
-            v_g += slot_grads[row, G_GREEN]
-            v_b += slot_grads[row, G_BLUE]
-            v_op += slot_grads[row, G_OPAC]
-            v_z += slot_grads[row, G_DEPTH]
-        v_means2d[i, 0] = v_mx
-        v_means2d[i, 1] = v_my
-
-        px, py, pz, ok, qn, q, R, s, T, cov = _camera_frame(means, log_scales, quats, i, view)
-        j00, j02, j11, j12, uc, vc, xcl, ycl = _jacobian(px, py, pz, fx, fy, lim_xn, lim_xp, lim_yn, lim_yp)
-        a, b, c = _cov2d(j00, j02, j11, j12, cov)
-        a += DILATION
-        c += DILATION
-        det = a * c - b * b
-
-        # Opacity.
-        op = _sigmoid(opacity_logits[i] * 1.0)
-        v_opacity_logits[i] = v_op * op * (1.0 - op)
-
-        # Colour: SH evaluated along the view direction, +0.5, clamped at 0.
-        v_px = 0.0
-        v_py = 0.0
-        v_pz = v_z
-        if sh_degree > 0:
-            dx, dy, dz, dist = _view_dir(means, i, campos)
-        else:
-            dx, dy, dz, dist = 0.0, 0.0, 1.0, 1.0
-        r, g, bl = _sh_raw_color(sh, i, sh_degree, dx, dy, dz)
-        if r + 0.5 < 0.0:
-            v_r = 0.0
-        if g + 0.5 < 0.0:
-            v_g = 0.0
-        if bl + 0.5 < 0.0:
-            v_b = 0.0
-        ux, uy, uz = _sh_backward(sh, i, sh_degree, dx, dy, dz, v_r, v_g, v_b, v_sh)
-        v_wx = 0.0
-        v_wy = 0.0
-        v_wz = 0.0
-        if sh_degree > 0 and dist > 0.0:
-            # d(unit dir)/d(vector) = (I - d d^T) / |vector|
-            dot = ux * dx + uy * dy + uz * dz
-            v_wx = (ux - dot * dx) / dist
-            v_wy = (uy - dot * dy) / dist
-            v_wz = (uz - dot * dz) / dist
-
-        # Conic (inverse of [[a, b], [b, c]]) -> 2D covariance.
-        ca = c / det
-        cb = -b / det
-        cc = a / det
-        v_det = -(v_ca * ca + v_cb * cb + v_cc * cc) / det
-        v_a = v_cc / det + v_det * c
-        v_b2 = -v_cb / det - 2.0 * v_det * b
-        v_c = v_ca / det + v_det * a
-
-        # 2D covariance = J cov J^T.
-        sxx, sxy, sxz, syy, syz, szz = cov
-        v_sxx = v_a * j00 * j00
-        v_sxz = v_a * 2.0 * j00 * j02 + v_b2 * j00 * j12
-        v_szz = v_a * j02 * j02 + v_b2 * j02 * j12 + v_c * j12 * j12
-        v_sxy = v_b2 * j00 * j11
-        v_syz = v_b2 * j02 * j11 + v_c * 2.0 * j11 * j12
-        v_syy = v_c * j11 * j11
-        v_j00 = v_a * (2.0 * j00 * sxx + 2.0 * j02 * sxz) + v_b2 * (j11 * sxy + j12 * sxz)
-        v_j02 = v_a * (2.0 * j00 * sxz + 2.0 * j02 * szz) + v_b2 * (j11 * syz + j12 * szz)
-        v_j11 = v_b2 * (j00 * sxy + j02 * syz) + v_c * (2.0 * j11 * syy + 2.0 * j12 * syz)
-        v_j12 = v_b2 * (j00 * sxz + j02 * szz) + v_c * (2.0 * j11 * syz + 2.0 * j12 * szz)
-
-        # Jacobian entries -> camera point (x or y gets nothing through a clamped tangent).
-        iz = 1.0 / pz
-        iz2 = iz * iz
-        v_pz += -v_j00 * fx * iz2 + v_j02 * fx * uc * iz2 - v_j11 * fy * iz2 + v_j12 * fy * vc * iz2
-        v_uc = -v_j02 * fx * iz
-        v_vc = -v_j12 * fy * iz
-        if not xcl:
-            v_px += v_uc * iz
-            v_pz -= v_uc * px * iz2
-        if not ycl:
-            v_py += v_vc * iz
-            v_pz -= v_vc * py * iz2
-        # Projected mean.
-        v_px += v_mx * fx * iz
-        v_py += v_my * fy * iz
-        v_pz -= (v_mx * fx * px + v_my * fy * py) * iz2
-
-        # Camera covariance = T T^T with symmetric gradient G (off-diagonals halved): dL/dT = 2 G T.
-        g00 = v_sxx
-        g11 = v_syy
-        g22 = v_szz
-        g01 = 0.5 * v_sxy
-        g02 = 0.5 * v_sxz
-        g12 = 0.5 * v_syz
-        t00, t01, t02, t10, t11, t12, t20, t21, t22 = T
-        vt00 = 2.0 * (g00 * t00 + g01 * t10 + g02 * t20)
-        vt01 = 2.0 * (g00 * t01 + g01 * t11 + g02 * t21)
-        vt02 = 2.0 * (g00 * t02 + g01 * t12 + g02 * t22)
-        vt10 = 2.0 * (g01 * t00 + g11 * t10 + g12 * t20)
-        vt11 = 2.0 * (g01 * t01 + g11 * t11 + g12 * t21)
-        vt12 = 2.0 * (g01 * t02 + g11 * t12 + g12 * t22)
-        vt20 = 2.0 * (g02 * t00 + g12 * t10 + g22 * t20)
-        vt21 = 2.0 * (g02 * t01 + g12 * t11 + g22 * t21)
-        vt22 = 2.0 * (g02 * t02 + g12 * t12 + g22 * t22)
-        # T = Vr M  ->  dL/dM = Vr^T dL/dT
-        vm00 = view[0, 0] * vt00 + view[1, 0] * vt10 + view[2, 0] * vt20
-        vm01 = view[0, 0] * vt01 + view[1, 0] * vt11 + view[2, 0] * vt21
-        vm02 = view[0, 0] * vt02 + view[1, 0] * vt12 + view[2, 0] * vt22
-        vm10 = view[0, 1] * vt00 + view[1, 1] * vt10 + view[2, 1] * vt20
-        vm11 = view[0, 1] * vt01 + view[1, 1] * vt11 + view[2, 1] * vt21
-        vm12 = view[0, 1] * vt02 + view[1, 1] * vt12 + view[2, 1] * vt22
-        vm20 = view[0, 2] * vt00 + view[1, 2] * vt10 + view[2, 2] * vt20
-        vm21 = view[0, 2] * vt01 + view[1, 2] * vt11 + view[2, 2] * vt21
-        vm22 = view[0, 2] * vt02 + view[1, 2] * vt12 + view[2, 2] * vt22
-        # M = R diag(s)
-        s0, s1, s2 = s
-        v_log_scales[i, 0] = (vm00 * R[0] + vm10 * R[3] + vm20 * R[6]) * s0
-        v_log_scales[i, 1] = (vm01 * R[1] + vm11 * R[4] + vm21 * R[7]) * s1
-        v_log_scales[i, 2] = (vm02 * R[2] + vm12 * R[5] + vm22 * R[8]) * s2
-        G00, G01, G02 = vm00 * s0, vm01 * s1, vm02 * s2
-        G10, G11, G12 = vm10 * s0, vm11 * s1, vm12 * s2
-        G20, G21, G22 = vm20 * s0, vm21 * s1, vm22 * s2
-        qw, qx, qy, qz = q
-        vqw = 2.0 * (-qz * G01 + qy * G02 + qz * G10 - qx * G12 - qy * G20 + qx * G21)
-        vqx = 2.0 * (qy * G01 + qz * G02 + qy * G10 - 2.0 * qx * G11 - qw * G12 + qz * G20 + qw * G21 - 2.0 * qx * G22)
-        vqy = 2.0 * (-2.0 * qy * G00 + qx * G01 + qw * G02 + qx * G10 + qz * G12 - qw * G20 + qz * G21 - 2.0 * qy * G22)
-        vqz = 2.0 * (-2.0 * qz * G00 - qw * G01 + qx * G02 + qw * G10 - 2.0 * qz * G11 + qy * G12 + qx * G20 + qy * G21)
-        # Through the normalisation q / |q|.
-        dotq = vqw * qw + vqx * qx + vqy * qy + vqz * qz
-        v_quats[i, 0] = (vqw - dotq * qw) / qn
-        v_quats[i, 1] = (vqx - dotq * qx) / qn
-        v_quats[i, 2] = (vqy - dotq * qy) / qn
-        v_quats[i, 3] = (vqz - dotq * qz) / qn
-
-        # Camera point -> world mean (p = Vr m + t), plus the SH view-direction path.
-        v_means[i, 0] = view[0, 0] * v_px + view[1, 0] * v_py + view[2, 0] * v_pz + v_wx
-        v_means[i, 1] = view[0, 1] * v_px + view[1, 1] * v_py + view[2, 1] * v_pz + v_wy
-        v_means[i, 2] = view[0, 2] * v_px + view[1, 2] * v_py + view[2, 2] * v_pz + v_wz
+    lims = _tangent_limits(fx, fy, cx, cy, width, height)
+    for i in range(lo, hi):
+        _project_backward_one(
+            i, means, log_scales, quats, opacity_logits, sh, sh_degree, view, campos,
+            fx, fy, lims, g_offsets, slot_grads,
+            v_means, v_log_scales, v_quats, v_opacity_logits, v_sh, v_means2d,
+        )

@@ -25,6 +25,7 @@ from ..gaussians import Gaussians
 from ..geometry import invert_pose, rigidity_problem
 from . import _layout as L
 from ._project_kernels import ALPHA_MIN, DILATION, FRUSTUM_SLACK, MAHA2_MAX, project_backward, project_forward
+from ._threads import parallel_for
 from ._tile_kernels import ALPHA_MAX, T_MIN, TILE, bin_tiles, composite_backward, composite_forward
 
 DEFAULT_NEAR = 0.01
@@ -127,8 +128,8 @@ def rasterize(
     radii = np.empty(n, np.int32)
     visible = np.empty(n, np.bool_)
     if n:
-        project_forward(
-            g.means, g.log_scales, g.quats, g.opacity_logits, g.sh, deg, view, campos,
+        parallel_for(
+            project_forward, n, g.means, g.log_scales, g.quats, g.opacity_logits, g.sh, deg, view, campos,
             float(k.fx), float(k.fy), float(k.cx), float(k.cy), float(width), float(height),
             float(near), float(far), rec, bbox, radii, visible,
         )
@@ -147,8 +148,8 @@ def rasterize(
     depth_sum = np.empty((height, width), np.float64)
     last = np.empty((height, width), np.int32)
     done = np.empty((height, width), np.bool_)
-    composite_forward(
-        tile_rec, tile_offsets, tile_order, tiles_x, width, height, bg,
+    parallel_for(
+        composite_forward, len(tile_order), tile_rec, tile_offsets, tile_order, tiles_x, width, height, bg,
         color, trans, depth_sum, last, done,
     )
     alpha = 1.0 - trans
@@ -208,8 +209,8 @@ def rasterize_backward(
     k = c.intrinsics
     slot_grads = np.empty((len(c.tile_rec), L.GRAD_WIDTH), dtype)
     scratch = np.empty((h, w, 5), np.float64)
-    composite_backward(
-        c.tile_rec, c.tile_offsets, c.tile_order, -(-w // TILE), w, h, c.background,
+    parallel_for(
+        composite_backward, len(c.tile_order), c.tile_rec, c.tile_offsets, c.tile_order, -(-w // TILE), w, h, c.background,
         c.final_trans, c.last, v_color, v_alpha, v_depth_sum, c.entry_slot, scratch, slot_grads,
     )
     n = len(g)
@@ -222,8 +223,8 @@ def rasterize_backward(
         means2d=np.zeros((n, 2), dtype),
     )
     if len(c.order):
-        project_backward(
-            g.means, g.log_scales, g.quats, g.opacity_logits, g.sh, c.sh_degree, c.view, c.campos,
+        parallel_for(
+            project_backward, n, g.means, g.log_scales, g.quats, g.opacity_logits, g.sh, c.sh_degree, c.view, c.campos,
             float(k.fx), float(k.fy), float(k.cx), float(k.cy), float(w), float(h),
             c.g_offsets, slot_grads,
             out.means, out.log_scales, out.quats, out.opacity_logits, out.sh, out.means2d,

@@ -1,0 +1,71 @@
+"""A small thread pool that runs GIL-free numba kernels over chunks of an index range.
+
+Chosen over ``@njit(parallel=True)`` by measurement: numba's parallel lowering more than doubled
+the first (uncached) compile, and a shared queue of chunks balances uneven tiles dynamically. It
+also keeps numba's OpenMP/TBB runtime out of processes that already run torch's.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any, Callable
+
+_lock = threading.Lock()
+_pool: ThreadPoolExecutor | None = None
+_threads = 0
+
+CHUNKS_PER_THREAD = 4
+"""Chunks per worker: enough to even out unequal tiles, few enough that dispatch stays ~0.1 ms."""
+
+
+def default_threads() -> int:
+    """Cores this process may use (``ACESPLAT_RASTER_THREADS`` overrides)."""
+    env = os.environ.get("ACESPLAT_RASTER_THREADS")
+    if env:
+        return max(1, int(env))
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def set_num_threads(n: int | None) -> None:
+    """Use ``n`` worker threads for the rasterizer (None: all available cores)."""
+    global _pool, _threads
+    n = default_threads() if n is None else int(n)
+    if n < 1:
+        raise ValueError(f"need at least one thread, got {n}")
+    with _lock:
+        if _pool is not None:
+            _pool.shutdown(wait=True)
+        _pool = None
+        _threads = n
+
+
+def get_num_threads() -> int:
+    return _threads or default_threads()
+
+
+def parallel_for(kernel: Callable[..., Any], n: int, *args: Any) -> None:
+    """Run ``kernel(lo, hi, *args)`` over chunks covering range(n), in parallel; return when all are done.
+
+    Results must not depend on the chunking: every kernel writes disjoint outputs per index.
+    """
+    global _pool
+    threads = get_num_threads()
+    if n <= 0:
+        return
+    if threads == 1 or n == 1:
+        kernel(0, n, *args)
+        return
+    chunks = min(n, threads * CHUNKS_PER_THREAD)
+    bounds = [n * c // chunks for c in range(chunks + 1)]
+    with _lock:
+        if _pool is None:
+            _pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="acesplat-raster")
+        pool = _pool
+    futures = [pool.submit(kernel, bounds[c], bounds[c + 1], *args) for c in range(chunks)]
+    for f in futures:
+        f.result()

@@ -1,0 +1,242 @@
+"""Stage 2 end to end: posed frames + a frozen SCR network -> an optimised Gaussian scene set.
+
+Order (all inside one wall-clock budget): read the views at the map's resolution; run the SCR
+network once per initialisation view (features kept); keep trustworthy cells; train the adapter and
+init head alone for HEAD_WARMUP of the budget; merge every view's head Gaussians into one scene set
+on a lattice whose stride fits MAX_INITIAL_GAUSSIANS; then optimise the set and the head jointly.
+
+Protocols: ``static`` reconstructs the captured (training) views; ``sparse`` starts from two training
+views only and holds out the training frames between them as targets.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+import torch
+
+from acesplat.core.errors import InputError
+from acesplat.core.scene import Frame
+
+from .adapter import AdapterConfig
+from .head_training import HeadTrainer
+from .init_head import InitHeadConfig, SceneNorm
+from .instantiate import GaussianInitializer, choose_stride, merge_views
+from .optimize import EvalFn, OptimizeConfig, OptimizeResult, optimise_gaussians
+from .params import GaussianParams, params_from_tensors
+from .schedule import NET_LR_MAX, NET_LR_MIN, one_cycle
+from .validity import ValidityConfig
+from .views import SplatView, load_views, run_scr
+
+PROTOCOLS = ("static", "sparse")
+MAX_INIT_VIEWS = 48
+"""At most this many training views (evenly spread) run the SCR network and seed Gaussians; all train."""
+MAX_INITIAL_GAUSSIANS = 60_000
+MAX_GAUSSIANS = 200_000
+"""Cap of the lifecycle: rendering time grows with the count, and the budget is CPU time."""
+HEAD_WARMUP = 0.08
+"""Share of the budget in which the adapter and head train alone, before they seed the scene set."""
+SPARSE_GAP = 4
+"""Default sparse-view pair: two training frames this many frames apart around the middle of the sequence."""
+MIN_VALID_FRACTION = 0.02
+"""Below this share of trustworthy SCR cells the map does not describe the scene."""
+SCENE_EXTENT_FACTOR = 1.1
+"""3DGS's scene extent: 1.1 x the largest camera distance from their mean."""
+
+ProgressFn = Callable[[str, float, dict], None]
+
+
+@dataclass
+class SplatConfig:
+    minutes: float = 10.0
+    protocol: str = "static"
+    iterations: int | None = None
+    """Fixed optimisation iterations instead of the budget (tests)."""
+    head_iterations: int | None = None
+    """Fixed head warm-up steps instead of HEAD_WARMUP of the budget (tests)."""
+    sh_degree: int = 3
+    max_initial: int = MAX_INITIAL_GAUSSIANS
+    max_gaussians: int = MAX_GAUSSIANS
+    init_views: int = MAX_INIT_VIEWS
+    head_warmup: float = HEAD_WARMUP
+    joint_head: bool = True
+    sparse_views: tuple[int, int] | None = None
+    validity: ValidityConfig = field(default_factory=ValidityConfig)
+    adapter_widths: tuple[int, int, int, int] = AdapterConfig.widths
+    head: InitHeadConfig = field(default_factory=InitHeadConfig)
+    opacity_reset: bool = True
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.protocol not in PROTOCOLS:
+            raise InputError(None, f"protocol must be one of {PROTOCOLS}, got {self.protocol!r}")
+        if self.minutes <= 0:
+            raise InputError(None, f"minutes must be positive, got {self.minutes}")
+
+
+@dataclass
+class SplatResult:
+    params: GaussianParams
+    initializer: GaussianInitializer
+    norm: SceneNorm
+    train_views: list[SplatView]
+    target_frames: list[Frame]
+    stats: dict
+    optimize: OptimizeResult
+
+
+def protocol_split(n_frames: int, protocol: str, pair: tuple[int, int] | None = None) -> tuple[list[int], list[int]]:
+    """(training frame indices, held-out target indices) of a protocol over ``n_frames`` training frames."""
+    if protocol == "static":
+        return list(range(n_frames)), []
+    if n_frames < 2:
+        raise InputError(None, f"the sparse protocol needs at least 2 training frames, the scene has {n_frames}")
+    if pair is None:
+        gap = min(SPARSE_GAP, n_frames - 1)
+        a = max(0, (n_frames - 1 - gap) // 2)
+        pair = (a, a + gap)
+    a, b = sorted(int(i) for i in pair)
+    if a == b or a < 0 or b >= n_frames:
+        raise InputError(None, f"sparse views must be two different training frames in 0..{n_frames - 1}, got {pair}")
+    return [a, b], list(range(a + 1, b))
+
+
+def spread(n: int, k: int) -> list[int]:
+    """k (or n) indices evenly spread over range(n)."""
+    if n <= k:
+        return list(range(n))
+    return sorted({int(round(x)) for x in np.linspace(0, n - 1, k)})
+
+
+def scene_extent(poses: np.ndarray, fallback: float) -> float:
+    c = np.asarray(poses)[:, :3, 3]
+    r = float(np.max(np.linalg.norm(c - c.mean(0), axis=1))) if len(c) else 0.0
+    return SCENE_EXTENT_FACTOR * max(r, fallback)
+
+
+def splat_scene(
+    frames: Sequence[Frame],
+    network: torch.nn.Module,
+    short_side: int,
+    cfg: SplatConfig,
+    source: str | Path | None = None,
+    progress: ProgressFn | None = None,
+    eval_fn: EvalFn | None = None,
+    eval_every_s: float | None = None,
+) -> SplatResult:
+    """Run Stage 2 on the training ``frames`` with the frozen SCR ``network`` (encoder + head).
+
+    ``source`` names the map in errors (a map that does not fit the scene is bad input).
+    """
+    t0 = time.monotonic()
+    budget = cfg.minutes * 60.0
+    rng = np.random.default_rng(cfg.seed)
+    torch.manual_seed(cfg.seed)
+    train_idx, target_idx = protocol_split(len(frames), cfg.protocol, cfg.sparse_views)
+    views = load_views([frames[i] for i in train_idx], short_side)
+    init_views = [views[i] for i in spread(len(views), cfg.init_views)]
+    run_scr(init_views, network, cfg.validity, keep_features=True,
+            progress=(lambda d, n: progress("scr", d / n, {"views": d})) if progress else None)
+    fractions = [v.validity.fraction for v in init_views]  # type: ignore[union-attr]
+    overall = float(np.mean(fractions))
+    usable = [v for v, f in zip(init_views, fractions) if f > 0]
+    if not usable or overall < MIN_VALID_FRACTION:
+        vc = cfg.validity
+        raise InputError(
+            source,
+            f"validity mask is {'empty' if not usable else f'{overall:.1%} full'}: the map's scene coordinates do not "
+            f"reproject within {vc.reproj_max_px:g} px at depths {vc.depth_min:g}..{vc.depth_max:g} m in this scene's "
+            "training views (a map of another scene, other images or another encoder?)",
+        )
+    depths = np.concatenate([_valid_depths(v) for v in usable])
+    norm = SceneNorm.from_views(np.stack([v.pose[:3, 3] for v in views]), depths)
+    extent = scene_extent(np.stack([v.pose for v in views]), fallback=0.1 * norm.scale)
+
+    adapter_cfg = AdapterConfig(in_channels=int(usable[0].features.shape[1]), widths=cfg.adapter_widths)  # type: ignore[union-attr]
+    initializer = GaussianInitializer(adapter_cfg, cfg.head)
+    head = HeadTrainer(initializer, usable, norm, cfg.sh_degree)
+    t_prep = time.monotonic() - t0
+    warm_steps, warm_skipped = _warm_up(head, cfg, t0 + cfg.head_warmup * budget, rng, progress)
+    t_warm = time.monotonic() - t0 - t_prep
+
+    pixels = [head.pixels(i) for i in range(len(usable))]
+    valid_px = int(sum(int(p.valid.sum()) for p in pixels))
+    stride = choose_stride(valid_px, cfg.max_initial)
+    tensors, counts = merge_views(usable, pixels, initializer, stride, cfg.sh_degree, rng)
+    if not tensors:
+        raise InputError(source, "validity mask is empty at pixel resolution in every view (no Gaussian to start from)")
+    params = params_from_tensors(tensors)
+    n_initial = int(params["means"].shape[0])
+    remaining = max(budget - (time.monotonic() - t0), 1.0)
+    ocfg = OptimizeConfig(scene_extent=extent, max_gaussians=max(cfg.max_gaussians, n_initial), sh_degree=cfg.sh_degree,
+                          iterations=cfg.iterations, opacity_reset=cfg.opacity_reset,
+                          head_every=5 if cfg.joint_head else 0, seed=cfg.seed)
+    opt = optimise_gaussians(params, views, ocfg, remaining, head=head if cfg.joint_head else None,
+                             progress=progress, eval_fn=eval_fn, eval_every_s=eval_every_s)
+    stats = {
+        "protocol": cfg.protocol,
+        "seconds": time.monotonic() - t0,
+        "prepare_seconds": t_prep,
+        "head_warmup_seconds": t_warm,
+        "optimise_seconds": opt.seconds,
+        "train_views": [v.name for v in views],
+        "init_views": len(init_views),
+        "init_views_used": len(usable),
+        "valid_cell_fraction": overall,
+        "valid_pixels": valid_px,
+        "stride": stride,
+        "gaussians_initial": n_initial,
+        "gaussians_final": int(params["means"].shape[0]),
+        "iterations": opt.iterations,
+        "head_warmup_steps": warm_steps,
+        "head_steps": opt.head_steps,
+        "skipped_steps": opt.skipped_steps + warm_skipped,
+        "scene_extent": extent,
+        "scene_norm": norm.as_dict(),
+        "image_size": list(views[0].size),
+        "schedule": opt.schedule.as_dict() if opt.schedule else None,
+        "lifecycle": opt.events,
+    }
+    return SplatResult(params, initializer, norm, views, [frames[i] for i in target_idx], stats, opt)
+
+
+def _valid_depths(v: SplatView) -> np.ndarray:
+    from .pixel_coords import cell_depths
+
+    assert v.coords is not None and v.validity is not None
+    return cell_depths(v.coords.astype(np.float64), v.pose)[v.validity.valid]
+
+
+def _warm_up(
+    head: HeadTrainer, cfg: SplatConfig, deadline: float, rng: np.random.Generator, progress: ProgressFn | None
+) -> tuple[int, int]:
+    """Train the adapter and head alone (their own AdamW and one-cycle) until ``deadline`` or cfg.head_iterations."""
+    from .optimize import finite_gradients
+
+    opt = torch.optim.AdamW(head.init.parameters(), lr=NET_LR_MIN, weight_decay=0.01)
+    start = time.monotonic()
+    span = max(deadline - start, 1e-9)
+    steps = skipped = 0
+    while True:
+        p = steps / cfg.head_iterations if cfg.head_iterations is not None else (time.monotonic() - start) / span
+        if p >= 1.0 or (cfg.head_iterations is None and time.monotonic() >= deadline):
+            break
+        for g in opt.param_groups:
+            g["lr"] = one_cycle(p, NET_LR_MIN, NET_LR_MAX)
+        loss = head.loss(rng)
+        steps += 1
+        if loss is None:
+            continue
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        if not finite_gradients(opt):
+            skipped += 1
+            continue
+        opt.step()
+        if progress:
+            progress("head", p, {"step": steps, "loss": float(loss.detach())})
+    return steps, skipped

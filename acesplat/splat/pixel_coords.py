@@ -1,0 +1,85 @@
+"""SCR coordinates (one per 8x8 cell) brought to pixel resolution, torch-free.
+
+Interpolating the 3D coordinates themselves would put pixels that straddle a depth edge on a
+straight line between foreground and background, off every pixel's ray. Instead each cell's
+camera-frame depth is interpolated bilinearly (the same half-pixel alignment as the feature
+adapter) and every pixel is unprojected along its own ray with the known pose, so a centre always
+reprojects onto its pixel and only its distance comes from the SCR prediction. Where the cells that
+feed a pixel disagree in depth by more than a ratio, the pixel is marked as an edge.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from acesplat.core.camera import Intrinsics
+from acesplat.core.geometry import invert_pose
+
+STRIDE = 8
+"""SCR output stride (acesplat.scr.network.OUTPUT_STRIDE; repeated so this module needs no torch)."""
+
+
+def _axis_weights(n_out: int, n_in: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Indices i0, i1 (n_out,) and weight of i1 for x8 bilinear upsampling with half-pixel centres.
+
+    Matches torch's ``interpolate(..., align_corners=False)``: source = (dst + 0.5) / 8 - 0.5,
+    clamped at 0 below and at the last cell above.
+    """
+    src = np.maximum((np.arange(n_out) + 0.5) / STRIDE - 0.5, 0.0)
+    i0 = np.minimum(np.floor(src).astype(np.int64), n_in - 1)
+    i1 = np.minimum(i0 + 1, n_in - 1)
+    return i0, i1, src - i0
+
+
+def upsample_cells(values: np.ndarray, height: int, width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bilinear x8 upsampling of per-cell values (h, w) to (height, width), plus the min and max of the
+    (up to 4) cells each pixel was interpolated from."""
+    h, w = values.shape
+    if not (STRIDE * (h - 1) < height <= STRIDE * h and STRIDE * (w - 1) < width <= STRIDE * w):
+        raise ValueError(f"a {h}x{w} cell grid (stride {STRIDE}) does not cover a {height}x{width} image")
+    y0, y1, wy = _axis_weights(height, h)
+    x0, x1, wx = _axis_weights(width, w)
+    a, b = values[y0][:, x0], values[y0][:, x1]
+    c, d = values[y1][:, x0], values[y1][:, x1]
+    wy, wx = wy[:, None], wx[None, :]
+    out = (1 - wy) * ((1 - wx) * a + wx * b) + wy * ((1 - wx) * c + wx * d)
+    lo = np.minimum(np.minimum(a, b), np.minimum(c, d))
+    hi = np.maximum(np.maximum(a, b), np.maximum(c, d))
+    return out, lo, hi
+
+
+def cell_depths(coords: np.ndarray, pose_c2w: np.ndarray) -> np.ndarray:
+    """Camera-frame z (h, w) of scene coordinates ``coords`` (h, w, 3) seen from ``pose_c2w``."""
+    w2c = invert_pose(pose_c2w)
+    return np.einsum("hwj,j->hw", coords, w2c[2, :3]) + w2c[2, 3]
+
+
+def pixel_rays(intrinsics: Intrinsics) -> np.ndarray:
+    """Camera-frame ray directions with z = 1 (H, W, 3) through the pixel centres (integer coordinates)."""
+    k = intrinsics
+    u, v = np.meshgrid(np.arange(k.width, dtype=np.float64), np.arange(k.height, dtype=np.float64))
+    return np.stack([(u - k.cx) / k.fx, (v - k.cy) / k.fy, np.ones_like(u)], axis=-1)
+
+
+def pixel_coordinates(
+    coords: np.ndarray, cell_valid: np.ndarray, pose_c2w: np.ndarray, intrinsics: Intrinsics, max_depth_ratio: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World centres (H, W, 3), camera depths (H, W) and validity (H, W) at pixel resolution.
+
+    coords (h, w, 3) SCR coordinates of the cells of an image of ``intrinsics``' size; cell_valid
+    (h, w) which cells to trust. A pixel is valid when every cell it is interpolated from is valid
+    and their depths agree within ``max_depth_ratio`` (max / min).
+    """
+    if coords.ndim != 3 or coords.shape[2] != 3 or cell_valid.shape != coords.shape[:2]:
+        raise ValueError(f"coords must be (h, w, 3) and cell_valid (h, w), got {coords.shape} and {cell_valid.shape}")
+    H, W = intrinsics.height, intrinsics.width
+    z = cell_depths(np.asarray(coords, np.float64), pose_c2w)
+    ok = np.asarray(cell_valid, bool) & np.isfinite(z) & (z > 0)
+    z_safe = np.where(ok, z, 1.0)
+    depth, z_lo, z_hi = upsample_cells(z_safe, H, W)
+    _, ok_lo, _ = upsample_cells(ok.astype(np.float64), H, W)
+    valid = (ok_lo > 0.5) & (z_hi <= max_depth_ratio * z_lo)
+    X_cam = pixel_rays(intrinsics) * depth[..., None]
+    pose = np.asarray(pose_c2w, np.float64)
+    centres = X_cam @ pose[:3, :3].T + pose[:3, 3]
+    return centres, depth, valid
