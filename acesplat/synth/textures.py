@@ -83,21 +83,27 @@ def recolor(rng: np.random.Generator, img: np.ndarray, gray_source: bool, streng
 
 
 def photo_region(rng: np.random.Generator, photo: Photo, h: int, w: int, mag: float) -> np.ndarray:
-    """A random crop of ``photo`` resized to (h, w, 3) at ``mag`` texels per photo pixel (more if it is small)."""
+    """A random crop of ``photo`` resized to (h, w, 3) at ``mag`` texels per photo pixel (more if it is small).
+
+    Materials are also turned by a random multiple of 90 degrees; photos without text may be mirrored.
+    The crop is resized before it is turned, so only the small result is copied.
+    """
+    k = int(rng.integers(4)) if photo.is_material else 0  # pictures stay upright
+    mirror = rng.random() < 0.5 and not photo.has_text
+    th, tw = (w, h) if k % 2 else (h, w)  # size before turning
     img = photo.image
-    k = int(rng.integers(4))
-    if k and photo.is_material:  # pictures stay upright
-        img = np.rot90(img, k)
-    if rng.random() < 0.5 and not photo.has_text:
-        img = img[:, ::-1]
     ph, pw = img.shape[:2]
-    mag = max(mag, h / ph, w / pw)
-    ch, cw = min(ph, max(1, round(h / mag))), min(pw, max(1, round(w / mag)))
+    mag = max(mag, th / ph, tw / pw)
+    ch, cw = min(ph, max(1, round(th / mag))), min(pw, max(1, round(tw / mag)))
     y0 = int(rng.integers(0, ph - ch + 1))
     x0 = int(rng.integers(0, pw - cw + 1))
-    crop = np.ascontiguousarray(img[y0 : y0 + ch, x0 : x0 + cw])
     interp = cv2.INTER_AREA if mag < 1.0 else cv2.INTER_LINEAR
-    return cv2.resize(crop, (w, h), interpolation=interp)
+    out = cv2.resize(img[y0 : y0 + ch, x0 : x0 + cw], (tw, th), interpolation=interp)
+    if k:
+        out = np.rot90(out, k)
+    if mirror:
+        out = out[:, ::-1]
+    return np.ascontiguousarray(out)
 
 
 def _pick(
