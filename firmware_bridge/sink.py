@@ -299,6 +299,8 @@ class PoseSink:
                 self._stop.wait(min(0.05, max(self._link.seconds_until_retry(), 0.005)))
                 continue
             port = self._link.port
+            if port is None:  # the reader failed it just now
+                continue
             if port is not current:  # a new port, whichever thread noticed the old one die
                 current, resync = port, True
             if resync:
@@ -407,6 +409,8 @@ def open_sink(
 
     A port that cannot be opened at start is an InputError (a typo should fail at once) unless
     ``wait_for_port``; a port lost later is reopened with backoff for as long as the sink runs.
+    Name USB adapters by their stable path (``/dev/serial/by-id/...``): after a replug the kernel
+    may give the adapter another ttyUSB number, and the sink reopens the name it was given.
     """
     return PoseSink(
         serial_opener(port, baud), protocol, rate_hz, mavlink=mavlink, on_command=on_command, wait_for_port=wait_for_port, name=port

@@ -108,7 +108,7 @@ class SerialLink:
     def fail(self, port: serial.SerialBase, error: BaseException | str) -> None:
         """Report that ``port`` failed; closes it once even if several threads report it."""
         with self._lock:
-            if port is not self._port:
+            if port is None or port is not self._port:
                 return
             self._port = None
             self._connected.clear()
