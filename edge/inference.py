@@ -1,0 +1,60 @@
+"""The SCR model in an onnxruntime session: grayscale uint8 (H, W) in, scene coordinates (h, w, 3) out."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+
+from acesplat.core.errors import InputError
+
+
+def default_threads() -> int:
+    """All cores this process may use (affinity-aware where the OS tells)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def session_options(threads: int | None = None, spinning: bool = True) -> ort.SessionOptions:
+    """Intra-op threads = cores and spinning on: per-frame latency matters more than idle CPU here."""
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = threads or default_threads()
+    so.inter_op_num_threads = 1
+    so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    so.add_session_config_entry("session.intra_op.allow_spinning", "1" if spinning else "0")
+    so.log_severity_level = 3
+    return so
+
+
+class ScrSession:
+    """One SCR model; checks the model's input shape against the bundle's input size."""
+
+    def __init__(self, model_path: str | Path, input_size: tuple[int, int], threads: int | None = None) -> None:
+        self.path = Path(model_path)
+        self.threads = threads or default_threads()
+        try:
+            self._sess = ort.InferenceSession(
+                str(self.path), sess_options=session_options(self.threads), providers=["CPUExecutionProvider"]
+            )
+        except Exception as e:  # onnxruntime raises its own Fail/InvalidGraph types
+            raise InputError(self.path, f"onnxruntime cannot load the model ({str(e).splitlines()[0][:200]})") from None
+        inp = self._sess.get_inputs()[0]
+        self._input = inp.name
+        self._output = self._sess.get_outputs()[0].name
+        self.input_size = (int(input_size[0]), int(input_size[1]))
+        shape = list(inp.shape)
+        if len(shape) != 4 or [shape[2], shape[3]] != list(self.input_size):
+            raise InputError(self.path, f"model input shape {shape} does not match the bundle input size {self.input_size}")
+
+    def run(self, gray: np.ndarray) -> np.ndarray:
+        """Scene coordinates (h, w, 3) float32 for a grayscale image (H, W) at the model's input size."""
+        if gray.shape != self.input_size:
+            raise ValueError(f"image must be {self.input_size} (H, W) grayscale, got {gray.shape}")
+        x = np.ascontiguousarray(gray, dtype=np.float32)[None, None]
+        out = self._sess.run([self._output], {self._input: x})[0]
+        return np.ascontiguousarray(np.moveaxis(out[0], 0, -1))

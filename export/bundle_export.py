@@ -1,0 +1,217 @@
+"""Map -> bundle: export the SCR graph (and its INT8 twin), check both, write the manifest, swap into place.
+
+The bundle is assembled in a temporary sibling directory and renamed into place at the end, so an
+interrupted export never leaves a half-written bundle where a good one was.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from acesplat import __version__
+from acesplat.core.bundle import (
+    MANIFEST_NAME, ROLE_SCR_FP32, ROLE_SCR_INT8, BundleFile, describe_file, sha256_of, write_manifest,
+)
+from acesplat.core.errors import InputError
+from acesplat.core.pnp import OUTPUT_STRIDE
+from acesplat.core.preprocess import size_for_short_side
+from acesplat.core.scene import IMAGE_SUFFIXES, SceneSplit, image_size, read_split
+from acesplat.scr.mapfile import encoder_for_map, load_map
+from acesplat.scr.network import GRAY_MEAN, GRAY_STD
+
+from .checks import fp32_parity, localization_accuracy, prepare_frames
+from .onnx_graph import INPUT_NAME, OPSET, OUTPUT_NAME, export_scr_onnx
+from .quantize import quantize_int8
+
+FP32_FILE = "scr.onnx"
+INT8_FILE = "scr.int8.onnx"
+CALIBRATION_FRAMES = 32
+"""Training images used to calibrate INT8 ranges (evenly spaced); more barely moves MinMax ranges."""
+PARITY_FRAMES = 8
+
+ProgressFn = Callable[[str, float, dict], None]
+
+
+@dataclass
+class ExportOptions:
+    int8: bool = False
+    size_hw: tuple[int, int] | None = None
+    encoder_path: Path | None = None
+    scene_path: Path | None = None
+    calibration_frames: int = CALIBRATION_FRAMES
+
+
+@dataclass
+class ExportReport:
+    bundle: Path
+    manifest: dict
+    seconds: float
+    timings: dict = field(default_factory=dict)
+
+
+def round_to_stride(n: int, stride: int = OUTPUT_STRIDE) -> int:
+    return max(stride, int(round(n / stride)) * stride)
+
+
+def default_size(scene: Path | None, short_side: int, map_path: Path) -> tuple[int, int]:
+    """The map's short side with the training images' aspect ratio, each side a multiple of the output stride."""
+    if scene is None or not (scene / "train" / "rgb").is_dir():
+        raise InputError(map_path, f"cannot choose the input size: scene folder {scene} not found; pass --size HxW or --scene")
+    images = sorted(p for p in (scene / "train" / "rgb").iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if not images:
+        raise InputError(scene / "train" / "rgb", "no training images to take the aspect ratio from")
+    w, h = image_size(images[0])
+    sh, sw = size_for_short_side(h, w, short_side)
+    return round_to_stride(sh), round_to_stride(sw)
+
+
+def evenly(items: list, n: int) -> list:
+    if n <= 0 or len(items) <= n:
+        return list(items)
+    idx = np.linspace(0, len(items) - 1, n).round().astype(int)
+    return [items[i] for i in idx]
+
+
+def _try_split(scene: Path | None, split: str) -> SceneSplit | None:
+    if scene is None or not (scene / split).is_dir():
+        return None
+    return read_split(scene, split)
+
+
+def _prepare_out(out: Path) -> None:
+    if out.exists():
+        if not out.is_dir():
+            raise InputError(out, "output exists and is not a directory")
+        if any(out.iterdir()) and not (out / MANIFEST_NAME).is_file():
+            raise InputError(out, "output directory is not empty and not a bundle; refusing to replace it")
+
+
+def _swap_into_place(tmp: Path, out: Path) -> None:
+    """Rename the finished bundle over ``out``; the old bundle is removed only after the new one is in place."""
+    old = None
+    if out.exists():
+        old = out.with_name(f".{out.name}.old-{os.getpid()}")
+        os.replace(out, old)
+    os.replace(tmp, out)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: ProgressFn | None = None) -> ExportReport:
+    """Export ``map_path`` to the bundle directory ``out``; returns the manifest written."""
+    t_start = time.monotonic()
+    map_path, out = Path(map_path), Path(out)
+    _prepare_out(out)
+    m = load_map(map_path)
+    enc = encoder_for_map(m, map_path, opts.encoder_path)
+    net = m.network(enc)
+    scene = opts.scene_path or (Path(m.metadata["scene"]) if m.metadata.get("scene") else None)
+    if opts.size_hw is not None:
+        h, w = opts.size_hw
+        if h % OUTPUT_STRIDE or w % OUTPUT_STRIDE:
+            raise InputError(None, f"--size must be a multiple of {OUTPUT_STRIDE} in both sides, got {h}x{w}")
+        size = (h, w)
+    else:
+        size = default_size(scene, m.short_side, map_path)
+    train = _try_split(scene, "train")
+    test = _try_split(scene, "test")
+    if opts.int8 and train is None:
+        raise InputError(map_path, f"--int8 calibrates on the map's training images, but {scene}/train was not found; pass --scene")
+    timings: dict[str, float] = {}
+    checks: dict = {}
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    mask = os.umask(0)
+    os.umask(mask)
+    os.chmod(tmp, 0o777 & ~mask)  # mkdtemp makes 0700; a bundle is meant to be copied and shared
+    try:
+        t0 = time.monotonic()
+        if progress:
+            progress("export fp32", 0.0, {})
+        export_scr_onnx(net, size, tmp / FP32_FILE)
+        timings["export_fp32_s"] = time.monotonic() - t0
+        if progress:
+            progress("export fp32", 1.0, {})
+        files: list[BundleFile] = [describe_file(tmp, FP32_FILE, ROLE_SCR_FP32)]
+
+        parity_src = (test or train)
+        if parity_src is not None:
+            parity_frames = prepare_frames(evenly(parity_src.frames, PARITY_FRAMES), size)
+            checks["fp32_vs_torch"] = fp32_parity(net, tmp / FP32_FILE, parity_frames, progress)
+        else:
+            rng = np.random.default_rng(0)
+            from .checks import CheckFrame
+            from acesplat.core.camera import Intrinsics
+
+            noise = [CheckFrame(f"noise{i}", rng.integers(0, 256, size, dtype=np.uint8),
+                                Intrinsics.from_focal(max(size), size[1], size[0]), np.eye(4)) for i in range(2)]
+            checks["fp32_vs_torch"] = fp32_parity(net, tmp / FP32_FILE, noise, progress)
+            checks["fp32_vs_torch"]["note"] = "scene not found: compared on random images"
+
+        if opts.int8:
+            t0 = time.monotonic()
+            calib = prepare_frames(evenly(train.frames, opts.calibration_frames), size)
+            if progress:
+                progress("quantize int8", 0.0, {"images": len(calib)})
+            quantize_int8(tmp / FP32_FILE, tmp / INT8_FILE, [c.gray for c in calib])
+            timings["quantize_int8_s"] = time.monotonic() - t0
+            if progress:
+                progress("quantize int8", 1.0, {"images": len(calib)})
+            files.append(describe_file(tmp, INT8_FILE, ROLE_SCR_INT8))
+            checks["int8_calibration_frames"] = len(calib)
+            if test is not None:
+                t0 = time.monotonic()
+                test_frames = prepare_frames(test.frames, size)
+                acc = {
+                    "fp32": localization_accuracy(tmp / FP32_FILE, test_frames, "fp32", progress),
+                    "int8": localization_accuracy(tmp / INT8_FILE, test_frames, "int8", progress),
+                }
+                acc["recall_drop_points"] = {
+                    k: acc["fp32"][k] - acc["int8"][k]
+                    for k in ("recall_5cm_5deg", "recall_10cm_5deg", "recall_25cm_2deg")
+                }
+                checks["test_split"] = acc
+                timings["check_int8_s"] = time.monotonic() - t0
+            else:
+                checks["test_split"] = None
+                checks["test_split_note"] = "scene has no test split: INT8 accuracy not checked"
+
+        manifest = {
+            "created_by": f"acesplat-edge {__version__}",
+            "created_unix": time.time(),
+            "scene": {"name": scene.name if scene else map_path.stem, "path": str(scene.resolve()) if scene else None},
+            "source_map": {"path": str(map_path.resolve()), "sha256": sha256_of(map_path)},
+            "scr": {
+                "input_size": [size[0], size[1]],
+                "output_stride": OUTPUT_STRIDE,
+                "output_size": [size[0] // OUTPUT_STRIDE, size[1] // OUTPUT_STRIDE],
+                "input": {"name": INPUT_NAME, "shape": [1, 1, size[0], size[1]], "dtype": "float32",
+                          "content": "grayscale intensities in [0, 255] (uint8 values as float)"},
+                "output": {"name": OUTPUT_NAME, "shape": [1, 3, size[0] // OUTPUT_STRIDE, size[1] // OUTPUT_STRIDE],
+                           "content": "scene coordinates (x, y, z) in scene units per cell; cell (i, j) is pixel (8j+4, 8i+4)"},
+                "normalization": {"formula": "(x / 255 - mean) / std", "mean": GRAY_MEAN, "std": GRAY_STD,
+                                  "inside_graph": True},
+                "mean_offset": [float(v) for v in np.asarray(m.mean).reshape(3)],
+                "encoder": {"name": m.encoder_identity.name, "sha256": m.encoder_identity.sha256},
+                "head": m.head.cfg.as_dict(),
+                "opset": OPSET,
+                "precisions": ["fp32"] + (["int8"] if opts.int8 else []),
+                "int8_scheme": "onnxruntime static QDQ, per-channel weights, U8S8, last conv and head tail in float" if opts.int8 else None,
+            },
+            "checks": checks,
+        }
+        written = write_manifest(tmp, manifest, files)
+        _swap_into_place(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return ExportReport(bundle=out, manifest=written, seconds=time.monotonic() - t_start, timings=timings)

@@ -1,0 +1,127 @@
+"""Self-checks every export runs: the FP32 graph against torch, the INT8 graph by localization accuracy.
+
+The numbers are written into the manifest so a bundle carries the evidence of its own fidelity.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Sequence
+
+import cv2
+import numpy as np
+import onnxruntime as ort
+import torch
+
+from acesplat.core.camera import Intrinsics
+from acesplat.core.geometry import pose_error
+from acesplat.core.metrics import FrameResult, accuracy_summary
+from acesplat.core.pnp import solve_from_grid
+from acesplat.core.preprocess import to_gray_input
+from acesplat.core.scene import Frame
+from acesplat.scr.network import SCRNetwork
+
+PNP_SEED = 0
+"""OpenCV's RANSAC draws from a global RNG; reseeding before each solve makes two models' poses comparable."""
+
+ProgressFn = Callable[[str, float, dict], None]
+
+
+@dataclass
+class CheckFrame:
+    """A frame prepared at the bundle's input size: grayscale (H, W) uint8, intrinsics, true pose."""
+
+    name: str
+    gray: np.ndarray
+    intrinsics: Intrinsics
+    pose: np.ndarray
+
+
+def prepare_frames(frames: Sequence[Frame], size_hw: tuple[int, int]) -> list[CheckFrame]:
+    out = []
+    for f in frames:
+        gray, intr = to_gray_input(f.load_rgb(), f.intrinsics, size_hw)
+        out.append(CheckFrame(f.name, gray, intr, f.pose))
+    return out
+
+
+def onnx_session(path: str | Path) -> ort.InferenceSession:
+    so = ort.SessionOptions()
+    so.log_severity_level = 3
+    return ort.InferenceSession(str(path), sess_options=so, providers=["CPUExecutionProvider"])
+
+
+def onnx_coords(sess: ort.InferenceSession, gray: np.ndarray) -> np.ndarray:
+    """(h, w, 3) coordinates from an ONNX session for a grayscale (H, W) image."""
+    name = sess.get_inputs()[0].name
+    out = sess.run(None, {name: gray.astype(np.float32)[None, None]})[0]
+    return np.moveaxis(out[0], 0, -1)
+
+
+@torch.no_grad()
+def torch_coords(net: SCRNetwork, gray: np.ndarray) -> np.ndarray:
+    return net(torch.from_numpy(gray).float()[None, None])[0].permute(1, 2, 0).numpy()
+
+
+def seeded_pose(coords: np.ndarray, intr: Intrinsics):
+    cv2.setRNGSeed(PNP_SEED)
+    return solve_from_grid(coords, intr)
+
+
+def coordinate_extent(coords: Sequence[np.ndarray]) -> float:
+    """Diagonal of the 1st-99th percentile box of predicted coordinates: the scale the differences are judged against."""
+    pts = np.concatenate([c.reshape(-1, 3) for c in coords])
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if pts.size == 0:
+        return float("nan")
+    lo, hi = np.percentile(pts, [1, 99], axis=0)
+    return float(np.linalg.norm(hi - lo))
+
+
+def fp32_parity(net: SCRNetwork, fp32_path: Path, frames: Sequence[CheckFrame], progress: ProgressFn | None = None) -> dict:
+    """Max |ONNX - torch| over the frames' coordinates, as metres and as a fraction of the scene extent; pose differences."""
+    sess = onnx_session(fp32_path)
+    max_diff = 0.0
+    refs = []
+    dt, dr = [], []
+    for i, f in enumerate(frames):
+        a = torch_coords(net, f.gray)
+        b = onnx_coords(sess, f.gray)
+        refs.append(a)
+        max_diff = max(max_diff, float(np.abs(a - b).max()))
+        pa, pb = seeded_pose(a, f.intrinsics), seeded_pose(b, f.intrinsics)
+        if pa.T_c2w is not None and pb.T_c2w is not None:
+            t, r = pose_error(pb.T_c2w, pa.T_c2w)
+            dt.append(t)
+            dr.append(r)
+        if progress:
+            progress("check fp32", (i + 1) / len(frames), {"max_diff_m": max_diff})
+    extent = coordinate_extent(refs)
+    return {
+        "frames": len(frames),
+        "max_abs_diff_m": max_diff,
+        "scene_extent_m": extent,
+        "max_abs_diff_fraction": max_diff / extent if extent and np.isfinite(extent) else None,
+        "pose_frames_compared": len(dt),
+        "pose_max_translation_diff_m": max(dt) if dt else None,
+        "pose_max_rotation_diff_deg": max(dr) if dr else None,
+    }
+
+
+def localization_accuracy(model_path: Path, frames: Sequence[CheckFrame], label: str, progress: ProgressFn | None = None) -> dict:
+    """accuracy_summary (without per-frame rows) of one ONNX model on posed frames."""
+    sess = onnx_session(model_path)
+    results = []
+    for i, f in enumerate(frames):
+        t0 = time.perf_counter()
+        res = seeded_pose(onnx_coords(sess, f.gray), f.intrinsics)
+        ms = (time.perf_counter() - t0) * 1000.0
+        t_err, r_err = pose_error(res.T_c2w, f.pose) if res.T_c2w is not None else (float("inf"), float("inf"))
+        results.append(FrameResult(f.name, res.localized, t_err, r_err, res.inliers, ms))
+        if progress:
+            progress(f"check {label}", (i + 1) / len(frames), {"frame": i + 1})
+    s = accuracy_summary(results)
+    s.pop("per_frame")
+    return s
