@@ -1,7 +1,7 @@
 """A slow, obviously correct pure-torch Gaussian renderer, for checking the tile rasterizer.
 
 Dense: every pixel evaluates every Gaussian, all sorted by depth, no tiles, no hand-written
-gradients (autograd does them). It follows the model documented in acesplat.core.raster.rasterize,
+gradients (autograd does them). It follows the model documented in acesplat.core.raster.rasterizer,
 written from the equations, not from the kernels.
 """
 
@@ -68,6 +68,7 @@ class ReferenceRender:
     alpha: torch.Tensor  # (H, W)
     depth: torch.Tensor  # (H, W)
     means2d: torch.Tensor  # (N, 2), retains its gradient
+    stats: dict[str, int]  # how often each special case occurred, so tests can show they are exercised
 
 
 def render_reference(
@@ -146,11 +147,22 @@ def render_reference(
     depth_sum = weights @ z_s
     covered = alpha_img > 0
     depth = torch.where(covered, depth_sum / torch.where(covered, alpha_img, torch.ones_like(alpha_img)), 0.0)
+    raw_rgb = (torch.einsum("nk,nkc->nc", basis, sh[:, :nk]) + 0.5).detach()
+    valid_s = valid[:, order]
+    stats = {
+        "culled": int((~visible).sum()),
+        "terminated_pixels": int((valid_s & ~keep).any(dim=1).sum()),
+        "alpha_clamped": int((valid & (alpha_raw > ALPHA_MAX)).sum()),
+        "colour_clamped": int((visible[:, None] & (raw_rgb < 0)).sum()),
+        "tangent_clamped": int((visible & ((uc != x / z) | (vc != y / z))).sum()),
+        "contributions": int((valid_s & keep).sum()),
+    }
     return ReferenceRender(
         color=color.reshape(h_img, w_img, 3),
         alpha=alpha_img.reshape(h_img, w_img),
         depth=depth.reshape(h_img, w_img),
         means2d=means2d,
+        stats=stats,
     )
 
 
@@ -169,13 +181,27 @@ def random_scene(
     z[: max(1, n // 20)] = rng.uniform(-2.0, 0.005, max(1, n // 20))  # behind / at the near plane
     u = rng.uniform(-0.3 * width, 1.3 * width, n)
     v = rng.uniform(-0.3 * height, 1.3 * height, n)
+    sigma_px = rng.uniform(0.7, 6.0, (n, 3))
+    if n >= 12:
+        # Two wide Gaussians centred far left of the view, where the EWA Jacobian is clamped, that
+        # still reach into the image.
+        u[-2:] = -0.5 * width
+        v[-2:] = height * np.array([0.3, 0.7])
+        z[-2:] = np.abs(z[-2:]) + 1.0
+        sigma_px[-2:] = 0.3 * width
+        # A stack of four near-opaque Gaussians: compositing stops inside it.
+        u[-6:-2] = 0.6 * width
+        v[-6:-2] = 0.4 * height
+        z[-6:-2] = [1.5, 2.0, 2.5, 3.0]
+        sigma_px[-6:-2] = 3.0
     cam_pts = np.stack([(u - k.cx) / k.fx * np.abs(z), (v - k.cy) / k.fy * np.abs(z), z], axis=1)
     means = cam_pts @ pose[:3, :3].T + pose[:3, 3]
-    sigma_px = rng.uniform(0.7, 6.0, (n, 3))
     log_scales = np.log(sigma_px * np.abs(z)[:, None] / k.fx)
     quats = rng.normal(size=(n, 4))
     logits = rng.normal(scale=2.0, size=n)
     logits[rng.random(n) < 0.15] = 6.0  # alpha clamped at 0.99 near the centre
+    if n >= 12:
+        logits[-6:-2] = 6.0
     sh = np.zeros((n, (sh_degree + 1) ** 2, 3))
     sh[:, 0] = rng.normal(scale=1.0, size=(n, 3))
     sh[:, 1:] = rng.normal(scale=0.3, size=(n, sh.shape[1] - 1, 3))
