@@ -79,12 +79,7 @@ def monitor(
                 if not link.try_connect():
                     time.sleep(min(0.05, max(link.seconds_until_retry(), 0.005)))
                     continue
-                p = link.port
-                try:
-                    data = p.read(max(1, min(p.in_waiting, 4096)))
-                except Exception as e:  # unplugged: keep monitoring, reopen with backoff
-                    link.fail(p, e)
-                    continue
+                data = link.read(link.port)  # an unplugged port comes back through try_connect()
                 for item in decoder.feed(data) if data else []:
                     name = type(item.message).__name__.upper() if isinstance(item, Frame) else item.get_type()
                     counts[name] += 1

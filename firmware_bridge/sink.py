@@ -152,7 +152,7 @@ class PoseSink:
         self._status = dict(state=RuntimeState.STARTING, fps=0.0, latency_ms=0.0, frames_dropped=0)
         self._last_command: tuple[int, Command] | None = None
         self._stop = threading.Event()
-        self._link = SerialLink(opener, name, backoff_s)
+        self._link = SerialLink(opener, name, backoff_s, on_down=self._wake_writer)
         if not wait_for_port:
             self._link.open_first()
         self._threads = [
@@ -357,17 +357,16 @@ class PoseSink:
             port = self._link.wait_connected(0.1)
             if port is None or self._stop.is_set():
                 continue
-            try:
-                data = port.read(max(1, min(port.in_waiting, 4096)))
-            except Exception as e:  # unplugged, or closed by the writer after a failed write
-                self._link.fail(port, e)
-                with self._cond:
-                    self._cond.notify_all()  # the writer is waiting on the dead port: let it reconnect
-                continue
+            data = self._link.read(port)
             if data:
                 for item in self._decoder.feed(data):
                     if isinstance(item, Frame) and isinstance(item.message, Command):
                         self._handle_command(item.seq, item.message)
+
+    def _wake_writer(self) -> None:
+        """The port died: a writer waiting for work on it must reconnect instead."""
+        with self._cond:
+            self._cond.notify_all()
 
     def _handle_command(self, seq: int, cmd: Command) -> None:
         result = command_result(cmd)

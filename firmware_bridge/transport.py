@@ -40,10 +40,11 @@ class SerialLink:
 
     def __init__(
         self, opener: Opener, name: str | None = None, backoff_s: tuple[float, float] = (0.05, 2.0),
-        clock: Callable[[], float] = time.monotonic,
+        clock: Callable[[], float] = time.monotonic, on_down: Callable[[], None] | None = None,
     ):
         self._opener = opener
         self.name = name
+        self._on_down = on_down
         self._backoff = backoff_s
         self._clock = clock
         self._lock = threading.Lock()
@@ -119,6 +120,16 @@ class SerialLink:
             port.close()
         except Exception:  # a vanished device may fail to close; it is gone either way
             pass
+        if self._on_down is not None:
+            self._on_down()
+
+    def read(self, port: serial.SerialBase) -> bytes:
+        """What ``port`` has received (waiting up to its read timeout); b"" and the link down if it failed."""
+        try:
+            return port.read(max(1, min(port.in_waiting, 4096)))
+        except Exception as e:  # unplugged, or closed by another thread after a failed write
+            self.fail(port, e)
+            return b""
 
     def outage_s(self) -> float:
         """Seconds the port was lost after having been open, including an outage in progress."""
