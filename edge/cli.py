@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import typer
 
+from edge.cli_cmds import localize_command, profile_command, record_command, replay_command
 from firmware_bridge.cli import app as bridge_app
 
 app = typer.Typer(no_args_is_help=True, add_completion=False, help="ACEsplat onboard: localize against a bundle.")
@@ -14,6 +15,10 @@ def _root() -> None:
     """ACEsplat onboard: localize against a bundle."""
 
 
+app.command("localize")(localize_command)
+app.command("replay")(replay_command)
+app.command("profile")(profile_command)
+app.command("record")(record_command)
 app.add_typer(bridge_app, name="bridge")
 
 

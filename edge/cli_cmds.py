@@ -1,0 +1,281 @@
+"""`acesplat-edge localize | replay | profile | record`: thin wrappers over the runtime modules."""
+
+from __future__ import annotations
+
+import sys
+import threading
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from acesplat.core.bundle import PRECISION_ROLES, Bundle, load_bundle
+from acesplat.core.cli_support import PhaseProgress, one_line_errors, report_json
+from acesplat.core.errors import InputError
+from acesplat.core.geometry import matrix_to_quat
+from acesplat.core.pose import TrackingState
+
+from .calibration import read_calibration_file
+from .inference import default_threads
+from .loop import LoopEvent, run_loop
+from .runtime import STAGES, EdgeLocalizer, FrameOutcome, PnPSettings
+from .sources import SourceOptions, open_source
+
+console = Console(stderr=True)
+
+
+def open_bundle(path: Path, precisions: list[str]) -> Bundle:
+    """Verify the manifest and the model files that will run (other files are not read)."""
+    roles = [PRECISION_ROLES[p] for p in precisions]
+    b = load_bundle(path, verify=True, roles=roles)
+    for p in precisions:
+        b.scr_model(p)
+    return b
+
+
+def _pnp(method: Optional[str], min_inliers: Optional[int]) -> PnPSettings:
+    from acesplat.core.pnp import PNP_METHODS
+
+    s = PnPSettings()
+    if method is not None:
+        if method not in PNP_METHODS:
+            raise InputError(None, f"--pnp must be one of {', '.join(PNP_METHODS)}, got {method!r}")
+        s.method = method
+    if min_inliers is not None:
+        if min_inliers < 4:
+            raise InputError(None, f"--min-inliers must be at least 4, got {min_inliers}")
+        s.min_inliers = min_inliers
+    return s
+
+
+def stage_table(title: str, stages_by_run: dict[str, dict], fps: dict[str, float]) -> Table:
+    t = Table(title=title)
+    t.add_column("stage (ms)")
+    runs = list(stages_by_run)
+    for r in runs:
+        for k in ("mean", "p50", "p90", "p95", "p99", "max"):
+            t.add_column(f"{r} {k}" if len(runs) > 1 else k, justify="right")
+    for s in STAGES:
+        t.add_row(s, *[f"{stages_by_run[r][s][k]:.2f}" for r in runs for k in ("mean", "p50", "p90", "p95", "p99", "max")])
+    t.add_row("fps", *[x for r in runs for x in (f"{fps[r]:.1f}", "", "", "", "", "")])
+    return t
+
+
+def frame_text(out: FrameOutcome) -> str:
+    rec = out.record
+    if np.all(np.isfinite(rec.T_c2w)):
+        p = rec.T_c2w[:3, 3]
+        q = matrix_to_quat(rec.T_c2w[:3, :3])
+        pose = f"xyz {p[0]:+8.3f} {p[1]:+8.3f} {p[2]:+8.3f}  q {q[0]:+.4f} {q[1]:+.4f} {q[2]:+.4f} {q[3]:+.4f}"
+    else:
+        pose = "no pose" + " " * 60
+    ms = out.times_ms
+    return (f"{rec.frame_id:6d} {TrackingState(rec.state).name:8s} {pose}  inl {rec.inliers:4d}  "
+            f"ms cap {ms['capture']:5.1f} pre {ms['preprocess']:5.1f} inf {ms['inference']:6.1f} "
+            f"pnp {ms['pnp']:5.1f} tot {ms['total']:6.1f}")
+
+
+@one_line_errors
+def localize_command(
+    bundle: Path = typer.Argument(..., help="Bundle directory from `acesplat export`."),
+    source: str = typer.Option(..., help="replay:DIR, video:FILE, camera:N or oak[:crop|stretch|letterbox]."),
+    intrinsics: Optional[Path] = typer.Option(None, help="Calibration file (ACE txt, JSON, or OpenCV YAML/XML)."),
+    int8: bool = typer.Option(False, "--int8", help="Run the bundle's INT8 model."),
+    json_lines: Optional[Path] = typer.Option(None, "--json-lines", help="Write one JSON object per frame here."),
+    frames: Optional[int] = typer.Option(None, help="Stop after this many frames."),
+    realtime: bool = typer.Option(False, help="Replay at the recorded timestamps (drops frames when slower)."),
+    threads: Optional[int] = typer.Option(None, help="onnxruntime intra-op threads (default: all cores)."),
+    pnp: Optional[str] = typer.Option(None, help="PnP method (default: the measured choice)."),
+    min_inliers: Optional[int] = typer.Option(None, help="Inlier gate for TRACKING."),
+    quiet: bool = typer.Option(False, help="No per-frame lines, only the summary."),
+    serial: Optional[str] = typer.Option(None, help="Send poses to this serial port (device path or pyserial URL)."),
+    baud: int = typer.Option(115200, help="Serial baud rate."),
+    protocol: str = typer.Option("frame", help="frame (acesplat protocol v1) or mavlink."),
+    rate: Optional[float] = typer.Option(None, help="Cap on poses per second sent over --serial."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the run summary here."),
+) -> None:
+    """Localize frames from a live or recorded source; Ctrl-C ends with a summary."""
+    precision = "int8" if int8 else "fp32"
+    b = open_bundle(bundle, [precision])
+    calib = read_calibration_file(intrinsics) if intrinsics else None
+    loc = EdgeLocalizer(b, precision, threads, _pnp(pnp, min_inliers))
+    src = open_source(source, SourceOptions(calibration=calib, input_size=b.input_size, realtime=realtime))
+    sink = None
+    if serial is not None:
+        from firmware_bridge.sink import open_sink
+
+        sink = open_sink(serial, baud, protocol, rate)
+    writer = None
+    if json_lines is not None:
+        from .outputs import JsonLinesWriter
+
+        writer = JsonLinesWriter(json_lines)
+    paused = threading.Event()
+    out_stream = sys.stdout
+
+    def on_outcome(out: FrameOutcome) -> None:
+        if writer is not None:
+            from .outputs import outcome_line
+
+            writer.write(outcome_line(out))
+        if sink is not None:
+            _bridge_step(sink, out, paused)
+        if not quiet:
+            out_stream.write(frame_text(out) + "\n")
+            out_stream.flush()
+
+    def on_event(e: LoopEvent) -> None:
+        if writer is not None:
+            from .outputs import event_line
+
+            writer.write(event_line(e))
+        if e.kind == "disconnected" and sink is not None:
+            from acesplat.core.pose import PoseRecord
+            from firmware_bridge.protocol import RuntimeState
+
+            sink.update_status(state=RuntimeState.LOST)
+            sink.submit(PoseRecord(int(e.wall_time * 1e6), np.full((4, 4), np.nan), 0, TrackingState.LOST, 0.0, 0))
+        console.print(f"[yellow]{e.kind}[/yellow]: {e.detail}" + (f" (gap {e.gap_s:.1f} s)" if e.gap_s else ""))
+
+    console.print(f"localizing {src.description} with {b.root} ({precision}, {b.input_size[0]}x{b.input_size[1]}, "
+                  f"{loc.session.threads} threads, PnP {loc.pnp.method}); Ctrl-C to stop")
+    try:
+        stats = run_loop(src, loc, on_outcome, on_event, max_frames=frames)
+    finally:
+        if writer is not None:
+            writer.close()
+        bridge_stats = None
+        if sink is not None:
+            sink.close()
+            bridge_stats = sink.stats().as_dict()
+    summary = {"bundle": str(b.root), "source": src.description, "precision": precision, **stats.as_dict()}
+    if bridge_stats is not None:
+        summary["bridge"] = bridge_stats
+    ended = "interrupted" if stats.interrupted else "done"
+    console.print(
+        f"{ended}: {stats.frames} frames in {stats.seconds:.1f} s ({summary['fps']:.1f} fps), {stats.tracking} tracking, "
+        f"{stats.lost} lost, {stats.dropped} dropped, {stats.skipped} unreadable skipped, "
+        f"{stats.disconnects} disconnects ({stats.gap_s:.1f} s without frames)"
+    )
+    report_json(json_out, summary)
+
+
+def _bridge_step(sink, out: FrameOutcome, paused: threading.Event) -> None:
+    """Forward one pose; honour PAUSE/RESUME from the microcontroller (SET_RATE the sink applies itself)."""
+    from firmware_bridge.protocol import CommandCode, RuntimeState
+
+    for ev in sink.poll_commands():
+        if ev.command == CommandCode.PAUSE:
+            paused.set()
+        elif ev.command == CommandCode.RESUME:
+            paused.clear()
+    if paused.is_set():
+        sink.update_status(state=RuntimeState.PAUSED)
+        return
+    state = RuntimeState.TRACKING if out.record.state == TrackingState.TRACKING else RuntimeState.LOST
+    total = out.times_ms.get("total", 0.0)
+    sink.update_status(state=state, latency_ms=total, fps=1000.0 / total if total > 0 else 0.0)
+    sink.submit(out.record)
+
+
+@one_line_errors
+def replay_command(
+    bundle: Path = typer.Argument(..., help="Bundle directory."),
+    scene: Path = typer.Argument(..., help="Scene folder in the ACE layout."),
+    split: str = typer.Option("test", help="Split to replay."),
+    int8: bool = typer.Option(False, "--int8", help="Run the bundle's INT8 model."),
+    threads: Optional[int] = typer.Option(None, help="onnxruntime intra-op threads (default: all cores)."),
+    pnp: Optional[str] = typer.Option(None, help="PnP method (default: the measured choice)."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the numbers here."),
+) -> None:
+    """Replay a posed split: `acesplat eval`'s accuracy plus per-stage timing statistics."""
+    from .replay import replay_split
+
+    precision = "int8" if int8 else "fp32"
+    b = open_bundle(bundle, [precision])
+    loc = EdgeLocalizer(b, precision, threads, _pnp(pnp, None))
+    with PhaseProgress("replay ") as bar:
+        s = replay_split(loc, scene, split, lambda i, n: bar("localize", i / n, {"frame": i}))
+    t = Table(title=f"{Path(scene).name} / {split} ({precision}, {b.input_size[0]}x{b.input_size[1]})")
+    keys = ("frames", "localized", "median_translation_m", "median_rotation_deg", "recall_5cm_5deg",
+            "recall_10cm_5deg", "recall_25cm_2deg", "mean_ms")
+    for k in keys:
+        t.add_column(k.replace("_", " "), justify="right")
+    t.add_row(*["-" if s.get(k) is None else (f"{s[k]:.4g}" if isinstance(s[k], float) else str(s[k])) for k in keys])
+    Console().print(t)
+    Console().print(stage_table("timing (ms)", {precision: s["timing_ms"]},
+                                {precision: 1000.0 / s["timing_ms"]["total"]["mean"] if s["frames"] else 0.0}))
+    if s.get("skipped"):
+        console.print(f"[yellow]{s['skipped']} unreadable frames skipped[/yellow]: {', '.join(s['skipped_frames'])}")
+    report_json(json_out, s)
+
+
+@one_line_errors
+def profile_command(
+    bundle: Path = typer.Argument(..., help="Bundle directory."),
+    source: Optional[str] = typer.Option(None, help="Frames to profile on (default: the bundle's scene, test split)."),
+    intrinsics: Optional[Path] = typer.Option(None, help="Calibration file for sources without one."),
+    frames: int = typer.Option(50, help="Timed frames (after the warm-up)."),
+    warmup: int = typer.Option(5, help="Warm-up frames, excluded from the statistics."),
+    compare: bool = typer.Option(False, "--compare", help="FP32 and INT8 side by side on the same frames."),
+    int8: bool = typer.Option(False, "--int8", help="Profile INT8 (without --compare)."),
+    threads: Optional[int] = typer.Option(None, help="onnxruntime intra-op threads (default: all cores)."),
+    pnp: Optional[str] = typer.Option(None, help="PnP method (default: the measured choice)."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the numbers here."),
+) -> None:
+    """Per-stage latency (mean/p50/p90/p95/p99/max) and FPS, warm-up excluded."""
+    from .profile import run_profile
+
+    if frames <= 0 or warmup < 0:
+        raise InputError(None, f"--frames must be positive and --warmup non-negative, got {frames} and {warmup}")
+    precisions = ["fp32", "int8"] if compare else (["int8"] if int8 else ["fp32"])
+    b = open_bundle(bundle, precisions)
+    if source is None:
+        scene = b.scene_path
+        if not scene or not Path(scene).is_dir():
+            raise InputError(b.root / "manifest.json", f"the bundle's scene ({scene}) is not here; pass --source")
+        source = f"replay:{scene}"
+    calib = read_calibration_file(intrinsics) if intrinsics else None
+    src = open_source(source, SourceOptions(calibration=calib, input_size=b.input_size))
+    nthreads = threads or default_threads()
+    with PhaseProgress() as bar:
+        res = run_profile(b, src, precisions, frames, nthreads, warmup, _pnp(pnp, None), bar)
+    h = res["header"]
+    console.print(f"cpu: {h['cpu']} ({h['cores']} cores, load {h['load_average']}), threads {h['threads']}; "
+                  f"onnxruntime {h['onnxruntime']}, numpy {h['numpy']}, opencv {h['opencv']}")
+    for p in precisions:
+        console.print(f"model {p}: sha256 {str(h['model_sha256'][p])[:16]}...  input {h['input_size'][0]}x{h['input_size'][1]}")
+    if len(precisions) == 1:
+        stages, fps = {precisions[0]: res["stages"]}, {precisions[0]: res["fps"]}
+    else:
+        stages, fps = res["stages"], res["fps"]
+    Console().print(stage_table(f"{source}: {res['frames']} frames after {res['warmup_frames']} warm-up", stages, fps))
+    if "int8_inference_speedup_p50" in res:
+        Console().print(f"INT8 inference speed-up (p50): {res['int8_inference_speedup_p50']:.2f}x")
+    report_json(json_out, res)
+
+
+@one_line_errors
+def record_command(
+    out: Path = typer.Argument(..., help="Folder to write (must not exist or be empty)."),
+    source: str = typer.Option(..., help="replay:DIR, video:FILE, camera:N or oak."),
+    intrinsics: Optional[Path] = typer.Option(None, help="Calibration to store with the frames."),
+    frames: Optional[int] = typer.Option(None, help="Stop after this many frames."),
+    size: Optional[str] = typer.Option(None, help="Frame size HxW for sources that resize on the device (oak)."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the counts here."),
+) -> None:
+    """Record frames, timestamps and intrinsics in a layout `--source replay:OUT` reads back."""
+    from acesplat.core.cli_support import parse_size
+
+    from .record import record
+
+    calib = read_calibration_file(intrinsics) if intrinsics else None
+    src = open_source(source, SourceOptions(calibration=calib, input_size=parse_size(size) if size else (480, 640)))
+    stats = record(src, out, frames, lambda n: None)
+    console.print(f"recorded {stats.frames} frames to {out}" + (" (interrupted)" if stats.interrupted else "")
+                  + (f", {stats.skipped} unreadable skipped" if stats.skipped else "")
+                  + (", no intrinsics (pass --intrinsics when replaying)" if stats.without_intrinsics else ""))
+    report_json(json_out, {"out": str(out), **stats.as_dict()})

@@ -1,0 +1,124 @@
+"""`profile`: per-stage latency statistics and FPS, warm-up excluded, FP32 and INT8 side by side on the same frames.
+
+Frames are read (and timed) once, then replayed from memory for each precision, so the two
+precisions see identical inputs and the capture stage is the same measured decode time for both.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import time
+from pathlib import Path
+from typing import Callable, Sequence
+
+import cv2
+import numpy as np
+import onnxruntime as ort
+
+from acesplat.core.bundle import Bundle
+from acesplat.core.errors import InputError
+
+from .replay import timing_summary
+from .runtime import EdgeLocalizer, FrameOutcome, PnPSettings
+from .sources import FrameSource, SourceFrame, UnreadableFrame
+
+WARMUP_FRAMES = 5
+
+
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.lower().startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def machine_header(bundle: Bundle, precisions: Sequence[str], threads: int) -> dict:
+    files = {f.role: f.sha256 for f in bundle.files.values()}
+    try:
+        load = os.getloadavg()
+    except OSError:
+        load = (float("nan"),) * 3
+    return {
+        "cpu": cpu_model(),
+        "cores": os.cpu_count(),
+        "threads": threads,
+        "load_average": [round(v, 2) for v in load],
+        "onnxruntime": ort.__version__,
+        "numpy": np.__version__,
+        "opencv": cv2.__version__,
+        "python": platform.python_version(),
+        "model_sha256": {p: files.get(f"scr_{p}") for p in precisions},
+        "input_size": list(bundle.input_size),
+        "precision": list(precisions),
+    }
+
+
+def read_frames(source: FrameSource, n: int) -> list[tuple[SourceFrame, float]]:
+    """Up to ``n`` frames with their measured capture times (ms); unreadable frames are skipped."""
+    frames = []
+    while len(frames) < n:
+        t0 = time.perf_counter()
+        try:
+            f = source.read()
+        except UnreadableFrame:
+            continue
+        if f is None:
+            break
+        frames.append((f, (time.perf_counter() - t0) * 1000.0))
+    source.close()
+    return frames
+
+
+def profile_precision(localizer: EdgeLocalizer, frames: Sequence[tuple[SourceFrame, float]], warmup: int,
+                      progress: Callable[[str, float, dict], None] | None = None) -> dict:
+    """stages (stage -> statistics over the timed frames), fps, precision, input_size."""
+    if len(frames) <= warmup:
+        raise InputError(None, f"profiling needs more than {warmup} frames (warm-up), the source gave {len(frames)}")
+    timed: list[FrameOutcome] = []
+    localized = 0
+    for i, (f, cap_ms) in enumerate(frames):
+        out = localizer.localize(f, cap_ms)
+        if i >= warmup:
+            timed.append(out)
+            localized += bool(out.result is not None and out.result.localized)
+        if progress:
+            progress(f"profile {localizer.precision}", (i + 1) / len(frames), {"frame": i + 1})
+    stages = timing_summary(timed)
+    return {
+        "stages": stages,
+        "fps": 1000.0 / stages["total"]["mean"] if stages["total"]["mean"] > 0 else 0.0,
+        "precision": localizer.precision,
+        "input_size": list(localizer.input_size),
+        "frames": len(timed),
+        "warmup_frames": warmup,
+        "localized": localized,
+    }
+
+
+def run_profile(bundle: Bundle, source: FrameSource, precisions: Sequence[str], frames: int, threads: int,
+                warmup: int = WARMUP_FRAMES, pnp: PnPSettings | None = None,
+                progress: Callable[[str, float, dict], None] | None = None) -> dict:
+    """Profile each precision on the same frames; one run's JSON (keys stages, fps, precision, input_size)."""
+    data = read_frames(source, frames + warmup)
+    runs = [profile_precision(EdgeLocalizer(bundle, p, threads, pnp), data, warmup, progress) for p in precisions]
+    header = machine_header(bundle, precisions, threads)
+    if len(runs) == 1:
+        return {**runs[0], "header": header}
+    out = {
+        "stages": {r["precision"]: r["stages"] for r in runs},
+        "fps": {r["precision"]: r["fps"] for r in runs},
+        "precision": [r["precision"] for r in runs],
+        "input_size": runs[0]["input_size"],
+        "localized": {r["precision"]: r["localized"] for r in runs},
+        "frames": runs[0]["frames"],
+        "warmup_frames": warmup,
+        "header": header,
+    }
+    if {"fp32", "int8"} <= set(out["fps"]):
+        a, b = out["stages"]["fp32"]["inference"]["p50"], out["stages"]["int8"]["inference"]["p50"]
+        out["int8_inference_speedup_p50"] = a / b if b > 0 else None
+    return out

@@ -1,0 +1,100 @@
+"""`record`: write what a source delivers in the layout ``replay:`` reads back (rgb/, calibration/, timestamps.txt).
+
+Every file is written atomically and ``timestamps.txt`` is rewritten after each frame, so an
+interrupted recording is a valid, shorter recording. Ground-truth poses are kept when the source
+has them (poses/), distortion when the camera has it (distortion.txt); images are stored as
+captured (still distorted) so replay applies the same correction as live.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from acesplat.core.atomic import atomic_path, write_text
+from acesplat.core.errors import InputError
+from acesplat.core.scene import format_matrix
+
+from .loop import reconnect_with_backoff
+from .sources import DISTORTION_FILE, TIMESTAMPS_FILE, FrameSource, SourceDisconnected, UnreadableFrame
+
+
+@dataclass
+class RecordStats:
+    frames: int = 0
+    skipped: int = 0
+    disconnects: int = 0
+    interrupted: bool = False
+    without_intrinsics: int = 0
+    names: list[str] = field(default_factory=list)
+
+    def as_dict(self) -> dict:
+        return {"frames": self.frames, "skipped": self.skipped, "disconnects": self.disconnects,
+                "interrupted": self.interrupted, "without_intrinsics": self.without_intrinsics}
+
+
+def _check_out(out: Path) -> None:
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise InputError(out, "output folder exists and is not empty")
+
+
+def record(source: FrameSource, out: str | Path, max_frames: int | None = None,
+           progress: Callable[[int], None] | None = None, stop=None) -> RecordStats:
+    """Copy frames from ``source`` into ``out`` until it ends, ``max_frames`` are written, or Ctrl-C."""
+    import threading
+
+    out = Path(out)
+    _check_out(out)
+    (out / "rgb").mkdir(parents=True, exist_ok=True)
+    stats = RecordStats()
+    stop = stop or threading.Event()
+    stamps: list[str] = []
+    wrote_dist = False
+    try:
+        while not stop.is_set() and (not max_frames or stats.frames < max_frames):
+            try:
+                f = source.read()
+            except UnreadableFrame:
+                stats.skipped += 1
+                continue
+            except SourceDisconnected:
+                stats.disconnects += 1
+                if not reconnect_with_backoff(source, stop):
+                    break
+                continue
+            if f is None:
+                break
+            name = f"{stats.frames:06d}"
+            bgr = cv2.cvtColor(f.image, cv2.COLOR_RGB2BGR) if f.image.ndim == 3 else f.image
+            with atomic_path(out / "rgb" / f"{name}.png") as tmp:
+                if not cv2.imwrite(str(tmp), bgr):
+                    raise InputError(out / "rgb" / f"{name}.png", "cannot write image")
+            if f.intrinsics is not None:
+                write_text(out / "calibration" / f"{name}.txt", format_matrix(f.intrinsics.K))
+            else:
+                stats.without_intrinsics += 1
+            if f.gt_pose is not None:
+                write_text(out / "poses" / f"{name}.txt", format_matrix(f.gt_pose))
+            if f.distortion is not None and np.any(np.asarray(f.distortion) != 0) and not wrote_dist:
+                write_text(out / DISTORTION_FILE, " ".join(f"{v:.10g}" for v in np.asarray(f.distortion).reshape(-1)) + "\n")
+                wrote_dist = True
+            stamps.append(f"{name} {f.timestamp:.6f}")
+            write_text(out / TIMESTAMPS_FILE, "\n".join(stamps) + "\n")
+            stats.frames += 1
+            stats.names.append(name)
+            if progress:
+                progress(stats.frames)
+    except KeyboardInterrupt:
+        stats.interrupted = True
+    finally:
+        source.close()
+    if 0 < stats.without_intrinsics < stats.frames:
+        # replay pairs calibration files with images by count; a partial set would not read back
+        for p in (out / "calibration").glob("*.txt"):
+            p.unlink()
+        stats.without_intrinsics = stats.frames
+    return stats

@@ -1,0 +1,67 @@
+"""Replay a posed scene split through the edge runtime: `acesplat eval`'s accuracy keys plus per-stage timing statistics."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable, Sequence
+
+from acesplat.core.errors import InputError
+from acesplat.core.geometry import pose_error
+from acesplat.core.metrics import FrameResult, accuracy_summary, timing_stats
+
+from .loop import RunStats, run_loop
+from .runtime import STAGES, EdgeLocalizer, FrameOutcome
+from .sources import ReplaySource
+
+
+def timing_summary(outcomes: Sequence[FrameOutcome], stages: Sequence[str] = STAGES) -> dict:
+    """stage -> {mean, p50, p90, p95, p99, max} in milliseconds."""
+    return {s: timing_stats([o.times_ms[s] for o in outcomes]) for s in stages}
+
+
+def frame_result(o: FrameOutcome) -> FrameResult:
+    if o.gt_pose is None:
+        raise ValueError("frame has no ground-truth pose")
+    res = o.result
+    if res is not None and res.T_c2w is not None:
+        t, r = pose_error(res.T_c2w, o.gt_pose)
+    else:
+        t, r = float("inf"), float("inf")
+    return FrameResult(o.name, bool(res is not None and res.localized), t, r, o.record.inliers, o.times_ms["total"])
+
+
+def summarize(outcomes: Sequence[FrameOutcome], stats: RunStats | None = None) -> dict:
+    """The replay JSON: accuracy_summary keys, timing_ms per stage, and the loop's counters."""
+    s = accuracy_summary([frame_result(o) for o in outcomes])
+    s["timing_ms"] = timing_summary(outcomes)
+    if stats is not None:
+        s["skipped"] = stats.skipped
+        s["skipped_frames"] = stats.skipped_frames
+        s["interrupted"] = stats.interrupted
+    return s
+
+
+def replay_split(localizer: EdgeLocalizer, scene: str | Path, split: str = "test",
+                 progress: Callable[[int, int], None] | None = None) -> dict:
+    """Localize every frame of ``scene``/``split`` as fast as possible and compare with its poses."""
+    root = Path(scene) / split
+    if not Path(scene).is_dir():
+        raise InputError(scene, "scene folder does not exist")
+    if not (root / "rgb").is_dir():
+        raise InputError(root, f"scene has no '{split}' split")
+    if not (root / "poses").is_dir():
+        raise InputError(root / "poses", "replay needs ground-truth poses")
+    source = ReplaySource(root)
+    n = len(source)
+    outcomes: list[FrameOutcome] = []
+
+    def keep(o: FrameOutcome) -> None:
+        outcomes.append(o)
+        if progress:
+            progress(len(outcomes), n)
+
+    stats = run_loop(source, localizer, keep)
+    out = summarize(outcomes, stats)
+    out["precision"] = localizer.precision
+    out["input_size"] = list(localizer.input_size)
+    return out
