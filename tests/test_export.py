@@ -1,0 +1,108 @@
+"""`acesplat export`: the bundle it writes, the checks it runs, and its refusals."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from acesplat.core.bundle import load_bundle
+from acesplat.core.errors import InputError
+
+from .test_edge_scene import tiny_setup
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    return tiny_setup(tmp_path_factory)
+
+
+def test_manifest_describes_the_bundle(tiny) -> None:
+    b = load_bundle(tiny["bundle"])
+    m = b.manifest
+    assert b.input_size == (64, 80)  # the map's short side (64) with the training images' 4:5 aspect
+    assert m["scr"]["output_stride"] == 8 and m["scr"]["output_size"] == [8, 10]
+    assert m["scr"]["normalization"]["mean"] == 0.4 and m["scr"]["normalization"]["std"] == 0.25
+    assert len(m["scr"]["mean_offset"]) == 3
+    assert m["scr"]["encoder"]["sha256"] == json.loads(json.dumps(m))["scr"]["encoder"]["sha256"]
+    assert {f.role for f in b.files.values()} == {"scr_fp32", "scr_int8"}
+    assert m["created_by"].startswith("acesplat-edge") and m["scene"]["name"] == "room"
+
+
+def test_fp32_graph_matches_torch(tiny) -> None:
+    """Recorded self-check, and an independent run of the bundle against the map in torch."""
+    import torch
+
+    from acesplat.core.scene import read_split
+    from acesplat.core.preprocess import to_gray_input
+    from acesplat.scr.mapfile import encoder_for_map, load_map
+    from edge.inference import ScrSession
+
+    par = tiny["manifest"]["checks"]["fp32_vs_torch"]
+    assert par["max_abs_diff_fraction"] < 1e-5
+    assert par["pose_max_translation_diff_m"] < 1e-3 and par["pose_max_rotation_diff_deg"] < 1e-2
+    m = load_map(tiny["map"])
+    net = m.network(encoder_for_map(m, tiny["map"]))
+    sess = ScrSession(Path(tiny["bundle"]) / "scr.onnx", (64, 80), threads=1)
+    f = read_split(tiny["scene"], "test").frames[1]
+    gray, _ = to_gray_input(f.load_rgb(), f.intrinsics, (64, 80))
+    with torch.no_grad():
+        ref = net(torch.from_numpy(gray).float()[None, None])[0].permute(1, 2, 0).numpy()
+    assert np.abs(sess.run(gray) - ref).max() < 1e-4
+
+
+def test_int8_self_check_keeps_most_frames_localized(tiny) -> None:
+    acc = tiny["manifest"]["checks"]["test_split"]
+    fp32, int8 = acc["fp32"], acc["int8"]
+    assert fp32["localized"] == fp32["frames"] == 4
+    assert fp32["median_translation_m"] < 0.25 and fp32["median_rotation_deg"] < 5.0
+    assert int8["localized"] >= 3
+    assert int8["median_translation_m"] < 0.5
+    assert tiny["manifest"]["checks"]["int8_calibration_frames"] == 12
+
+
+def test_int8_graph_is_quantized(tiny) -> None:
+    import onnx
+
+    g = onnx.load(str(Path(tiny["bundle"]) / "scr.int8.onnx")).graph
+    ops = [n.op_type for n in g.node]
+    assert ops.count("QuantizeLinear") > 5 and "DequantizeLinear" in ops
+    # weights are int8 per channel, activations uint8 (U8S8)
+    inits = {i.name: i for i in g.initializer}
+    q_types = {inits[n.input[2]].data_type for n in g.node if n.op_type == "QuantizeLinear" and len(n.input) > 2 and n.input[2] in inits}
+    assert onnx.TensorProto.UINT8 in q_types
+
+
+def test_bad_size_and_missing_map_are_one_line_errors(tiny, tmp_path: Path) -> None:
+    from acesplat.cli import app
+    from export.bundle_export import ExportOptions, export_bundle
+
+    with pytest.raises(InputError, match="multiple of 8"):
+        export_bundle(tiny["map"], tmp_path / "b", ExportOptions(size_hw=(60, 80)))
+    r = CliRunner().invoke(app, ["export", str(tmp_path / "missing.map"), "-o", str(tmp_path / "b")])
+    assert r.exit_code == 2
+    assert "map file not found" in r.output and "Traceback" not in r.output
+    r = CliRunner().invoke(app, ["export", str(tiny["map"]), "-o", str(tmp_path / "b"), "--size", "64by80"])
+    assert r.exit_code == 2 and "HxW" in r.output
+
+
+def test_refuses_to_replace_a_folder_that_is_not_a_bundle(tiny, tmp_path: Path) -> None:
+    from export.bundle_export import ExportOptions, export_bundle
+
+    keep = tmp_path / "precious"
+    keep.mkdir()
+    (keep / "notes.txt").write_text("do not delete")
+    with pytest.raises(InputError, match="not a bundle"):
+        export_bundle(tiny["map"], keep, ExportOptions())
+    assert (keep / "notes.txt").read_text() == "do not delete"
+    assert not list(tmp_path.glob(".precious.tmp-*"))
+
+
+def test_int8_needs_the_training_images(tiny, tmp_path: Path) -> None:
+    from export.bundle_export import ExportOptions, export_bundle
+
+    with pytest.raises(InputError, match="calibrates on the map's training images"):
+        export_bundle(tiny["map"], tmp_path / "b", ExportOptions(int8=True, scene_path=tmp_path / "gone", size_hw=(64, 80)))
