@@ -147,10 +147,9 @@ def rasterize(
     trans = np.empty((height, width), np.float64)
     depth_sum = np.empty((height, width), np.float64)
     last = np.empty((height, width), np.int32)
-    done = np.empty((height, width), np.bool_)
     parallel_for(
         composite_forward, len(tile_order), tile_rec, tile_offsets, tile_order, tiles_x, width, height, bg,
-        color, trans, depth_sum, last, done,
+        color, trans, depth_sum, last,
     )
     alpha = 1.0 - trans
     covered = alpha > 0.0
@@ -208,10 +207,9 @@ def rasterize_backward(
     dtype = g.dtype
     k = c.intrinsics
     slot_grads = np.empty((len(c.tile_rec), L.GRAD_WIDTH), dtype)
-    scratch = np.empty((h, w, 5), np.float64)
     parallel_for(
         composite_backward, len(c.tile_order), c.tile_rec, c.tile_offsets, c.tile_order, -(-w // TILE), w, h, c.background,
-        c.final_trans, c.last, v_color, v_alpha, v_depth_sum, c.entry_slot, scratch, slot_grads,
+        c.final_trans, c.last, v_color, v_alpha, v_depth_sum, c.entry_slot, slot_grads,
     )
     n = len(g)
     out = RasterGradients(
