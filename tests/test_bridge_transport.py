@@ -228,6 +228,7 @@ def test_port_closed_under_the_writer_is_reopened() -> None:
             i += 1
             time.sleep(0.005)
             assert i < 2000, "no reconnect"
+        wait_for(lambda: (lambda s: s.sent + s.dropped == s.submitted)(sink.stats()), "every pose sent or dropped")
         sent = sink.stats().sent
         sink.submit(record(5000))
         wait_for(lambda: sink.stats().sent == sent + 1, "pose after reconnect")
