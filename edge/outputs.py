@@ -75,8 +75,7 @@ class JsonLinesWriter:
             while done < len(data):
                 done += os.write(self._fd, data[done:])
         except BaseException:
-            if done:
-                os.ftruncate(self._fd, self._good)
+            os.ftruncate(self._fd, self._good)  # a failed write may have put part of the line on disk
             raise
         self._good += len(data)
         self.lines += 1
