@@ -27,7 +27,7 @@ class AdapterConfig:
     """Input feature width and the widths at 1/8 (after a 1x1 reduction), 1/4, 1/2 and full resolution."""
 
     in_channels: int = 512
-    widths: tuple[int, int, int, int] = (64, 48, 32, 16)
+    widths: tuple[int, int, int, int] = (32, 24, 16, 8)
 
     def __post_init__(self) -> None:
         if len(self.widths) != UPSAMPLE_STAGES + 1 or min(self.widths) < 1 or self.in_channels < 1:

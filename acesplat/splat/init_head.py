@@ -19,9 +19,9 @@ import torch.nn as nn
 
 from acesplat.core.gaussians import MAX_SH_DEGREE, SH_C0, sh_coeff_count
 
-OPACITY_PRIOR = 0.5
+OPACITY_PRIOR = 0.8
 """Opacity a fresh head gives every Gaussian (3DGS starts random points at 0.1; ours sit on surfaces)."""
-SCALE_PRIOR = 0.6
+SCALE_PRIOR = 0.7
 """Standard deviation of a fresh Gaussian in units of the spacing between instantiated pixels."""
 PRIOR_CHANNELS = 7
 """rgb - 0.5 (3), normalised world centre (3), log(depth / scene scale) (1)."""
@@ -29,7 +29,7 @@ PRIOR_CHANNELS = 7
 
 @dataclass(frozen=True)
 class InitHeadConfig:
-    feature_channels: int = 16
+    feature_channels: int = 8
     """Adapter output width."""
     width: int = 32
     sh_degree: int = 0
@@ -82,7 +82,7 @@ class InitHead(nn.Module):
     def __init__(self, cfg: InitHeadConfig = InitHeadConfig()) -> None:
         super().__init__()
         self.cfg = cfg
-        self.conv1 = nn.Conv2d(cfg.feature_channels + PRIOR_CHANNELS, cfg.width, 3, padding=1, padding_mode="replicate")
+        self.conv1 = nn.Conv2d(cfg.feature_channels + PRIOR_CHANNELS, cfg.width, 1)
         self.conv2 = nn.Conv2d(cfg.width, cfg.width, 1)
         self.out = nn.Conv2d(cfg.width, cfg.out_channels, 1)
         for m in (self.conv1, self.conv2):

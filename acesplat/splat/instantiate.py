@@ -1,8 +1,10 @@
 """From views to Gaussians: the adapter and init head run on one view; views merge into a scene set.
 
-Every valid pixel could become a Gaussian, far more than a CPU can optimise, so pixels are taken on
-a lattice of ``stride`` (with a per-view offset, so overlapping views do not stack their Gaussians
-on one lattice) and the stride is chosen from the budget of initial Gaussians.
+Every valid pixel could become a Gaussian, far more than a CPU can optimise. Merging keeps, per view,
+only the pixels no earlier view already seeded (:mod:`.fusion`), then takes them on a lattice whose
+stride is chosen so the set fits the budget of initial Gaussians (with a per-view offset, so views
+do not stack their Gaussians on one lattice). A Gaussian standing for a stride x stride block takes
+the block's colour (the image low-passed at the stride), not one aliased pixel's.
 """
 
 from __future__ import annotations
@@ -11,11 +13,13 @@ import math
 from dataclasses import dataclass
 from typing import Sequence
 
+import cv2
 import numpy as np
 import torch
 import torch.nn as nn
 
 from .adapter import AdapterConfig, FeatureAdapter
+from .fusion import novel_masks
 from .init_head import InitHead, InitHeadConfig, SceneNorm, coordinate_prior, decode_gaussians
 from .params import cat_tensors
 from .pixel_coords import pixel_coordinates
@@ -32,6 +36,16 @@ class ViewPixels:
     rgb: torch.Tensor  # (H*W, 3)
     prior: torch.Tensor  # (1, PRIOR_CHANNELS, H, W)
     valid: np.ndarray  # (H, W) bool
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.valid.shape  # type: ignore[return-value]
+
+    def depth_map(self) -> np.ndarray:
+        return self.depth.numpy().reshape(self.shape)
+
+    def centre_map(self) -> np.ndarray:
+        return self.centres.numpy().reshape(*self.shape, 3)
 
 
 def view_pixels(view: SplatView, norm: SceneNorm, max_depth_ratio: float = MAX_DEPTH_RATIO) -> ViewPixels:
@@ -58,6 +72,18 @@ def lattice_pixels(valid: np.ndarray, stride: int, offset: tuple[int, int] = (0,
     sel = np.zeros_like(valid, dtype=bool)
     sel[oy::stride, ox::stride] = True
     return np.flatnonzero(sel & valid)
+
+
+BLOCK_SIGMA = 0.4
+"""Low-pass of the colour a Gaussian takes, in units of the lattice spacing."""
+
+
+def block_colours(rgb: np.ndarray, spacing_px: float) -> np.ndarray:
+    """rgb (H, W, 3) float32 low-passed with a Gaussian of BLOCK_SIGMA x spacing (unchanged at spacing 1)."""
+    sigma = BLOCK_SIGMA * spacing_px
+    if spacing_px <= 1.0:
+        return rgb
+    return cv2.GaussianBlur(rgb, (0, 0), sigmaX=sigma, sigmaY=sigma, borderType=cv2.BORDER_REFLECT)
 
 
 def choose_stride(valid_pixels: int, max_gaussians: int) -> int:
@@ -89,16 +115,25 @@ class GaussianInitializer(nn.Module):
     def view_gaussians(
         self, view: SplatView, pix: ViewPixels, indices: np.ndarray, spacing_px: float, sh_degree: int
     ) -> dict[str, torch.Tensor]:
-        """Gaussians (differentiable in the adapter and head) at flat pixel ``indices`` (N,) of a view."""
+        """Gaussians (differentiable in the adapter and head) at flat pixel ``indices`` (N,) of a view,
+        coloured by the image low-passed at ``spacing_px``."""
         raw = self.raw(view, pix)
         dev = raw.device
         idx = torch.from_numpy(np.asarray(indices, np.int64)).to(dev)
         r = raw[0].reshape(raw.shape[1], -1)[:, idx].T
         focal = 0.5 * (view.intrinsics.fx + view.intrinsics.fy)
+        rgb = torch.from_numpy(block_colours(view.rgb, spacing_px).reshape(-1, 3)).to(dev)[idx]
         return decode_gaussians(
-            r, pix.rgb.to(dev)[idx], pix.centres.to(dev)[idx], pix.depth.to(dev)[idx],
+            r, rgb, pix.centres.to(dev)[idx], pix.depth.to(dev)[idx],
             focal, spacing_px, self.head.cfg.sh_degree, sh_degree,
         )
+
+
+@dataclass
+class MergeReport:
+    stride: int
+    novel_pixels: int
+    per_view: list[int]
 
 
 @torch.no_grad()
@@ -106,17 +141,27 @@ def merge_views(
     views: Sequence[SplatView],
     pixels: Sequence[ViewPixels],
     init: GaussianInitializer,
-    stride: int,
+    max_gaussians: int,
     sh_degree: int,
     rng: np.random.Generator,
-) -> tuple[dict[str, torch.Tensor], list[int]]:
-    """One over-complete scene set from every view's lattice pixels, and how many each view gave."""
+    fuse: bool = True,
+) -> tuple[dict[str, torch.Tensor], MergeReport]:
+    """One scene set from every view's novel pixels (all valid pixels without ``fuse``) on a lattice
+    whose stride keeps the set near ``max_gaussians``."""
+    if fuse:
+        masks = novel_masks([v.pose for v in views], [v.intrinsics for v in views], [p.centre_map() for p in pixels],
+                            [p.depth_map() for p in pixels], [p.valid for p in pixels])
+    else:
+        masks = [p.valid for p in pixels]
+    novel = int(sum(int(m.sum()) for m in masks))
+    stride = choose_stride(novel, max_gaussians)
     parts, counts = [], []
-    for v, pix in zip(views, pixels):
-        idx = lattice_pixels(pix.valid, stride, (int(rng.integers(stride)), int(rng.integers(stride))))
+    for v, pix, m in zip(views, pixels, masks):
+        idx = lattice_pixels(m, stride, (int(rng.integers(stride)), int(rng.integers(stride))))
         counts.append(int(idx.size))
         if idx.size:
             parts.append(init.view_gaussians(v, pix, idx, float(stride), sh_degree))
+    report = MergeReport(stride, novel, counts)
     if not parts:
-        return {}, counts
-    return cat_tensors(parts), counts
+        return {}, report
+    return cat_tensors(parts), report

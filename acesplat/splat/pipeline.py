@@ -25,7 +25,7 @@ from acesplat.core.scene import Frame
 from .adapter import AdapterConfig
 from .head_training import HeadTrainer
 from .init_head import InitHeadConfig, SceneNorm
-from .instantiate import GaussianInitializer, choose_stride, merge_views
+from .instantiate import GaussianInitializer, merge_views
 from .optimize import EvalFn, OptimizeConfig, OptimizeResult, optimise_gaussians
 from .params import GaussianParams, params_from_tensors
 from .schedule import NET_LR_MAX, NET_LR_MIN, one_cycle
@@ -39,7 +39,7 @@ MAX_INITIAL_GAUSSIANS = 60_000
 MAX_GAUSSIANS = 200_000
 """Cap of the lifecycle: rendering time grows with the count, and the budget is CPU time."""
 HEAD_WARMUP = 0.08
-"""Share of the budget in which the adapter and head train alone, before they seed the scene set."""
+"""Share of the budget (after preparation) in which the adapter and head train alone, before they seed the scene set."""
 SPARSE_GAP = 4
 """Default sparse-view pair: two training frames this many frames apart around the middle of the sequence."""
 MIN_VALID_FRACTION = 0.02
@@ -64,6 +64,7 @@ class SplatConfig:
     init_views: int = MAX_INIT_VIEWS
     head_warmup: float = HEAD_WARMUP
     joint_head: bool = True
+    fuse: bool = True
     sparse_views: tuple[int, int] | None = None
     validity: ValidityConfig = field(default_factory=ValidityConfig)
     adapter_widths: tuple[int, int, int, int] = AdapterConfig.widths
@@ -160,13 +161,12 @@ def splat_scene(
     initializer = GaussianInitializer(adapter_cfg, cfg.head)
     head = HeadTrainer(initializer, usable, norm, cfg.sh_degree)
     t_prep = time.monotonic() - t0
-    warm_steps, warm_skipped = _warm_up(head, cfg, t0 + cfg.head_warmup * budget, rng, progress)
+    warm_steps, warm_skipped = _warm_up(head, cfg, time.monotonic() + cfg.head_warmup * budget, rng, progress)
     t_warm = time.monotonic() - t0 - t_prep
 
     pixels = [head.pixels(i) for i in range(len(usable))]
     valid_px = int(sum(int(p.valid.sum()) for p in pixels))
-    stride = choose_stride(valid_px, cfg.max_initial)
-    tensors, counts = merge_views(usable, pixels, initializer, stride, cfg.sh_degree, rng)
+    tensors, merge = merge_views(usable, pixels, initializer, cfg.max_initial, cfg.sh_degree, rng, fuse=cfg.fuse)
     if not tensors:
         raise InputError(source, "validity mask is empty at pixel resolution in every view (no Gaussian to start from)")
     params = params_from_tensors(tensors)
@@ -188,7 +188,8 @@ def splat_scene(
         "init_views_used": len(usable),
         "valid_cell_fraction": overall,
         "valid_pixels": valid_px,
-        "stride": stride,
+        "novel_pixels": merge.novel_pixels,
+        "stride": merge.stride,
         "gaussians_initial": n_initial,
         "gaussians_final": int(params["means"].shape[0]),
         "iterations": opt.iterations,

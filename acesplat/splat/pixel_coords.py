@@ -5,7 +5,8 @@ straight line between foreground and background, off every pixel's ray. Instead 
 camera-frame depth is interpolated bilinearly (the same half-pixel alignment as the feature
 adapter) and every pixel is unprojected along its own ray with the known pose, so a centre always
 reprojects onto its pixel and only its distance comes from the SCR prediction. Where the cells that
-feed a pixel disagree in depth by more than a ratio, the pixel is marked as an edge.
+feed a pixel disagree in depth by more than a ratio, the pixel is marked as an edge. Invalid cells
+take no part: depth is interpolated over the valid ones.
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ from acesplat.core.geometry import invert_pose
 
 STRIDE = 8
 """SCR output stride (acesplat.scr.network.OUTPUT_STRIDE; repeated so this module needs no torch)."""
+MIN_VALID_WEIGHT = 0.5
+"""A pixel needs valid cells to carry at least this share of its bilinear interpolation weight."""
 
 
 def _axis_weights(n_out: int, n_in: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -31,21 +34,28 @@ def _axis_weights(n_out: int, n_in: int) -> tuple[np.ndarray, np.ndarray, np.nda
     return i0, i1, src - i0
 
 
-def upsample_cells(values: np.ndarray, height: int, width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Bilinear x8 upsampling of per-cell values (h, w) to (height, width), plus the min and max of the
-    (up to 4) cells each pixel was interpolated from."""
+def _corners(values: np.ndarray, height: int, width: int):
+    """The four cells (each (height, width)) every pixel is interpolated from, and the weights of the
+    second row (height, 1) and second column (1, width)."""
     h, w = values.shape
     if not (STRIDE * (h - 1) < height <= STRIDE * h and STRIDE * (w - 1) < width <= STRIDE * w):
         raise ValueError(f"a {h}x{w} cell grid (stride {STRIDE}) does not cover a {height}x{width} image")
     y0, y1, wy = _axis_weights(height, h)
     x0, x1, wx = _axis_weights(width, w)
-    a, b = values[y0][:, x0], values[y0][:, x1]
-    c, d = values[y1][:, x0], values[y1][:, x1]
-    wy, wx = wy[:, None], wx[None, :]
-    out = (1 - wy) * ((1 - wx) * a + wx * b) + wy * ((1 - wx) * c + wx * d)
-    lo = np.minimum(np.minimum(a, b), np.minimum(c, d))
-    hi = np.maximum(np.maximum(a, b), np.maximum(c, d))
-    return out, lo, hi
+    corners = (values[y0][:, x0], values[y0][:, x1], values[y1][:, x0], values[y1][:, x1])
+    return corners, wy[:, None], wx[None, :]
+
+
+def upsample_cells(values: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Bilinear x8 upsampling of per-cell values (h, w) to (height, width)."""
+    (a, b, c, d), wy, wx = _corners(values, height, width)
+    return (1 - wy) * ((1 - wx) * a + wx * b) + wy * ((1 - wx) * c + wx * d)
+
+
+def corner_range(values: np.ndarray, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Min and max (height, width) over the (up to 4) cells each pixel is interpolated from."""
+    (a, b, c, d), _, _ = _corners(values, height, width)
+    return np.minimum(np.minimum(a, b), np.minimum(c, d)), np.maximum(np.maximum(a, b), np.maximum(c, d))
 
 
 def cell_depths(coords: np.ndarray, pose_c2w: np.ndarray) -> np.ndarray:
@@ -67,7 +77,8 @@ def pixel_coordinates(
     """World centres (H, W, 3), camera depths (H, W) and validity (H, W) at pixel resolution.
 
     coords (h, w, 3) SCR coordinates of the cells of an image of ``intrinsics``' size; cell_valid
-    (h, w) which cells to trust. A pixel is valid when every cell it is interpolated from is valid
+    (h, w) which cells to trust. Depth is interpolated from the valid cells only (weights renormalised);
+    a pixel is valid when valid cells carry at least half of its interpolation weight (MIN_VALID_WEIGHT)
     and their depths agree within ``max_depth_ratio`` (max / min).
     """
     if coords.ndim != 3 or coords.shape[2] != 3 or cell_valid.shape != coords.shape[:2]:
@@ -75,10 +86,13 @@ def pixel_coordinates(
     H, W = intrinsics.height, intrinsics.width
     z = cell_depths(np.asarray(coords, np.float64), pose_c2w)
     ok = np.asarray(cell_valid, bool) & np.isfinite(z) & (z > 0)
-    z_safe = np.where(ok, z, 1.0)
-    depth, z_lo, z_hi = upsample_cells(z_safe, H, W)
-    _, ok_lo, _ = upsample_cells(ok.astype(np.float64), H, W)
-    valid = (ok_lo > 0.5) & (z_hi <= max_depth_ratio * z_lo)
+    okf = ok.astype(np.float64)
+    zw = upsample_cells(np.where(ok, z, 0.0), H, W)
+    weight = upsample_cells(okf, H, W)
+    z_lo, _ = corner_range(np.where(ok, z, np.inf), H, W)
+    _, z_hi = corner_range(np.where(ok, z, 0.0), H, W)
+    valid = (weight >= MIN_VALID_WEIGHT) & (z_hi <= max_depth_ratio * z_lo)
+    depth = np.where(valid, zw / np.maximum(weight, 1e-12), 0.0)
     X_cam = pixel_rays(intrinsics) * depth[..., None]
     pose = np.asarray(pose_c2w, np.float64)
     centres = X_cam @ pose[:3, :3].T + pose[:3, 3]

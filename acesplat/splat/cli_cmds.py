@@ -1,0 +1,175 @@
+"""`acesplat splat` and `acesplat render`. Torch and the numba kernels are imported inside the commands."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.console import Console
+
+from acesplat.core.cli_support import PhaseProgress, one_line_errors, report_json
+from acesplat.core.errors import InputError
+
+console = Console()
+
+TRAIN_PSNR_VIEWS = 25
+"""train_psnr is the mean over this many training views spread along the sequence (all of them: `acesplat render`)."""
+
+
+def _parse_pair(text: Optional[str]) -> Optional[tuple[int, int]]:
+    if text is None:
+        return None
+    try:
+        a, b = (int(v) for v in text.split(","))
+    except ValueError:
+        raise InputError(None, f"--views must be two training frame indices like 10,14, got {text!r}") from None
+    return a, b
+
+
+def _check_map_fits(map_path: Path, short_side: int, frames) -> None:
+    """A map built from larger images than these cannot be this scene's map."""
+    k = frames[0].intrinsics
+    if short_side > min(k.width, k.height):
+        raise InputError(
+            map_path,
+            f"map was built for images with a {short_side} px short side, but the scene's images are "
+            f"{k.width}x{k.height} (a map of other images?)",
+        )
+
+
+@one_line_errors
+def splat_command(
+    scene: Path = typer.Argument(..., help="Scene folder in the ACE layout."),
+    map_path: Path = typer.Option(..., "--map", help="Map file from `acesplat map` (its SCR network seeds the Gaussians)."),
+    out: Path = typer.Option(..., "-o", "--out", help="Splat folder to write (gaussians.ply, adapter.pt, init_head.pt, splat.json)."),
+    minutes: float = typer.Option(10.0, help="Wall-clock budget of Stage 2."),
+    protocol: str = typer.Option("static", help="static (reconstruct the captured views) or sparse (two views in, held-out targets)."),
+    views: Optional[str] = typer.Option(None, "--views", help="Sparse protocol: the two training frame indices, e.g. 10,14."),
+    encoder: Optional[Path] = typer.Option(None, help="Encoder weights if not where the map says."),
+    max_gaussians: int = typer.Option(200_000, help="Cap on the number of Gaussians."),
+    device: str = typer.Option("auto", help="auto, cpu or cuda (networks only: the rasterizer runs on the CPU)."),
+    threads: int = typer.Option(
+        1, help="Torch threads. The rasterizer has its own numba threads; measured on 2 busy cores, one torch thread "
+                "ran this loop's many small tensor ops several times faster than two."),
+    seed: int = typer.Option(0),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the numbers here."),
+) -> None:
+    """Optimise Gaussians for a scene, seeded by its SCR map (Stage 2)."""
+    import torch
+
+    from acesplat.core.scene import read_split
+    from acesplat.scr.cli_cmds import resolve_device
+    from acesplat.scr.mapfile import encoder_for_map, load_map
+
+    from .evaluate import evaluate_views
+    from .params import gaussians_from_params
+    from .pipeline import SplatConfig, spread, splat_scene
+    from .splatfile import save_splat
+    from .views import load_views
+
+    if max_gaussians < 1:
+        raise InputError(None, f"--max-gaussians must be positive, got {max_gaussians}")
+    if threads < 1:
+        raise InputError(None, f"--threads must be positive, got {threads}")
+    torch.set_num_threads(threads)
+    cfg = SplatConfig(minutes=minutes, protocol=protocol, sparse_views=_parse_pair(views), max_gaussians=max_gaussians,
+                      seed=seed)
+    dev = resolve_device(device)
+    m = load_map(map_path)
+    enc = encoder_for_map(m, map_path, encoder)
+    train = read_split(scene, "train")
+    _check_map_fits(map_path, m.short_side, train.frames)
+    net = m.network(enc).to(dev)
+    for p in net.parameters():
+        p.requires_grad_(False)
+    with PhaseProgress("splat ") as bar:
+        res = splat_scene(train.frames, net, m.short_side, cfg, source=map_path, progress=bar)
+        res.initializer.cpu()
+        g = gaussians_from_params(res.params)
+        t_eval = time.monotonic()
+        probe = [res.train_views[i] for i in spread(len(res.train_views), TRAIN_PSNR_VIEWS)]
+        ev = evaluate_views(g, probe, progress=lambda d, n: bar("evaluate", d / n, {"views": d}))
+        targets = None
+        if res.target_frames:
+            targets = evaluate_views(g, load_views(res.target_frames, m.short_side))
+        eval_s = time.monotonic() - t_eval
+    s = res.stats
+    report = {
+        "seconds": s["seconds"],
+        "gaussians_initial": s["gaussians_initial"],
+        "gaussians_final": s["gaussians_final"],
+        "train_psnr": ev["psnr"],
+        "train_ssim": ev["ssim"],
+        "train_psnr_views": ev["frames"],
+        **({"target_psnr": targets["psnr"], "target_ssim": targets["ssim"], "target_views": targets["frames"]}
+           if targets else {}),
+        "eval_seconds": eval_s,
+        "device": dev,
+        "torch_threads": torch.get_num_threads(),
+        **{k: v for k, v in s.items() if k not in ("seconds", "gaussians_initial", "gaussians_final", "train_views")},
+        "history": res.optimize.history,
+    }
+    manifest = {
+        "scene": str(Path(scene).resolve()),
+        "map": str(Path(map_path).resolve()),
+        "encoder": m.encoder_identity.as_dict(),
+        "short_side": m.short_side,
+        "background": [0.0, 0.0, 0.0],
+        "sh_degree": g.sh_degree,
+        "train_views": s["train_views"],
+        "target_views": [f.name for f in res.target_frames],
+        **{k: v for k, v in report.items() if k != "history"},
+    }
+    save_splat(out, g, res.initializer, manifest)
+    tgt = f", held-out targets PSNR {targets['psnr']:.2f} dB" if targets else ""
+    console.print(
+        f"splat ({protocol}): {s['gaussians_initial']} -> {s['gaussians_final']} Gaussians, {s['iterations']} iterations "
+        f"in {s['seconds']:.1f} s; train PSNR {ev['psnr']:.2f} dB / SSIM {ev['ssim']:.3f} over {ev['frames']} views{tgt} -> {out}"
+    )
+    report_json(json_out, report)
+
+
+@one_line_errors
+def render_command(
+    splat: Path = typer.Argument(..., help="Splat folder from `acesplat splat`."),
+    scene: Path = typer.Argument(..., help="Scene folder in the ACE layout."),
+    split: str = typer.Option("test", help="train or test."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Write render-beside-truth PNGs here."),
+    lpips_weights: Optional[list[Path]] = typer.Option(
+        None, "--lpips-weights",
+        help="Report LPIPS: give torchvision's AlexNet weights and LPIPS v0.1 alex.pth (repeat the option, or one merged file). "
+             "Nothing is downloaded."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the numbers here."),
+) -> None:
+    """Render a split of a scene from a splat and score it against the images."""
+    from acesplat.core.scene import SPLITS, read_split
+
+    from .evaluate import evaluate_views
+    from .splatfile import load_gaussians, load_manifest
+    from .views import load_views
+
+    if split not in SPLITS:
+        raise InputError(None, f"--split must be one of {SPLITS}, got {split!r}")
+    manifest = load_manifest(splat)
+    g = load_gaussians(splat)
+    lpips_fn = None
+    if lpips_weights:
+        from .lpips import load_lpips
+
+        lpips_fn = load_lpips(*lpips_weights)
+    data = read_split(scene, split)
+    t0 = time.monotonic()
+    with PhaseProgress("render ") as bar:
+        views = load_views(data.frames, int(manifest["short_side"]))
+        ev = evaluate_views(g, views, manifest["background"], out, lpips_fn,
+                            progress=lambda d, n: bar("render", d / n, {"frames": d}))
+    ev["gaussians"] = len(g)
+    ev["split"] = split
+    ev["image_size"] = list(views[0].size)
+    ev["seconds"] = time.monotonic() - t0
+    lp = f", LPIPS {ev['lpips']:.4f}" if "lpips" in ev else ""
+    console.print(f"{split}: {ev['frames']} frames, PSNR {ev['psnr']:.2f} dB, SSIM {ev['ssim']:.4f}{lp}, "
+                  f"{len(g)} Gaussians" + (f" -> {out}" if out else ""))
+    report_json(json_out, ev)
