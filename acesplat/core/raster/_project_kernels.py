@@ -51,7 +51,7 @@ SH_C3_5 = 0.25 * math.sqrt(105.0 / math.pi)
 SH_C3_6 = -0.25 * math.sqrt(35.0 / (2.0 * math.pi))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def sh_basis(x, y, z):
     """The 16 real SH basis values at unit direction (x, y, z), degree 0..3."""
     xx, yy, zz = x * x, y * y, z * z
@@ -69,7 +69,7 @@ def sh_basis(x, y, z):
     )
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _view_dir(means, i, campos):
     """Unit direction from the camera centre to Gaussian i, and the distance."""
     vx = means[i, 0] - campos[0]
@@ -80,7 +80,7 @@ def _view_dir(means, i, campos):
     return vx * inv, vy * inv, vz * inv, n
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _sh_raw_color(sh, i, degree, x, y, z):
     """Colour before the +0.5 offset and clamp: sum_k basis_k * sh[i, k, :].
 
@@ -106,7 +106,7 @@ def _sh_raw_color(sh, i, degree, x, y, z):
     return r, g, b
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _sh_backward(sh, i, degree, x, y, z, vr, vg, vb, v_sh):
     """Write dL/dsh[i] for colour gradient (vr, vg, vb); return dL/d(unit direction)."""
     bs = sh_basis(x, y, z)
@@ -203,7 +203,7 @@ def _sh_backward(sh, i, degree, x, y, z, vr, vg, vb, v_sh):
     return ux, uy, uz
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _sigmoid(v):
     if v >= 0.0:
         return 1.0 / (1.0 + math.exp(-v))
@@ -211,7 +211,7 @@ def _sigmoid(v):
     return e / (1.0 + e)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _unit_quat_rotation(quats, i):
     """(ok, norm, w, x, y, z, R as 9 row-major values) of quaternion i; ok False for a zero/NaN quaternion."""
     w = quats[i, 0] * 1.0
@@ -233,7 +233,7 @@ def _unit_quat_rotation(quats, i):
     return True, n, w, x, y, z, R
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _camera_frame(means, log_scales, quats, i, view):
     """Camera-frame mean p, world rotation R (9), scales s, T = Rview @ R @ diag(s) (9), cov_cam (6: xx xy xz yy yz zz)."""
     mx = means[i, 0] * 1.0
@@ -271,7 +271,7 @@ def _camera_frame(means, log_scales, quats, i, view):
     return px, py, pz, ok, qn, (qw, qx, qy, qz), R, (s0, s1, s2), T, cov
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _jacobian(px, py, pz, fx, fy, lim_xn, lim_xp, lim_yn, lim_yp):
     """EWA affine approximation of the projection at p: J = [[j00, 0, j02], [0, j11, j12]].
 
@@ -287,7 +287,7 @@ def _jacobian(px, py, pz, fx, fy, lim_xn, lim_xp, lim_yn, lim_yp):
     return fx * iz, -fx * uc * iz, fy * iz, -fy * vc * iz, uc, vc, x_clamped, y_clamped
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _cov2d(j00, j02, j11, j12, cov):
     """J cov J^T as (a, b, c) = (xx, xy, yy), before dilation."""
     sxx, sxy, sxz, syy, syz, szz = cov
@@ -308,14 +308,16 @@ def _tangent_limits(fx, fy, cx, cy, width, height):
     )
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _project_one(
     i, means, log_scales, quats, opacity_logits, sh, sh_degree, view, campos,
-    fx, fy, cx, cy, width, height, near, far, lims, rec, bbox, radii, visible,
+    fx, fy, cx, cy, width, height, near, far, lims, rec, bbox, radii, visible, means2d,
 ):
     lim_xn, lim_xp, lim_yn, lim_yp = lims
     visible[i] = False
     radii[i] = 0
+    means2d[i, 0] = 0.0
+    means2d[i, 1] = 0.0
     px, py, pz, ok, qn, q, R, s, T, cov = _camera_frame(means, log_scales, quats, i, view)
     if not (ok and pz >= near and pz <= far):
         return
@@ -356,6 +358,8 @@ def _project_one(
     mid = 0.5 * (a + c)
     lam = mid + math.sqrt(max(0.1, mid * mid - det))
     radii[i] = int(math.ceil(3.0 * math.sqrt(lam)))
+    means2d[i, 0] = mx
+    means2d[i, 1] = my
     bbox[i, 0] = x0
     bbox[i, 1] = x1
     bbox[i, 2] = y0
@@ -379,19 +383,20 @@ def _project_one(
 @njit(nogil=True, cache=True)
 def project_forward(
     lo, hi, means, log_scales, quats, opacity_logits, sh, sh_degree, view, campos,
-    fx, fy, cx, cy, width, height, near, far, rec, bbox, radii, visible,
+    fx, fy, cx, cy, width, height, near, far, rec, bbox, radii, visible, means2d,
 ):
     """For Gaussians lo..hi-1 fill rec (N, REC_WIDTH), bbox (N, 4) pixel range x0 x1 y0 y1,
-    radii (N,) and visible (N,). Releases the GIL: chunks run on a thread pool."""
+    radii (N,), visible (N,) and means2d (N, 2) (zeros where culled). Releases the GIL: chunks run
+    on a thread pool."""
     lims = _tangent_limits(fx, fy, cx, cy, width, height)
     for i in range(lo, hi):
         _project_one(
             i, means, log_scales, quats, opacity_logits, sh, sh_degree, view, campos,
-            fx, fy, cx, cy, width, height, near, far, lims, rec, bbox, radii, visible,
+            fx, fy, cx, cy, width, height, near, far, lims, rec, bbox, radii, visible, means2d,
         )
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _project_backward_one(
     i, means, log_scales, quats, opacity_logits, sh, sh_degree, view, campos,
     fx, fy, lims, g_offsets, slot_grads,

@@ -53,9 +53,10 @@ class RasterContext:
     g_offsets: np.ndarray  # (N + 1,) each Gaussian's range of gradient slots
     entry_slot: np.ndarray  # (M,) gradient slot of each tile_rec row
     tile_order: np.ndarray
-    final_trans: np.ndarray  # (H, W) float64
+    final_trans: np.ndarray  # (H, W) final transmittance
     last: np.ndarray  # (H, W) int32, list entries up to the last contributor
-    depth_sum: np.ndarray  # (H, W) float64, sum of weight * z
+    alpha: np.ndarray  # (H, W) the forward's outputs, for the expected-depth gradient
+    depth: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -127,48 +128,41 @@ def rasterize(
     bbox = np.empty((n, 4), np.int32)
     radii = np.empty(n, np.int32)
     visible = np.empty(n, np.bool_)
+    means2d = np.empty((n, 2), dtype)
     if n:
         parallel_for(
             project_forward, n, g.means, g.log_scales, g.quats, g.opacity_logits, g.sh, deg, view, campos,
             float(k.fx), float(k.fy), float(k.cx), float(k.cy), float(width), float(height),
-            float(near), float(far), rec, bbox, radii, visible,
+            float(near), float(far), rec, bbox, radii, visible, means2d,
         )
     vis_idx = np.flatnonzero(visible)
     order = _depth_order(rec[vis_idx, L.DEPTH], vis_idx)
     tiles_x = -(-width // TILE)
     tiles_y = -(-height // TILE)
-    # Gather to depth order first (numpy's take overlaps its cache misses) so binning reads sequentially.
-    tile_offsets, tile_rec, g_offsets, entry_slot = bin_tiles(
-        np.take(rec, order, axis=0), np.take(bbox, order, axis=0), order, n, tiles_x, tiles_y
-    )
+    tile_offsets, tile_rec, g_offsets, entry_slot = bin_tiles(rec, bbox, visible, order, tiles_x, tiles_y)
     tile_order = _tile_order(tiles_x * tiles_y)
 
-    color = np.empty((height, width, 3), np.float64)
-    trans = np.empty((height, width), np.float64)
-    depth_sum = np.empty((height, width), np.float64)
+    color = np.empty((height, width, 3), dtype)
+    alpha = np.empty((height, width), dtype)
+    depth = np.empty((height, width), dtype)
+    trans = np.empty((height, width), dtype)
     last = np.empty((height, width), np.int32)
     parallel_for(
         composite_forward, len(tile_order), tile_rec, tile_offsets, tile_order, tiles_x, width, height, bg,
-        color, trans, depth_sum, last,
+        color, alpha, depth, trans, last,
     )
-    alpha = 1.0 - trans
-    covered = alpha > 0.0
-    depth = np.divide(depth_sum, alpha, out=np.zeros_like(depth_sum), where=covered)
-
-    means2d = np.zeros((n, 2), dtype)
-    means2d[vis_idx] = rec[vis_idx, L.MX : L.MY + 1]
     ctx = RasterContext(
         gaussians=g, sh_degree=deg, view=view, campos=campos, intrinsics=intrinsics, background=bg,
         order=order, tile_offsets=tile_offsets, tile_rec=tile_rec,
         g_offsets=g_offsets, entry_slot=entry_slot, tile_order=tile_order, final_trans=trans, last=last,
-        depth_sum=depth_sum,
+        alpha=alpha, depth=depth,
     )
     return RenderResult(
-        color=color.astype(dtype, copy=False),
-        alpha=alpha.astype(dtype, copy=False),
-        depth=depth.astype(dtype, copy=False),
+        color=color,
+        alpha=alpha,
+        depth=depth,
         means2d=means2d,
-        radii=np.where(visible, radii, 0).astype(np.int32),
+        radii=radii,
         visible=visible,
         n_tile_entries=int(tile_offsets[-1]),
         ctx=ctx,
@@ -197,12 +191,13 @@ def rasterize_backward(
         v_depth_sum = np.zeros((h, w))
     else:
         v_depth = _check_image_grad("v_depth", v_depth, (h, w))
-        # depth = depth_sum / alpha where alpha > 0.
-        alpha = 1.0 - c.final_trans
+        # depth = depth_sum / alpha where alpha > 0, so d/d(depth_sum) = 1 / alpha and
+        # d/d(alpha) = -depth / alpha.
+        alpha = c.alpha.astype(np.float64)
         covered = alpha > 0.0
         safe = np.where(covered, alpha, 1.0)
         v_depth_sum = np.where(covered, v_depth / safe, 0.0)
-        v_alpha = v_alpha - np.where(covered, v_depth * c.depth_sum / (safe * safe), 0.0)
+        v_alpha = v_alpha - np.where(covered, v_depth * c.depth / safe, 0.0)
 
     dtype = g.dtype
     k = c.intrinsics
