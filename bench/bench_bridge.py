@@ -22,7 +22,7 @@ from statistics import median
 import numpy as np
 import serial
 
-from acesplat.core.geometry import look_at
+from acesplat.core.geometry import look_at, matrix_to_quat
 from acesplat.core.pose import PoseRecord, TrackingState
 from firmware_bridge.mavlink import MavlinkConfig, MavlinkEncoder
 from firmware_bridge.protocol import MsgType, Pose, RuntimeState, Status, encode_frame, wire_size
@@ -105,6 +105,7 @@ def bench_encode_write(recs: list[PoseRecord]) -> dict:
     res: dict = {}
     enc = FrameEncoder()
     res["encode_frame_only"] = time_calls(enc.pose, recs)
+    res["  of which core matrix_to_quat"] = time_calls(lambda r: matrix_to_quat(r.T_c2w[:3, :3]), recs)
     drain = PtyDrain()
     pty = serial.serial_for_url(drain.name, baudrate=BAUD, timeout=0, write_timeout=1.0)
     res["encode_write_pty"] = time_calls(lambda r: pty.write(enc.pose(r)), recs)

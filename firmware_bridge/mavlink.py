@@ -24,7 +24,7 @@ from acesplat.core.errors import InputError
 from acesplat.core.geometry import matrix_to_quat
 from acesplat.core.pose import PoseRecord, TrackingState
 
-from .ned import CameraMount, body_pose_ned, matrix_to_euler
+from .ned import CameraMount, matrix_to_euler, ned_converter
 from .protocol import RuntimeState
 
 log = logging.getLogger(__name__)
@@ -75,7 +75,7 @@ class MavlinkConfig:
     def __post_init__(self) -> None:
         if self.message not in MESSAGES:
             raise InputError(None, f"unknown MAVLink message {self.message!r}; choose one of {', '.join(MESSAGES)}")
-        body_pose_ned(np.eye(4), self.mount, self.world_frame)  # rejects an unknown or non-rigid world frame now
+        ned_converter(self.mount, self.world_frame)  # rejects an unknown or non-rigid world frame now
 
 
 def covariance(pos_std_m: float | None, ang_std_rad: float | None) -> list[float]:
@@ -98,6 +98,7 @@ class MavlinkEncoder:
         self.config = config or MavlinkConfig()
         self._m = load_dialect()
         self._mav = self._m.MAVLink(None, srcSystem=self.config.system_id, srcComponent=self.config.component_id)
+        self._to_ned = ned_converter(self.config.mount, self.config.world_frame)
         self._cov = covariance(self.config.pos_std_m, self.config.ang_std_rad)
         self._nan_cov = covariance(None, None)
         self._lost = False
@@ -111,7 +112,7 @@ class MavlinkEncoder:
         if self._lost:  # relocalized after a loss: the pose may jump, tell the EKF
             self.reset_counter = (self.reset_counter + 1) & 0xFF
             self._lost = False
-        T = body_pose_ned(rec.T_c2w, self.config.mount, self.config.world_frame)
+        T = self._to_ned(np.asarray(rec.T_c2w, dtype=np.float64))
         x, y, z = T[:3, 3].tolist()
         usec = max(int(rec.timestamp_us), 0)
         if self.config.message == "vision_position_estimate":

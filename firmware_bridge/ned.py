@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
@@ -101,11 +102,16 @@ class CameraMount:
         return make_pose(self.R_body_cam, self.t_body_cam)
 
 
+def ned_converter(mount: CameraMount, world_frame: str | np.ndarray = "enu") -> Callable[[np.ndarray], np.ndarray]:
+    """``body_pose_ned`` with its two constant factors computed once (the MAVLink encoder runs it per pose)."""
+    A = make_pose(_rotation(world_frame, WORLD_FRAMES, "world frame"), np.zeros(3))
+    T_cam_body = invert_pose(mount.T_body_cam)
+    return lambda T_c2w: A @ T_c2w @ T_cam_body
+
+
 def body_pose_ned(T_c2w: np.ndarray, mount: CameraMount, world_frame: str | np.ndarray = "enu") -> np.ndarray:
     """Pose (4, 4) of the vehicle body (FRD) in the local NED frame from a camera-to-world pose (4, 4)."""
     T_c2w = np.asarray(T_c2w, dtype=np.float64)
     if T_c2w.shape != (4, 4):
         raise ValueError(f"T_c2w must be 4x4, got shape {T_c2w.shape}")
-    R_ned_world = _rotation(world_frame, WORLD_FRAMES, "world frame")
-    A = make_pose(R_ned_world, np.zeros(3))
-    return A @ T_c2w @ invert_pose(mount.T_body_cam)
+    return ned_converter(mount, world_frame)(T_c2w)
