@@ -1,9 +1,15 @@
-"""Pretraining our own encoder: many procedural scenes, one head per scene, one shared encoder (as ACE did).
+"""Pretraining our own encoder on procedural scenes: dense descriptors learned from exact correspondences.
 
 ACE's published encoder is non-commercial and its training code was never released, so the project
-trains its own. Each procedural scene has exact scene coordinates from its depth maps; the encoder
-learns features from which a per-scene head can regress coordinates, which is exactly what mapping
-asks of it later. Runs resume from a checkpoint, because pretraining spans several sessions.
+trains its own. What a scene-specific head needs from an encoder is features that are distinctive
+within a scene and stable across viewpoints. Each procedural scene has exact world coordinates for
+every pixel (from its depth maps), so two nearby views give exact dense correspondences: a cell of one
+view must find its corresponding cell of the other among all cells of the batch (InfoNCE).
+
+Measured on this machine (bench/encoder_choice.md): ACE's own recipe, one coordinate-regression head per
+scene sharing the encoder, collapsed the features and sat at the predict-the-mean loss for 600 steps;
+the contrastive objective finds correct matches far above chance within 100 steps. Runs resume from a
+checkpoint, because pretraining spans several sessions.
 """
 
 from __future__ import annotations
@@ -17,24 +23,28 @@ from typing import Callable
 import cv2
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from acesplat.core.atomic import atomic_path, write_json
 from acesplat.core.camera import Intrinsics
 from acesplat.core.pnp import OUTPUT_STRIDE
 
 from .augment import rotation_z
-from .network import Encoder, EncoderConfig, Head, HeadConfig, normalize_gray
+from .network import Encoder, EncoderConfig, normalize_gray
 
 EDGE_ENCODER = EncoderConfig(c1=16, c2=32, c3=64, c4=128, res2=256, out=512)
 """The project's default encoder: a fifth of ACE's multiply-accumulates (bench/encoder_choice.md)."""
-PRETRAIN_HEAD = HeadConfig(width=128, blocks=1, homogeneous=True)
 CROP_HW = (128, 160)
-BATCH_IMAGES = 8
+PAIRS_PER_STEP = 4
+"""Two views each; every cell competes against all cells of all second views (1280 candidates)."""
+PAIR_MAX_GAP = 6
+"""Second view within this many frames along the trajectory (overlapping, different viewpoint)."""
+MATCH_TOLERANCE_M = 0.05
+"""A cell's correspondence is the other view's cell whose world point is nearest, if within this distance."""
+TEMPERATURE = 0.07
 LR = 1e-3
 LR_FINAL_FRACTION = 0.05
 WEIGHT_DECAY = 1e-4
-COORD_LOSS_CLAMP_M = 5.0
-"""Errors beyond this many metres stop growing the loss (robust to occlusion edges in the depth)."""
 CHECKPOINT_EVERY_S = 120.0
 
 
@@ -44,7 +54,7 @@ class PretrainConfig:
     frames_per_scene: int = 60
     image_hw: tuple[int, int] = (240, 320)
     steps: int = 20000
-    batch_images: int = BATCH_IMAGES
+    pairs: int = PAIRS_PER_STEP
     seed: int = 0
     encoder: EncoderConfig = EDGE_ENCODER
 
@@ -91,13 +101,15 @@ def load_or_make_scene(cache: Path, seed: int, cfg: PretrainConfig) -> PretrainS
     return s
 
 
-def sample_crop(scene: PretrainScene, rng: np.random.Generator, crop_hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+def sample_crop(
+    scene: PretrainScene, rng: np.random.Generator, crop_hw: tuple[int, int], frame: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """An augmented crop: grayscale (h, w) uint8 and coordinates at cell centres (3, h/8, w/8) (NaN = none).
 
     World coordinates do not change under image rescaling or in-plane rotation, so the coordinate map is
     warped with the image by nearest neighbour.
     """
-    f = int(rng.integers(scene.gray.shape[0]))
+    f = int(rng.integers(scene.gray.shape[0])) if frame is None else frame
     gray, coords = scene.gray[f], scene.coords[f].astype(np.float32)
     h, w = gray.shape
     ch, cw = crop_hw
@@ -129,6 +141,51 @@ def sample_crop(scene: PretrainScene, rng: np.random.Generator, crop_hw: tuple[i
     return np.clip(fimg, 0, 255).astype(np.uint8), out.T.reshape(3, gh, gw)
 
 
+def correspondences(ca: np.ndarray, cb: np.ndarray, tol: float = MATCH_TOLERANCE_M) -> tuple[np.ndarray, np.ndarray]:
+    """Cells of view A (indices into ca (N, 3)) with their corresponding cells of view B (cb (M, 3)).
+
+    Nearest world point: an occluded or out-of-view point has no B cell near it and drops out.
+    """
+    d = np.linalg.norm(ca[:, None] - cb[None], axis=2)
+    d[~np.isfinite(d)] = np.inf
+    j = d.argmin(1)
+    ok = d[np.arange(len(ca)), j] < tol
+    return np.flatnonzero(ok), j[ok]
+
+
+def contrastive_loss(
+    scenes: list[PretrainScene], encoder: Encoder, rng: np.random.Generator, pairs: int
+) -> tuple[torch.Tensor, float] | None:
+    """InfoNCE over the cells of ``pairs`` view pairs; returns (loss, top-1 match rate)."""
+    crops = []
+    for _ in range(pairs):
+        s = scenes[int(rng.integers(len(scenes)))]
+        n = s.gray.shape[0]
+        f = int(rng.integers(n))
+        g = int(np.clip(f + rng.integers(-PAIR_MAX_GAP, PAIR_MAX_GAP + 1), 0, n - 1))
+        crops += [sample_crop(s, rng, CROP_HW, f), sample_crop(s, rng, CROP_HW, g)]
+    x = torch.from_numpy(np.stack([c[0] for c in crops]))[:, None]
+    feats = F.normalize(encoder(normalize_gray(x)), dim=1)
+    _, c, h, w = feats.shape
+    fa = feats[0::2].permute(0, 2, 3, 1).reshape(pairs, h * w, c)
+    fb = feats[1::2].permute(0, 2, 3, 1).reshape(pairs * h * w, c)
+    losses, hits, total = [], 0, 0
+    for k in range(pairs):
+        ca = crops[2 * k][1].reshape(3, -1).T
+        cb = crops[2 * k + 1][1].reshape(3, -1).T
+        ia, jb = correspondences(ca, cb)
+        if len(ia) < 4:
+            continue
+        logits = fa[k][torch.from_numpy(ia)] @ fb.T / TEMPERATURE
+        target = torch.from_numpy(k * h * w + jb)
+        losses.append(F.cross_entropy(logits, target, reduction="sum"))
+        hits += int((logits.argmax(1) == target).sum())
+        total += len(ia)
+    if not losses:
+        return None
+    return torch.stack(losses).sum() / total, hits / total
+
+
 def pretrain(
     out_dir: str | Path,
     cfg: PretrainConfig,
@@ -150,31 +207,25 @@ def pretrain(
             return {"finished": False, "stage": "scenes", "scenes_ready": i + 1}
     torch.manual_seed(cfg.seed)
     encoder = Encoder(cfg.encoder)
-    heads = torch.nn.ModuleList(
-        Head(torch.from_numpy(s.mean).float(), in_channels=cfg.encoder.out, cfg=PRETRAIN_HEAD) for s in scenes
-    )
-    params = list(encoder.parameters()) + list(heads.parameters())
-    opt = torch.optim.AdamW(params, lr=LR, weight_decay=WEIGHT_DECAY)
+    opt = torch.optim.AdamW(encoder.parameters(), lr=LR, weight_decay=WEIGHT_DECAY)
     ckpt_path = out / "checkpoint.pt"
     step, elapsed_before = 0, 0.0
-    rng = np.random.default_rng(cfg.seed)
     history: list[dict] = []
     if ckpt_path.is_file():
         ck = torch.load(ckpt_path, map_location="cpu", weights_only=True)
         encoder.load_state_dict(ck["encoder"])
-        heads.load_state_dict(ck["heads"])
         opt.load_state_dict(ck["optimizer"])
         step, elapsed_before, history = int(ck["step"]), float(ck["elapsed"]), list(ck["history"])
-        rng = np.random.default_rng([cfg.seed, step])
+    rng = np.random.default_rng([cfg.seed, step])
+    t_train = time.monotonic()
 
     def save_checkpoint() -> None:
         with atomic_path(ckpt_path) as tmp:
-            torch.save({"encoder": encoder.state_dict(), "heads": heads.state_dict(), "optimizer": opt.state_dict(),
-                        "step": step, "elapsed": elapsed_before + time.monotonic() - t_train, "history": history}, tmp)
+            torch.save({"encoder": encoder.state_dict(), "optimizer": opt.state_dict(), "step": step,
+                        "elapsed": elapsed_before + time.monotonic() - t_train, "history": history}, tmp)
 
-    t_train = time.monotonic()
     last_ckpt = t_train
-    running = []
+    running: list[tuple[float, float]] = []
     encoder.train()
     while step < cfg.steps and time.monotonic() < deadline:
         p = step / cfg.steps
@@ -182,31 +233,22 @@ def pretrain(
         lr = float(lr * min(1.0, (step + 1) / 200))
         for g in opt.param_groups:
             g["lr"] = lr
-        ids = rng.integers(0, len(scenes), cfg.batch_images)
-        crops = [sample_crop(scenes[i], rng, CROP_HW) for i in ids]
-        x = torch.from_numpy(np.stack([c[0] for c in crops]))[:, None]
-        gt = torch.from_numpy(np.stack([c[1] for c in crops]))
-        feats = encoder(normalize_gray(x))
-        loss_sum, count = 0.0, 0
-        for b, sid in enumerate(ids):
-            pred = heads[int(sid)](feats[b : b + 1])[0]
-            valid = torch.isfinite(gt[b]).all(0)
-            if valid.any():
-                d = torch.linalg.vector_norm(pred[:, valid] - gt[b][:, valid], dim=0)
-                loss_sum = loss_sum + torch.clamp(d, max=COORD_LOSS_CLAMP_M).sum()
-                count += int(valid.sum())
-        loss = loss_sum / max(count, 1)
+        out_ = contrastive_loss(scenes, encoder, rng, cfg.pairs)
+        if out_ is None:
+            continue
+        loss, top1 = out_
         opt.zero_grad(set_to_none=True)
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(params, 10.0)
+        torch.nn.utils.clip_grad_norm_(encoder.parameters(), 10.0)
         opt.step()
         step += 1
-        running.append(float(loss.detach()))
+        running.append((float(loss.detach()), top1))
         if step % 100 == 0:
-            history.append({"step": step, "loss_m": float(np.mean(running)), "lr": lr})
+            arr = np.array(running)
+            history.append({"step": step, "loss": float(arr[:, 0].mean()), "top1": float(arr[:, 1].mean()), "lr": lr})
             running = []
         if progress:
-            progress("train", step / cfg.steps, {"step": step, "loss_m": float(loss)})
+            progress("train", step / cfg.steps, {"step": step, "loss": float(loss.detach()), "top1": top1})
         if time.monotonic() - last_ckpt > CHECKPOINT_EVERY_S:
             save_checkpoint()
             last_ckpt = time.monotonic()
@@ -214,10 +256,9 @@ def pretrain(
     finished = step >= cfg.steps
     total_s = elapsed_before + time.monotonic() - t_train
     summary = {"finished": finished, "step": step, "steps": cfg.steps, "train_seconds": total_s,
-               "loss_m": history[-1]["loss_m"] if history else None, "config": _cfg_dict(cfg)}
-    if finished:
-        with atomic_path(out / "encoder.pt") as tmp:
-            torch.save(encoder.state_dict(), tmp)
+               "last": history[-1] if history else None, "config": _cfg_dict(cfg)}
+    with atomic_path(out / "encoder.pt") as tmp:
+        torch.save(encoder.state_dict(), tmp)
     write_json(out / "pretrain_summary.json", {**summary, "history": history})
     return summary
 
