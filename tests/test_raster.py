@@ -257,3 +257,24 @@ def test_polynomial_exp_over_the_cut_off_range() -> None:
     xs = np.linspace(-4.5, 0.0, 2001)
     got = np.array([exp_neg(x) for x in xs])
     np.testing.assert_allclose(got, np.exp(xs), rtol=1e-11, atol=0)
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="needs fork()")
+def test_thread_pool_survives_fork() -> None:
+    """A forked child (e.g. a data-loader worker) renders with its own pool instead of hanging."""
+    import os
+
+    params, pose, k = random_scene(50, 2, dtype=np.float32)
+    g = Gaussians(**params)
+    before = get_num_threads()
+    set_num_threads(2)
+    try:
+        parent = rasterize(g, pose, k).color
+        pid = os.fork()
+        if pid == 0:  # pragma: no cover - runs in the child
+            ok = np.array_equal(rasterize(g, pose, k).color, parent)
+            os._exit(0 if ok else 3)
+        _, status = os.waitpid(pid, 0)
+        assert os.waitstatus_to_exitcode(status) == 0
+    finally:
+        set_num_threads(before)

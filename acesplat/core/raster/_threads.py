@@ -14,6 +14,7 @@ from typing import Any, Callable
 
 _lock = threading.Lock()
 _pool: ThreadPoolExecutor | None = None
+_pool_pid = 0  # a pool does not survive fork(): a child process makes its own
 _threads = 0
 
 CHUNKS_PER_THREAD = 4
@@ -32,13 +33,13 @@ def default_threads() -> int:
 
 
 def set_num_threads(n: int | None) -> None:
-    """Use ``n`` worker threads for the rasterizer (None: all available cores)."""
+    """Use ``n`` threads for the rasterizer, the caller included (None: all available cores)."""
     global _pool, _threads
     n = default_threads() if n is None else int(n)
     if n < 1:
         raise ValueError(f"need at least one thread, got {n}")
     with _lock:
-        if _pool is not None:
+        if _pool is not None and _pool_pid == os.getpid():
             _pool.shutdown(wait=True)
         _pool = None
         _threads = n
@@ -51,9 +52,11 @@ def get_num_threads() -> int:
 def parallel_for(kernel: Callable[..., Any], n: int, *args: Any) -> None:
     """Run ``kernel(lo, hi, *args)`` over chunks covering range(n), in parallel; return when all are done.
 
-    Results must not depend on the chunking: every kernel writes disjoint outputs per index.
+    The calling thread works too, and every thread takes the next chunk from a shared counter, so
+    a worker the OS has descheduled (on a busy machine) delays at most its own chunk instead of
+    the whole pass. Results must not depend on the chunking: kernels write disjoint outputs.
     """
-    global _pool
+    global _pool, _pool_pid
     threads = get_num_threads()
     if n <= 0:
         return
@@ -62,10 +65,23 @@ def parallel_for(kernel: Callable[..., Any], n: int, *args: Any) -> None:
         return
     chunks = min(n, threads * CHUNKS_PER_THREAD)
     bounds = [n * c // chunks for c in range(chunks + 1)]
+    next_chunk = iter(range(chunks))
+    take = threading.Lock()
+
+    def work() -> None:
+        while True:
+            with take:
+                c = next(next_chunk, None)
+            if c is None:
+                return
+            kernel(bounds[c], bounds[c + 1], *args)
+
     with _lock:
-        if _pool is None:
-            _pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="acesplat-raster")
+        if _pool is None or _pool_pid != os.getpid():
+            _pool = ThreadPoolExecutor(max_workers=threads - 1, thread_name_prefix="acesplat-raster")
+            _pool_pid = os.getpid()
         pool = _pool
-    futures = [pool.submit(kernel, bounds[c], bounds[c + 1], *args) for c in range(chunks)]
-    for f in futures:
+    helpers = [pool.submit(work) for _ in range(threads - 1)]
+    work()
+    for f in helpers:
         f.result()
