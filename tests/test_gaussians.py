@@ -114,7 +114,8 @@ def test_activations() -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         s = sigmoid(x)
-    np.testing.assert_allclose(s, [0.0, 1 / (1 + np.exp(3.0)), 0.5, 1 / (1 + np.exp(-2.0)), 1.0], rtol=1e-12, atol=1e-300)
+    expected = [0.0, 1 / (1 + np.exp(3.0)), 0.5, 1 / (1 + np.exp(-2.0)), 1.0]
+    np.testing.assert_allclose(s, expected, rtol=1e-12, atol=1e-300)
     assert sigmoid(np.float32([0.5])).dtype == np.float32
     p = np.array([0.01, 0.3, 0.99])
     np.testing.assert_allclose(sigmoid(logit(p)), p, rtol=1e-12)

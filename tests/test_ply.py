@@ -171,7 +171,10 @@ def test_wrong_format_and_types(tmp_path: Path) -> None:
     _expect(path, "not a PLY file")
     path.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement face 3\nproperty float x\nend_header\n")
     _expect(path, "unexpected PLY element 'face 3'")
-    path.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty list uchar int vertex_indices\nend_header\n")
+    path.write_bytes(
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 1\n"
+        b"property list uchar int vertex_indices\nend_header\n"
+    )
     _expect(path, "unsupported PLY property line")
 
 

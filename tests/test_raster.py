@@ -33,7 +33,8 @@ def _rel(a: np.ndarray, b: np.ndarray) -> float:
 
 def _loss_weights(k: Intrinsics, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     rng = np.random.default_rng(seed)
-    return rng.normal(size=(k.height, k.width, 3)), rng.normal(size=(k.height, k.width)), rng.normal(size=(k.height, k.width))
+    hw = (k.height, k.width)
+    return rng.normal(size=hw + (3,)), rng.normal(size=hw), rng.normal(size=hw)
 
 
 def _compare_with_reference(params, pose, k, bg, sh_degree, seed, tol_value, tol_grad):
@@ -44,7 +45,10 @@ def _compare_with_reference(params, pose, k, bg, sh_degree, seed, tol_value, tol
 
     t = {n: torch.tensor(params[n], dtype=torch.float64, requires_grad=True) for n in PARAMS}
     ref = render_reference(**t, pose_c2w=pose, k=k, background=bg, sh_degree=sh_degree)
-    loss = (ref.color * torch.tensor(wc)).sum() + (ref.alpha * torch.tensor(wa)).sum() + (ref.depth * torch.tensor(wd)).sum()
+    loss = (
+        (ref.color * torch.tensor(wc)).sum() + (ref.alpha * torch.tensor(wa)).sum()
+        + (ref.depth * torch.tensor(wd)).sum()
+    )
     loss.backward()
 
     errors = {
@@ -105,8 +109,11 @@ def test_finite_differences() -> None:
     visible = np.flatnonzero(res.visible)
     picks = []
     for i in rng.choice(visible, size=6, replace=False):
-        picks += [("means", (i, rng.integers(3))), ("log_scales", (i, rng.integers(3))), ("quats", (i, rng.integers(4))),
-                  ("opacity_logits", (i,)), ("sh", (i, 0, rng.integers(3))), ("sh", (i, rng.integers(1, 16), rng.integers(3)))]
+        picks += [
+            ("means", (i, rng.integers(3))), ("log_scales", (i, rng.integers(3))), ("quats", (i, rng.integers(4))),
+            ("opacity_logits", (i,)), ("sh", (i, 0, rng.integers(3))),
+            ("sh", (i, rng.integers(1, 16), rng.integers(3))),
+        ]
     eps = 1e-6
     numeric, analytic = [], []
     for name, idx in picks:
@@ -158,7 +165,8 @@ def test_culling_and_empty_scenes_give_background() -> None:
     np.testing.assert_array_equal(empty.color, np.broadcast_to(bg, (16, 20, 3)))
     assert not empty.alpha.any() and not empty.depth.any()
     g = Gaussians.zeros(4, 0, np.float64)
-    g.means[:] = [[0, 0, -1.0], [0, 0, 0.005], [0, 0, 50.0], [100.0, 0, 1.0]]  # behind, before near, past far, off-screen
+    # behind the camera, before the near plane, past the far plane, off-screen
+    g.means[:] = [[0, 0, -1.0], [0, 0, 0.005], [0, 0, 50.0], [100.0, 0, 1.0]]
     g.log_scales[:] = math.log(0.05)
     g.opacity_logits[:] = 3.0
     res = rasterize(g, np.eye(4), k, bg, far=20.0)

@@ -74,7 +74,9 @@ class _RasterizeFunction(torch.autograd.Function):
         )
 
     @staticmethod
-    def backward(ctx: Any, v_color: torch.Tensor, v_alpha: torch.Tensor, v_depth: torch.Tensor):  # type: ignore[override]
+    def backward(  # type: ignore[override]
+        ctx: Any, v_color: torch.Tensor, v_alpha: torch.Tensor, v_depth: torch.Tensor
+    ) -> tuple[torch.Tensor | None, ...]:
         res: RenderResult = ctx.result
         grads = rasterize_backward(
             res,

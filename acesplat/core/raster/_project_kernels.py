@@ -100,9 +100,18 @@ def _sh_raw_color(sh, i, degree, x, y, z):
         g += bs[4] * sh[i, 4, 1] + bs[5] * sh[i, 5, 1] + bs[6] * sh[i, 6, 1] + bs[7] * sh[i, 7, 1] + bs[8] * sh[i, 8, 1]
         b += bs[4] * sh[i, 4, 2] + bs[5] * sh[i, 5, 2] + bs[6] * sh[i, 6, 2] + bs[7] * sh[i, 7, 2] + bs[8] * sh[i, 8, 2]
     if degree >= 3:
-        r += bs[9] * sh[i, 9, 0] + bs[10] * sh[i, 10, 0] + bs[11] * sh[i, 11, 0] + bs[12] * sh[i, 12, 0] + bs[13] * sh[i, 13, 0] + bs[14] * sh[i, 14, 0] + bs[15] * sh[i, 15, 0]
-        g += bs[9] * sh[i, 9, 1] + bs[10] * sh[i, 10, 1] + bs[11] * sh[i, 11, 1] + bs[12] * sh[i, 12, 1] + bs[13] * sh[i, 13, 1] + bs[14] * sh[i, 14, 1] + bs[15] * sh[i, 15, 1]
-        b += bs[9] * sh[i, 9, 2] + bs[10] * sh[i, 10, 2] + bs[11] * sh[i, 11, 2] + bs[12] * sh[i, 12, 2] + bs[13] * sh[i, 13, 2] + bs[14] * sh[i, 14, 2] + bs[15] * sh[i, 15, 2]
+        r += (
+            bs[9] * sh[i, 9, 0] + bs[10] * sh[i, 10, 0] + bs[11] * sh[i, 11, 0] + bs[12] * sh[i, 12, 0]
+            + bs[13] * sh[i, 13, 0] + bs[14] * sh[i, 14, 0] + bs[15] * sh[i, 15, 0]
+        )
+        g += (
+            bs[9] * sh[i, 9, 1] + bs[10] * sh[i, 10, 1] + bs[11] * sh[i, 11, 1] + bs[12] * sh[i, 12, 1]
+            + bs[13] * sh[i, 13, 1] + bs[14] * sh[i, 14, 1] + bs[15] * sh[i, 15, 1]
+        )
+        b += (
+            bs[9] * sh[i, 9, 2] + bs[10] * sh[i, 10, 2] + bs[11] * sh[i, 11, 2] + bs[12] * sh[i, 12, 2]
+            + bs[13] * sh[i, 13, 2] + bs[14] * sh[i, 14, 2] + bs[15] * sh[i, 15, 2]
+        )
     return r, g, b
 
 
@@ -235,7 +244,8 @@ def _unit_quat_rotation(quats, i):
 
 @njit(cache=True, inline="always")
 def _camera_frame(means, log_scales, quats, i, view):
-    """Camera-frame mean p, world rotation R (9), scales s, T = Rview @ R @ diag(s) (9), cov_cam (6: xx xy xz yy yz zz)."""
+    """Camera-frame mean p, world rotation R (9), scales s, T = Rview @ R @ diag(s) (9) and the
+    camera-frame covariance T T^T (6: xx xy xz yy yz zz)."""
     mx = means[i, 0] * 1.0
     my = means[i, 1] * 1.0
     mz = means[i, 2] * 1.0

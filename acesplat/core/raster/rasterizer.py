@@ -203,8 +203,8 @@ def rasterize_backward(
     k = c.intrinsics
     slot_grads = np.empty((len(c.tile_rec), L.GRAD_WIDTH), dtype)
     parallel_for(
-        composite_backward, len(c.tile_order), c.tile_rec, c.tile_offsets, c.tile_order, -(-w // TILE), w, h, c.background,
-        c.final_trans, c.last, v_color, v_alpha, v_depth_sum, c.entry_slot, slot_grads,
+        composite_backward, len(c.tile_order), c.tile_rec, c.tile_offsets, c.tile_order, -(-w // TILE), w, h,
+        c.background, c.final_trans, c.last, v_color, v_alpha, v_depth_sum, c.entry_slot, slot_grads,
     )
     n = len(g)
     out = RasterGradients(
@@ -217,8 +217,8 @@ def rasterize_backward(
     )
     if len(c.order):
         parallel_for(
-            project_backward, n, g.means, g.log_scales, g.quats, g.opacity_logits, g.sh, c.sh_degree, c.view, c.campos,
-            float(k.fx), float(k.fy), float(k.cx), float(k.cy), float(w), float(h),
+            project_backward, n, g.means, g.log_scales, g.quats, g.opacity_logits, g.sh, c.sh_degree, c.view,
+            c.campos, float(k.fx), float(k.fy), float(k.cx), float(k.cy), float(w), float(h),
             c.g_offsets, slot_grads,
             out.means, out.log_scales, out.quats, out.opacity_logits, out.sh, out.means2d,
         )
