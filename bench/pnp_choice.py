@@ -30,13 +30,13 @@ from acesplat.core.pnp import PNP_METHODS, cell_centers, solve_pnp  # noqa: E402
 from edge.profile import cpu_model  # noqa: E402
 
 
-def run_method(method: str, cases: list, repeats: int = 1) -> dict:
+def run_method(method: str, cases: list, repeats: int = 1, iterations: int = 1000) -> dict:
     errs, ms, loc = [], [], 0
     for pix, pts, intr, T in cases:
         for _ in range(repeats):
             cv2.setRNGSeed(len(ms))
             t0 = time.perf_counter()
-            r = solve_pnp(pix, pts, intr, method=method)
+            r = solve_pnp(pix, pts, intr, method=method, iterations=iterations)
             ms.append((time.perf_counter() - t0) * 1000)
         loc += r.localized
         errs.append(pose_error(r.T_c2w, T) if r.T_c2w is not None and r.localized else (np.inf, np.inf))
@@ -96,6 +96,13 @@ def synthetic_cases(n_frames: int = 10) -> list:
     return cases
 
 
+def garbage_cases(n_frames: int = 10) -> list:
+    """A lost camera: 2700 predictions that match nothing (what a wrong or unmapped place gives)."""
+    rng = np.random.default_rng(1)
+    intr = Intrinsics(430.0, 430.0, 239.5, 179.5, 480, 360)
+    return [(cell_centers(45, 60), rng.normal(0, 3.0, (2700, 3)) + [0, 4, 1], intr, np.eye(4)) for _ in range(n_frames)]
+
+
 def table(title: str, rows: dict) -> None:
     keys = list(next(iter(rows.values())))
     print(f"\n{title}")
@@ -117,6 +124,14 @@ def main() -> None:
           f"{100 * np.mean(e > 0.25):.0f}% of cells off by > 25 cm")
     table("real predictions (tiny room map)", {m: run_method(m, real, repeats=3) for m in PNP_METHODS})
     table("2700 correspondences (360x480 grid), 40% outliers, 1 px noise", {m: run_method(m, synthetic_cases()) for m in PNP_METHODS})
+    caps = (1000, 500, 256, 128)
+    synth, lost = synthetic_cases(), garbage_cases()
+    table("iteration cap, ransac_ap3p: real predictions",
+          {f"cap {c}": run_method("ransac_ap3p", real, repeats=3, iterations=c) for c in caps})
+    table("iteration cap, ransac_ap3p: 2700 correspondences, 40% outliers",
+          {f"cap {c}": run_method("ransac_ap3p", synth, iterations=c) for c in caps})
+    table("iteration cap, ransac_ap3p: 2700 predictions that match nothing (lost)",
+          {f"cap {c}": run_method("ransac_ap3p", lost, iterations=c) for c in caps})
     print(f"\nload average after: {os.getloadavg()}")
 
 

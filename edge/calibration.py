@@ -16,7 +16,6 @@ import numpy as np
 
 from acesplat.core.camera import Intrinsics
 from acesplat.core.errors import InputError
-from acesplat.core.scene import format_matrix
 
 ASPECT_TOLERANCE = 0.01
 """Relative aspect-ratio difference accepted when rescaling intrinsics to a frame of another size."""
@@ -140,16 +139,3 @@ def read_calibration_file(path: str | Path) -> CameraCalibration:
     if values.size == 9:
         return CameraCalibration(K=_check_K(values, path), source=str(path))
     raise InputError(path, f"calibration needs 1 number (focal) or 9 (3x3 K), found {values.size}")
-
-
-def write_calibration_json(path: Path, intr: Intrinsics, distortion: np.ndarray | None) -> None:
-    from acesplat.core.atomic import write_json
-
-    obj = {"K": intr.K.tolist(), "width": intr.width, "height": intr.height}
-    if distortion is not None:
-        obj["distortion"] = np.asarray(distortion, dtype=float).reshape(-1).tolist()
-    write_json(path, obj)
-
-
-def format_K(intr: Intrinsics) -> str:
-    return format_matrix(intr.K)

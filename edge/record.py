@@ -8,6 +8,7 @@ captured (still distorted) so replay applies the same correction as live.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -45,8 +46,6 @@ def _check_out(out: Path) -> None:
 def record(source: FrameSource, out: str | Path, max_frames: int | None = None,
            progress: Callable[[int], None] | None = None, stop=None) -> RecordStats:
     """Copy frames from ``source`` into ``out`` until it ends, ``max_frames`` are written, or Ctrl-C."""
-    import threading
-
     out = Path(out)
     _check_out(out)
     (out / "rgb").mkdir(parents=True, exist_ok=True)

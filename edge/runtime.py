@@ -26,6 +26,9 @@ STAGES = ("capture", "preprocess", "inference", "pnp", "total")
 
 DEFAULT_PNP_METHOD = "ransac_ap3p"
 """Chosen by measurement on real predictions (bench/pnp_choice.md)."""
+DEFAULT_PNP_ITERATIONS = 256
+"""RANSAC cap for the edge: a lost frame (nothing matches) costs a third of the desktop's 1000 iterations,
+and good frames converge long before it (bench/pnp_choice.md)."""
 
 
 @dataclass
@@ -44,10 +47,11 @@ class FrameOutcome:
 class PnPSettings:
     method: str = DEFAULT_PNP_METHOD
     min_inliers: int = DEFAULT_MIN_INLIERS
+    iterations: int = DEFAULT_PNP_ITERATIONS
     extra: dict = field(default_factory=dict)
 
     def kwargs(self) -> dict:
-        return {"method": self.method, "min_inliers": self.min_inliers, **self.extra}
+        return {"method": self.method, "min_inliers": self.min_inliers, "iterations": self.iterations, **self.extra}
 
 
 class EdgeLocalizer:

@@ -18,7 +18,7 @@ import numpy as np
 
 from acesplat.core.camera import Intrinsics
 from acesplat.core.errors import InputError
-from acesplat.core.scene import IMAGE_SUFFIXES, read_matrix, read_pose, read_rgb
+from acesplat.core.scene import IMAGE_SUFFIXES, read_calibration, read_matrix, read_pose, read_rgb
 
 from .calibration import CameraCalibration, read_calibration_file
 
@@ -164,8 +164,6 @@ class ReplaySource:
 
     def _intrinsics(self, i: int, w: int, h: int) -> Intrinsics | None:
         if self.calibs is not None:
-            from acesplat.core.scene import read_calibration
-
             return read_calibration(self.calibs[i], w, h)
         if self.calibration is not None:
             return self.calibration.intrinsics_for(w, h)

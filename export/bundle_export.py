@@ -20,6 +20,7 @@ from acesplat import __version__
 from acesplat.core.bundle import (
     MANIFEST_NAME, ROLE_SCR_FP32, ROLE_SCR_INT8, BundleFile, describe_file, sha256_of, write_manifest,
 )
+from acesplat.core.camera import Intrinsics
 from acesplat.core.errors import InputError
 from acesplat.core.pnp import OUTPUT_STRIDE
 from acesplat.core.preprocess import size_for_short_side
@@ -27,7 +28,7 @@ from acesplat.core.scene import IMAGE_SUFFIXES, SceneSplit, image_size, read_spl
 from acesplat.scr.mapfile import encoder_for_map, load_map
 from acesplat.scr.network import GRAY_MEAN, GRAY_STD
 
-from .checks import fp32_parity, localization_accuracy, prepare_frames
+from .checks import CheckFrame, fp32_parity, localization_accuracy, prepare_frames
 from .onnx_graph import INPUT_NAME, OPSET, OUTPUT_NAME, export_scr_onnx
 from .quantize import quantize_int8
 
@@ -143,15 +144,12 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
             progress("export fp32", 1.0, {})
         files: list[BundleFile] = [describe_file(tmp, FP32_FILE, ROLE_SCR_FP32)]
 
-        parity_src = (test or train)
+        parity_src = test or train
         if parity_src is not None:
             parity_frames = prepare_frames(evenly(parity_src.frames, PARITY_FRAMES), size)
             checks["fp32_vs_torch"] = fp32_parity(net, tmp / FP32_FILE, parity_frames, progress)
         else:
             rng = np.random.default_rng(0)
-            from .checks import CheckFrame
-            from acesplat.core.camera import Intrinsics
-
             noise = [CheckFrame(f"noise{i}", rng.integers(0, 256, size, dtype=np.uint8),
                                 Intrinsics.from_focal(max(size), size[1], size[0]), np.eye(4)) for i in range(2)]
             checks["fp32_vs_torch"] = fp32_parity(net, tmp / FP32_FILE, noise, progress)
