@@ -230,10 +230,11 @@ def _unit_quat_rotation(quats, i):
     n = math.sqrt(w * w + x * x + y * y + z * z)
     if not (n > 0.0 and n < math.inf):
         return False, 1.0, 1.0, 0.0, 0.0, 0.0, (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
-    w /= n
-    x /= n
-    y /= n
-    z /= n
+    inv = 1.0 / n
+    w *= inv
+    x *= inv
+    y *= inv
+    z *= inv
     R = (
         1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y),
         2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x),
@@ -344,8 +345,9 @@ def _project_one(
     det = a * c - b * b
     if not (det > 0.0 and det < math.inf):
         return
-    mx = fx * px / pz + cx
-    my = fy * py / pz + cy
+    iz = 1.0 / pz
+    mx = fx * px * iz + cx
+    my = fy * py * iz + cy
     ex = math.sqrt(maha2 * a)
     ey = math.sqrt(maha2 * c)
     if not (ex <= MAX_EXTENT and ey <= MAX_EXTENT):
@@ -376,9 +378,10 @@ def _project_one(
     bbox[i, 3] = y1
     rec[i, MX] = mx
     rec[i, MY] = my
-    rec[i, CA] = c / det
-    rec[i, CB] = -b / det
-    rec[i, CC] = a / det
+    inv_det = 1.0 / det
+    rec[i, CA] = c * inv_det
+    rec[i, CB] = -b * inv_det
+    rec[i, CC] = a * inv_det
     rec[i, OPAC] = op
     rec[i, RED] = max(r + 0.5, 0.0)
     rec[i, GREEN] = max(g + 0.5, 0.0)
@@ -472,18 +475,20 @@ def _project_backward_one(
     if sh_degree > 0 and dist > 0.0:
         # d(unit dir)/d(vector) = (I - d d^T) / |vector|
         dot = ux * dx + uy * dy + uz * dz
-        v_wx = (ux - dot * dx) / dist
-        v_wy = (uy - dot * dy) / dist
-        v_wz = (uz - dot * dz) / dist
+        inv_dist = 1.0 / dist
+        v_wx = (ux - dot * dx) * inv_dist
+        v_wy = (uy - dot * dy) * inv_dist
+        v_wz = (uz - dot * dz) * inv_dist
 
     # Conic (inverse of [[a, b], [b, c]]) -> 2D covariance.
-    ca = c / det
-    cb = -b / det
-    cc = a / det
-    v_det = -(v_ca * ca + v_cb * cb + v_cc * cc) / det
-    v_a = v_cc / det + v_det * c
-    v_b2 = -v_cb / det - 2.0 * v_det * b
-    v_c = v_ca / det + v_det * a
+    inv_det = 1.0 / det
+    ca = c * inv_det
+    cb = -b * inv_det
+    cc = a * inv_det
+    v_det = -(v_ca * ca + v_cb * cb + v_cc * cc) * inv_det
+    v_a = v_cc * inv_det + v_det * c
+    v_b2 = -v_cb * inv_det - 2.0 * v_det * b
+    v_c = v_ca * inv_det + v_det * a
 
     # 2D covariance = J cov J^T.
     sxx, sxy, sxz, syy, syz, szz = cov
@@ -557,10 +562,11 @@ def _project_backward_one(
     vqz = 2.0 * (-2.0 * qz * G00 - qw * G01 + qx * G02 + qw * G10 - 2.0 * qz * G11 + qy * G12 + qx * G20 + qy * G21)
     # Through the normalisation q / |q|.
     dotq = vqw * qw + vqx * qx + vqy * qy + vqz * qz
-    v_quats[i, 0] = (vqw - dotq * qw) / qn
-    v_quats[i, 1] = (vqx - dotq * qx) / qn
-    v_quats[i, 2] = (vqy - dotq * qy) / qn
-    v_quats[i, 3] = (vqz - dotq * qz) / qn
+    inv_qn = 1.0 / qn
+    v_quats[i, 0] = (vqw - dotq * qw) * inv_qn
+    v_quats[i, 1] = (vqx - dotq * qx) * inv_qn
+    v_quats[i, 2] = (vqy - dotq * qy) * inv_qn
+    v_quats[i, 3] = (vqz - dotq * qz) * inv_qn
 
     # Camera point -> world mean (p = Vr m + t), plus the SH view-direction path.
     v_means[i, 0] = view[0, 0] * v_px + view[1, 0] * v_py + view[2, 0] * v_pz + v_wx
