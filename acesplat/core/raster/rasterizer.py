@@ -7,10 +7,13 @@ below 1e-4. One deliberate difference: each Gaussian is cut off exactly where al
 3 sigma, per pixel, instead of wherever its tiles happen to end, so the image does not depend on the
 tiling and a dense per-pixel reference reproduces it to rounding.
 
-Pipeline: project (parallel over Gaussians) -> stable depth sort -> bin into 16x16 tiles ->
-composite (parallel over tiles); backward replays each pixel back to front from the stored final
-transmittance and last contributor, writes per-(tile, Gaussian) gradient slots, then sums them per
-Gaussian and chains through the projection (parallel over Gaussians).
+Pipeline: project (parallel over Gaussians, one 64-byte screen-space record each: conic, colour,
+opacity, depth, cut-off) -> stable depth sort -> bin into 16x16 tiles, copying each tile's records
+contiguously in depth order -> composite (parallel over tiles). The backward replays each pixel
+back to front from the stored final transmittance and last contributor, writes one gradient slot
+per (tile, Gaussian) pair (no two threads share one), then sums each Gaussian's slots and chains
+through the projection (parallel over Gaussians). Parallel loops run GIL-free numba kernels over
+chunks on a small thread pool (see ``_threads``); results do not depend on the thread count.
 """
 
 from __future__ import annotations
@@ -66,8 +69,9 @@ class RenderResult:
     color (H, W, 3) composited over the background; alpha (H, W) coverage = 1 - final transmittance;
     depth (H, W) expected camera z of the visible surface (weighted depth sum / alpha, 0 where alpha
     is 0); means2d (N, 2) projected centres in pixels (0 when culled); radii (N,) 3-sigma screen
-    radius in pixels as 3DGS reports it (0 when culled); visible (N,) reached at least one pixel's
-    tile; n_tile_entries total (tile, Gaussian) pairs.
+    radius in pixels as 3DGS reports it (0 when culled); visible (N,) not culled: camera z in
+    [near, far], opacity >= 1/255, and its cut-off ellipse's bounding box overlaps the image;
+    n_tile_entries total (tile, Gaussian) pairs.
     """
 
     color: np.ndarray
