@@ -49,6 +49,9 @@ def splat_command(
     views: Optional[str] = typer.Option(None, "--views", help="Sparse protocol: the two training frame indices, e.g. 10,14."),
     encoder: Optional[Path] = typer.Option(None, help="Encoder weights if not where the map says."),
     max_gaussians: int = typer.Option(200_000, help="Cap on the number of Gaussians."),
+    reproj_px: float = typer.Option(8.0, help="Validity: SCR coordinates must reproject within this many pixels."),
+    iterations: Optional[int] = typer.Option(
+        None, help="Fixed optimisation iterations (and 1/5 as many head warm-up steps) instead of the budget: reproducible runs."),
     device: str = typer.Option("auto", help="auto, cpu or cuda (networks only: the rasterizer runs on the CPU)."),
     threads: int = typer.Option(
         1, help="Torch threads. The rasterizer has its own numba threads; measured on 2 busy cores, one torch thread "
@@ -67,6 +70,7 @@ def splat_command(
     from .params import gaussians_from_params
     from .pipeline import SplatConfig, spread, splat_scene
     from .splatfile import save_splat
+    from .validity import ValidityConfig
     from .views import load_views
 
     if max_gaussians < 1:
@@ -74,8 +78,13 @@ def splat_command(
     if threads < 1:
         raise InputError(None, f"--threads must be positive, got {threads}")
     torch.set_num_threads(threads)
+    if iterations is not None and iterations < 0:
+        raise InputError(None, f"--iterations must be >= 0, got {iterations}")
+    if reproj_px <= 0:
+        raise InputError(None, f"--reproj-px must be positive, got {reproj_px}")
     cfg = SplatConfig(minutes=minutes, protocol=protocol, sparse_views=_parse_pair(views), max_gaussians=max_gaussians,
-                      seed=seed)
+                      iterations=iterations, head_iterations=None if iterations is None else iterations // 5,
+                      validity=ValidityConfig(reproj_max_px=reproj_px), seed=seed)
     dev = resolve_device(device)
     m = load_map(map_path)
     enc = encoder_for_map(m, map_path, encoder)
@@ -103,7 +112,7 @@ def splat_command(
         "train_psnr": ev["psnr"],
         "train_ssim": ev["ssim"],
         "train_psnr_views": ev["frames"],
-        **({"target_psnr": targets["psnr"], "target_ssim": targets["ssim"], "target_views": targets["frames"]}
+        **({"target_psnr": targets["psnr"], "target_ssim": targets["ssim"], "target_frames": targets["frames"]}
            if targets else {}),
         "eval_seconds": eval_s,
         "device": dev,

@@ -82,6 +82,8 @@ class LifecycleConfig:
     percent_dense: float = PERCENT_DENSE
     max_sh_degree: int = MAX_SH_DEGREE
     opacity_reset: bool = True
+    densify: bool = True
+    """False: prune on schedule but never clone or split."""
 
 
 @dataclass
@@ -177,7 +179,7 @@ def densify_and_prune(
     n = params["means"].shape[0]
     grad = state.mean_grad()
     with torch.no_grad():
-        candidates = (grad >= cfg.grad_threshold) & (state.seen > 0)
+        candidates = (grad >= cfg.grad_threshold) & (state.seen > 0) & cfg.densify
         big = params["log_scales"].detach().exp().amax(dim=1).cpu() > cfg.percent_dense * cfg.scene_extent
         opacity = torch.sigmoid(params["opacity_logits"].detach()).cpu()
         prune = opacity < cfg.prune_opacity
@@ -185,7 +187,7 @@ def densify_and_prune(
         for name in PARAM_NAMES:
             finite &= torch.isfinite(params[name].detach().reshape(n, -1)).all(dim=1).cpu()
         prune |= ~finite
-        candidates &= finite
+        candidates &= ~prune  # a clone of a transparent Gaussian would be pruned with it
         # The cap: each clone adds one Gaussian, each split SPLIT_COUNT - 1; keep the strongest gradients.
         room = cfg.max_gaussians - int(n - prune.sum())
         cand_idx = torch.nonzero(candidates).flatten()

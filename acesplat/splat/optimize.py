@@ -22,7 +22,7 @@ from .lifecycle import GaussianLifecycle, LifecycleConfig, LifecycleSchedule, Li
 from .losses import psnr_from_mse, rendering_loss
 from .params import GaussianParams, render_tensors
 from .raster_torch import render
-from .schedule import NET_LR_MAX, one_cycle_factor
+from .schedule import NET_LR_MAX, gaussian_factor, one_cycle_factor
 from .views import SplatView
 
 LR_MEANS = 1.6e-4
@@ -40,6 +40,7 @@ HEAD_EVERY = 5
 PROBE_ITERATIONS = 5
 """Iterations timed before the lifecycle schedule is scaled to the iterations the budget affords."""
 HISTORY_EVERY = 10
+GAUSSIAN_ONE_CYCLE = False
 
 
 @dataclass
@@ -50,6 +51,7 @@ class OptimizeConfig:
     iterations: int | None = None
     """Fixed iteration count instead of the wall-clock budget (tests, reproducible runs)."""
     opacity_reset: bool = True
+    densify: bool = True
     head_every: int = HEAD_EVERY
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     seed: int = 0
@@ -85,8 +87,9 @@ def make_optimizer(params: GaussianParams, scene_extent: float, nets: torch.nn.M
 
 
 def set_learning_rates(optimizer: torch.optim.Optimizer, progress: float) -> None:
-    f = one_cycle_factor(progress)
+    """Networks follow the one-cycle; Gaussian attributes its warm-up, then 3DGS's schedule."""
     for g in optimizer.param_groups:
+        f = one_cycle_factor(progress) if g["name"] == "nets" or GAUSSIAN_ONE_CYCLE else gaussian_factor(g["name"], progress)
         g["lr"] = g["peak_lr"] * f
 
 
@@ -121,8 +124,10 @@ def optimise_gaussians(
     gen = torch.Generator().manual_seed(cfg.seed)
     optimizer = make_optimizer(params, cfg.scene_extent, head.init if head is not None else None)
     lifecycle_cfg = LifecycleConfig(scene_extent=cfg.scene_extent, max_gaussians=cfg.max_gaussians,
-                                    max_sh_degree=cfg.sh_degree, opacity_reset=cfg.opacity_reset)
-    schedule = LifecycleSchedule.scaled(cfg.iterations) if cfg.iterations else None
+                                    max_sh_degree=cfg.sh_degree, opacity_reset=cfg.opacity_reset,
+                                    densify=cfg.densify)
+    fixed = cfg.iterations is not None
+    schedule = LifecycleSchedule.scaled(max(1, cfg.iterations)) if cfg.iterations is not None else None
     lifecycle = GaussianLifecycle(lifecycle_cfg, schedule) if schedule else None
     state = LifecycleState.zeros(params["means"].shape[0])
     targets = [torch.from_numpy(v.rgb) for v in views]
@@ -146,7 +151,10 @@ def optimise_gaussians(
             eval_fn(params, t_train, it)
             paused += time.monotonic() - t_e
             next_eval = t_train + eval_every_s
-        p = it / cfg.iterations if cfg.iterations else t_train / max(seconds, 1e-9)
+        if fixed:
+            p = it / cfg.iterations if cfg.iterations else 1.0
+        else:
+            p = t_train / max(seconds, 1e-9)
         if p >= 1.0:
             break
         if lifecycle is None and it >= PROBE_ITERATIONS:

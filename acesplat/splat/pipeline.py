@@ -70,6 +70,7 @@ class SplatConfig:
     adapter_widths: tuple[int, int, int, int] = AdapterConfig.widths
     head: InitHeadConfig = field(default_factory=InitHeadConfig)
     opacity_reset: bool = True
+    densify: bool = True
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -173,7 +174,7 @@ def splat_scene(
     n_initial = int(params["means"].shape[0])
     remaining = max(budget - (time.monotonic() - t0), 1.0)
     ocfg = OptimizeConfig(scene_extent=extent, max_gaussians=max(cfg.max_gaussians, n_initial), sh_degree=cfg.sh_degree,
-                          iterations=cfg.iterations, opacity_reset=cfg.opacity_reset,
+                          iterations=cfg.iterations, opacity_reset=cfg.opacity_reset, densify=cfg.densify,
                           head_every=5 if cfg.joint_head else 0, seed=cfg.seed)
     opt = optimise_gaussians(params, views, ocfg, remaining, head=head if cfg.joint_head else None,
                              progress=progress, eval_fn=eval_fn, eval_every_s=eval_every_s)
@@ -223,7 +224,10 @@ def _warm_up(
     span = max(deadline - start, 1e-9)
     steps = skipped = 0
     while True:
-        p = steps / cfg.head_iterations if cfg.head_iterations is not None else (time.monotonic() - start) / span
+        if cfg.head_iterations is not None:
+            p = steps / cfg.head_iterations if cfg.head_iterations else 1.0
+        else:
+            p = (time.monotonic() - start) / span
         if p >= 1.0 or (cfg.head_iterations is None and time.monotonic() >= deadline):
             break
         for g in opt.param_groups:

@@ -32,3 +32,17 @@ def one_cycle(progress: float, lr_min: float, lr_max: float, warmup: float = WAR
 def one_cycle_factor(progress: float, warmup: float = WARMUP) -> float:
     """The same shape as a multiplier of a peak learning rate (1 at the peak, NET_LR_MIN / NET_LR_MAX at the start)."""
     return one_cycle(progress, NET_LR_MIN, NET_LR_MAX, warmup) / NET_LR_MAX
+
+
+POSITION_DECAY = 0.01
+"""3DGS decays the position learning rate exponentially to this fraction of its start."""
+
+
+def gaussian_factor(name: str, progress: float, warmup: float = WARMUP) -> float:
+    """Multiplier of a Gaussian attribute's peak learning rate: the one-cycle warm-up, then 3DGS's own
+    schedule (positions decay exponentially to POSITION_DECAY, the other attributes stay at their peak)."""
+    p = min(max(progress, 0.0), 1.0)
+    rise = one_cycle_factor(p, warmup) if p < warmup else 1.0
+    if name == "means":
+        return rise * POSITION_DECAY ** max((p - warmup) / (1.0 - warmup), 0.0)
+    return rise
