@@ -1,0 +1,19 @@
+"""Incremental 3DGS refinement on the edge, inside a per-frame latency budget (torch-free).
+
+One concept per module: ``keyframes`` (which frames), ``coverage`` (where the map falls short),
+``seeding`` (new Gaussians from SCR coordinates), ``adam`` (row-masked Adam), ``deadline`` (never
+start work that would overrun), ``guard`` (non-finite gradients, photometric rollback), ``prune``
+(transparency and the cap), ``persist`` (atomic periodic PLY), ``refiner`` (one keyframe's batch),
+``worker`` (the refinement thread), ``session`` (attached to the edge localizer), ``bundle_models``
+(what a bundle carries for refinement).
+"""
+
+from .deadline import CostEstimate, Deadline
+from .keyframes import KeyframePolicy, KeyframeSelector, keyframe_decision
+from .refiner import BatchReport, Keyframe, RefineConfig, Refiner
+from .session import RefineOptions, RefineSession, start_refinement
+
+__all__ = [
+    "BatchReport", "CostEstimate", "Deadline", "Keyframe", "KeyframePolicy", "KeyframeSelector", "RefineConfig",
+    "RefineOptions", "RefineSession", "Refiner", "keyframe_decision", "start_refinement",
+]

@@ -1,0 +1,220 @@
+"""Refinement attached to the edge localizer: frames in, keyframes to the worker, numbers out.
+
+The localizer's code is not modified: ``RefineSession`` wraps the instance's ``localize`` (preempt the
+worker, so a batch stops as soon as the next frame's localization begins; after the pose, hand the
+frame over) and taps its SCR session for the scene coordinates. Every command that localizes
+(localize, replay, profile) thus refines without changes to its loop. A confident frame goes to the
+worker with the frame's deadline: its capture start plus the budget.
+
+With ``pace`` (file sources) the loop then waits until the worker is idle or the deadline has
+passed, as a camera delivering one frame per budget would: refinement gets what localization left
+of the budget, and never overlaps the next frame's localization. Live sources do not wait; the
+preemption keeps the overlap to at most one step.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import cv2
+import numpy as np
+
+from acesplat.core.camera import Intrinsics
+from acesplat.core.gaussians import Gaussians
+from acesplat.core.metrics import timing_stats
+from acesplat.core.pose import TrackingState
+
+from ..frame_prep import crop_to_aspect
+from .deadline import Clock
+from .guard import psnr, view_mse
+from .keyframes import KeyframePolicy, KeyframeSelector
+from .persist import SAVE_EVERY_S, SplatSaver
+from .refiner import Keyframe, RefineConfig, Refiner
+from .seeding import cell_trust
+from .worker import Candidate, RefineWorker
+
+MAX_SIDE = 160
+"""Refinement renders at this longer side (the budget affords a few steps there on 2 cores)."""
+
+
+@dataclass
+class RefineOptions:
+    budget_ms: float = 100.0
+    max_side: int = MAX_SIDE
+    save_path: Path | None = None
+    save_every_s: float = SAVE_EVERY_S
+    pace: bool = True
+    evaluate: bool = False
+    """Keep each frame with a ground-truth pose to report PSNR before/after (replay)."""
+    config: RefineConfig = field(default_factory=RefineConfig)
+    policy: KeyframePolicy = field(default_factory=KeyframePolicy)
+
+    def __post_init__(self) -> None:
+        if not self.budget_ms > 0:
+            raise ValueError(f"budget must be positive, got {self.budget_ms} ms")
+        if self.max_side < 8:
+            raise ValueError(f"refinement size must be at least 8 px, got {self.max_side}")
+
+
+def refine_intrinsics(k_input: Intrinsics, max_side: int) -> Intrinsics:
+    s = min(1.0, max_side / max(k_input.width, k_input.height))
+    return k_input.resized(max(1, int(round(k_input.width * s))), max(1, int(round(k_input.height * s))))
+
+
+def colour_at(image: np.ndarray, intr: Intrinsics, dist: np.ndarray | None, k_input: Intrinsics, k_out: Intrinsics) -> np.ndarray:
+    """The captured image brought to ``k_out`` the way frame preparation brings it to the network input
+    (undistort, centre crop to the input's aspect, resize), as float32 RGB in [0, 1]."""
+    rgb = image if image.ndim == 3 else np.repeat(image[..., None], 3, axis=2)
+    if dist is not None and np.any(np.asarray(dist) != 0):
+        rgb = cv2.undistort(rgb, intr.K, np.asarray(dist, np.float64))
+    rgb, _ = crop_to_aspect(rgb, intr, k_input.width / k_input.height)
+    if rgb.shape[:2] != (k_out.height, k_out.width):
+        shrink = k_out.height < rgb.shape[0]
+        rgb = cv2.resize(rgb, (k_out.width, k_out.height), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+    return rgb.astype(np.float32) / 255.0
+
+
+class _SessionTap:
+    def __init__(self, inner: Any, session: "RefineSession") -> None:
+        self._inner = inner
+        self._session = session
+
+    def run(self, gray: np.ndarray) -> np.ndarray:
+        coords = self._inner.run(gray)
+        self._session._last_coords = coords
+        return coords
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._inner, name)
+
+
+class RefineSession:
+    """Refinement beside an :class:`edge.runtime.EdgeLocalizer` (``attach`` installs the taps)."""
+
+    def __init__(self, localizer: Any, gaussians: Gaussians, opts: RefineOptions, seeder: Callable | None = None,
+                 clock: Clock = time.perf_counter) -> None:
+        self.opts = opts
+        self.clock = clock
+        self.initial = gaussians.astype(np.float32)
+        self.refiner = Refiner(self.initial.copy(), opts.config, seeder=seeder, clock=clock)
+        self.saver = SplatSaver(opts.save_path, opts.save_every_s) if opts.save_path else None
+        self.worker = RefineWorker(self.refiner, KeyframeSelector(opts.policy), self.saver, clock)
+        self.frames = 0
+        self.wait_ms: list[float] = []
+        self.counts_over_time: list[tuple[int, int]] = [(0, len(self.initial))]
+        self._eval: list[tuple[np.ndarray, Intrinsics, np.ndarray]] = []
+        self._last_coords: np.ndarray | None = None
+        self._closed = False
+        self.summary: dict | None = None
+        localizer.session = _SessionTap(localizer.session, self)
+        inner = localizer.localize
+
+        def localize(frame, *args, **kwargs):
+            self.worker.preempt()
+            self._last_coords = None
+            out = inner(frame, *args, **kwargs)
+            if not self._closed:
+                self.on_outcome(frame, out)
+            return out
+
+        localizer.localize = localize
+
+    def on_outcome(self, frame: Any, out: Any) -> None:
+        """Offer a localized frame to the worker; with pacing, wait for the worker or the frame's deadline."""
+        self.frames += 1
+        coords = self._last_coords
+        image, intr, dist, k_input = frame.image, frame.intrinsics, frame.distortion, out.intrinsics
+        if k_input is None:
+            return
+        k_ref = refine_intrinsics(k_input, self.opts.max_side)
+        if self.opts.evaluate and out.gt_pose is not None:
+            self._eval.append((np.asarray(out.gt_pose, np.float64), k_ref, colour_at(image, intr, dist, k_input, k_ref)))
+        total_ms = float(out.times_ms.get("total", 0.0))
+        deadline_at = self.clock() - total_ms / 1000.0 + self.opts.budget_ms / 1000.0
+        rec = out.record
+        tracking = rec.state == TrackingState.TRACKING
+        if tracking and rec.inliers >= self.opts.policy.min_inliers and coords is not None:
+            pose = np.array(rec.T_c2w, np.float64)
+            name = out.name or str(rec.frame_id)
+
+            def make_keyframe() -> Keyframe:
+                return Keyframe(pose, colour_at(image, intr, dist, k_input, k_ref), k_ref, coords, k_input, name)
+
+            def cell_depth() -> tuple[np.ndarray, Intrinsics]:
+                return cell_trust(coords, pose, k_input)[0], k_input
+
+            self.worker.submit(Candidate(pose, rec.inliers, tracking, deadline_at, make_keyframe, cell_depth, name))
+        if self.opts.pace:
+            t0 = self.clock()
+            self.worker.wait_idle(max(0.0, deadline_at - self.clock()))
+            self.wait_ms.append(1000.0 * (self.clock() - t0))
+        self.counts_over_time.append((self.frames, len(self.refiner.map)))
+
+    def close(self) -> dict:
+        """Stop the worker (saving the map if asked) and return the ``refine`` report."""
+        if self._closed:
+            return self.summary or {}
+        self._closed = True
+        self.worker.close()
+        ws = self.worker.stats
+        reps = ws.reports
+        steps_ms = [ms for r in reps for ms in r.step_ms]
+        t = self.refiner.totals
+        s: dict = {
+            "budget_ms": self.opts.budget_ms,
+            "refine_size": None,
+            "frames": self.frames,
+            "candidates": ws.candidates,
+            "dropped": self.worker.dropped,
+            "late": ws.late,
+            "keyframes": t["keyframes"],
+            "keyframes_committed": t["committed"],
+            "keyframes_rolled_back": t["rolled_back"],
+            "keyframes_no_time": t["no_time"],
+            "selection": dict(self.worker.selector.counts),
+            "gaussians_initial": len(self.initial),
+            "gaussians_added": t["gaussians_added"],
+            "gaussians_pruned": t["pruned"],
+            "gaussians_capped": t["capped"],
+            "gaussians_final": len(self.refiner.map),
+            "gaussian_cap": self.opts.config.cap,
+            "steps": t["steps"],
+            "nonfinite_skipped": t["nonfinite_skipped"],
+            "steps_stopped_by_deadline": int(sum(r.stopped_by_deadline for r in reps)),
+            "timing_ms": {
+                "frame": timing_stats(ws.busy_ms),
+                "batch": timing_stats([r.ms.get("total", 0.0) for r in reps]),
+                "step": timing_stats(steps_ms),
+                "render": timing_stats([r.ms["render"] for r in reps if "render" in r.ms]),
+                "guard": timing_stats([r.ms["guard"] for r in reps if "guard" in r.ms]),
+                "wait": timing_stats(self.wait_ms),
+            },
+            "gaussians_over_time": [list(p) for p in self.counts_over_time],
+            "errors": ws.errors[:20],
+        }
+        if self.saver is not None:
+            s["save"] = self.saver.as_dict()
+        if self._eval:
+            bg = np.asarray(self.opts.config.background, np.float64)
+            before = [psnr(view_mse(self.initial, p, k, rgb, bg)) for p, k, rgb in self._eval]
+            after = [psnr(view_mse(self.refiner.map, p, k, rgb, bg)) for p, k, rgb in self._eval]
+            s["psnr_before"] = float(np.mean(before))
+            s["psnr_after"] = float(np.mean(after))
+            s["psnr_views"] = len(self._eval)
+            s["refine_size"] = [self._eval[0][1].height, self._eval[0][1].width]
+        self.summary = s
+        return s
+
+
+def start_refinement(localizer: Any, bundle: Any, opts: RefineOptions, warn: Callable[[str], None]) -> RefineSession | None:
+    """A session on the bundle's Gaussians, or None (after one line through ``warn``) when the bundle has none."""
+    from .bundle_models import bundle_gaussians, no_models_message
+
+    g = bundle_gaussians(bundle)
+    if g is None:
+        warn(no_models_message(bundle))
+        return None
+    return RefineSession(localizer, g, opts)

@@ -1,0 +1,154 @@
+"""Refinement on its own thread, so localization never waits for it.
+
+The localization loop hands every confidently localized frame to the worker (``submit``) with the
+frame's deadline (when its budget ends) and goes on. The worker keeps only the newest frame (latest
+wins; replaced frames are counted as dropped), decides whether it is a keyframe, and refines until
+the deadline. ``preempt`` pulls the running deadline to now, so a batch stops at its next step when
+the next frame's localization begins.
+
+The rasterizer's kernels are compiled with ``nogil=True`` (projection, compositing and their
+backward), so they run beside onnxruntime and OpenCV (which release the GIL too). The tile binning
+kernel and the numpy/Python glue between kernels hold the GIL; bench/bench_refine.py measures what
+that costs localization.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from .coverage import projected_coverage
+from .deadline import Clock, Deadline
+from .keyframes import KeyframeSelector
+from .persist import SplatSaver
+from .refiner import BatchReport, Keyframe, Refiner
+
+
+@dataclass
+class Candidate:
+    """A localized frame offered for refinement; ``make_keyframe`` turns it into a Keyframe on the worker thread
+    (image resizing and the like stay off the localization path)."""
+
+    pose: np.ndarray
+    inliers: int
+    tracking: bool
+    deadline_at: float
+    make_keyframe: Callable[[], Keyframe]
+    cell_depth: Callable[[], tuple[np.ndarray, Any]] | None = None
+    """Optional: SCR cell depths (h, w) and the input intrinsics, for the coverage test of keyframe selection."""
+    name: str = ""
+
+
+@dataclass
+class WorkerStats:
+    candidates: int = 0
+    late: int = 0
+    """Candidates whose deadline had passed when the worker took them."""
+    reports: list[BatchReport] = field(default_factory=list)
+    busy_ms: list[float] = field(default_factory=list)
+    """Wall time the worker spent on each candidate it took (selection + batch)."""
+    errors: list[str] = field(default_factory=list)
+
+
+class RefineWorker:
+    def __init__(self, refiner: Refiner, selector: KeyframeSelector, saver: SplatSaver | None = None,
+                 clock: Clock = time.perf_counter, keep_reports: int = 10_000) -> None:
+        self.refiner = refiner
+        self.selector = selector
+        self.saver = saver
+        self.clock = clock
+        self.keep_reports = keep_reports
+        self.stats = WorkerStats()
+        self.dropped = 0
+        """Candidates replaced by a newer one before the worker took them."""
+        self._cond = threading.Condition()
+        self._item: Candidate | None = None
+        self._busy = False
+        self._stop = False
+        self._deadline: Deadline | None = None
+        self._thread = threading.Thread(target=self._run, name="refine", daemon=True)
+        self._thread.start()
+
+    # -- called from the localization thread ---------------------------------------------------
+    def submit(self, c: Candidate) -> None:
+        with self._cond:
+            self.stats.candidates += 1
+            if self._item is not None:
+                self.dropped += 1
+            self._item = c
+            self._cond.notify_all()
+
+    def preempt(self) -> None:
+        """Stop the running batch at its next step boundary (the next frame is being localized)."""
+        with self._cond:
+            if self._deadline is not None:
+                self._deadline.preempt()
+
+    def wait_idle(self, timeout: float | None = None) -> bool:
+        """Wait until the worker has nothing queued or running (paced replays use it)."""
+        with self._cond:
+            return self._cond.wait_for(lambda: self._item is None and not self._busy, timeout)
+
+    def close(self, timeout: float = 30.0) -> None:
+        """Finish the running batch, stop the thread, and save the map a last time (if saving)."""
+        with self._cond:
+            self._stop = True
+            if self._deadline is not None:
+                self._deadline.preempt()
+            self._cond.notify_all()
+        self._thread.join(timeout)
+        if self.saver is not None and self.saver.dirty:
+            self.saver.save(self.refiner.map)
+
+    # -- the worker thread -----------------------------------------------------------------------
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while self._item is None and not self._stop:
+                    self._cond.wait(0.1)
+                if self._stop:
+                    self._item = None
+                    self._cond.notify_all()
+                    return
+                c, self._item, self._busy = self._item, None, True
+            t0 = self.clock()
+            try:
+                self._handle(c)
+            except Exception as e:  # a refinement bug must never take localization down with it
+                self.stats.errors.append(f"{c.name}: {type(e).__name__}: {e}")
+            self.stats.busy_ms.append(1000.0 * (self.clock() - t0))
+            with self._cond:
+                self._busy = False
+                self._cond.notify_all()
+
+    def _handle(self, c: Candidate) -> None:
+        deadline = Deadline(c.deadline_at, self.clock)
+        if deadline.expired():
+            self.stats.late += 1
+            return
+        coverage = None
+        if c.cell_depth is not None and self.selector.last_pose is not None and len(self.refiner.map):
+            depth, k_input = c.cell_depth()
+            coverage = projected_coverage(self.refiner.map.means, c.pose, k_input, depth)
+        if not self.selector.consider(c.pose, c.inliers, c.tracking, coverage):
+            return
+        with self._cond:
+            self._deadline = deadline
+            if self._stop:
+                deadline.preempt()
+        try:
+            rep = self.refiner.refine(c.make_keyframe(), deadline)
+        finally:
+            with self._cond:
+                self._deadline = None
+        if len(self.stats.reports) < self.keep_reports:
+            self.stats.reports.append(rep)
+        if rep.committed:
+            self.selector.accept(c.pose)
+            if self.saver is not None:
+                self.saver.mark_dirty()
+                self.saver.maybe_save(self.refiner.map)
