@@ -154,6 +154,7 @@ def pretrain_command(
     size: str = typer.Option("240x320", help="Rendered frame size HxW."),
     seed: int = typer.Option(0),
     threads: int = typer.Option(0, help="CPU threads (0 = all cores); 1 is faster when other jobs share the cores."),
+    install: bool = typer.Option(False, help="Install the resulting encoder as the shipped default (with provenance)."),
 ) -> None:
     """Pretrain the project's own encoder on procedural scenes (resumable)."""
     import torch
@@ -166,3 +167,10 @@ def pretrain_command(
     with PhaseProgress("pretrain ") as bar:
         summary = pretrain(out, cfg, minutes, bar)
     console.print(summary)
+    if install:
+        import sys
+
+        from .pretrain import install_default
+
+        path = install_default(out, "acesplat " + " ".join(sys.argv[1:]))
+        console.print(f"installed {path} (provenance in {path.with_suffix('.json')})")

@@ -177,7 +177,7 @@ def fill_buffer(
         total += take.size
         if progress:
             progress("buffer", total / cfg.buffer_size, {"features": total})
-        if time.monotonic() > deadline and len(w2cs) >= len(images):
+        if time.monotonic() > deadline:
             break
     return {
         "feats": torch.cat(feats),

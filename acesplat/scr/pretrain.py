@@ -263,6 +263,37 @@ def pretrain(
     return summary
 
 
+def install_default(out_dir: str | Path, command: str) -> Path:
+    """Copy a pretraining run's encoder into the package as the shipped default, with its provenance beside it."""
+    import platform
+
+    from .encoders import DEFAULT_ENCODER, file_sha256
+
+    out = Path(out_dir)
+    summary = json.loads((out / "pretrain_summary.json").read_text())
+    sd = torch.load(out / "encoder.pt", map_location="cpu", weights_only=True)
+    DEFAULT_ENCODER.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(DEFAULT_ENCODER) as tmp:
+        torch.save(sd, tmp)
+    provenance = {
+        "command": command,
+        "objective": "dense InfoNCE over exact correspondences of nearby views (acesplat/scr/pretrain.py)",
+        "data": f"{summary['config']['scenes']} procedural rooms from acesplat.synth.random_scene_frames, "
+                f"{summary['config']['frames_per_scene']} frames each at {summary['config']['image_hw']}",
+        "seed": summary["config"]["seed"],
+        "steps": summary["step"],
+        "steps_planned": summary["steps"],
+        "train_seconds": summary["train_seconds"],
+        "last": summary["last"],
+        "config": summary["config"],
+        "machine": f"{platform.processor() or platform.machine()}, torch {torch.__version__}",
+        "sha256": file_sha256(DEFAULT_ENCODER),
+        "bytes": DEFAULT_ENCODER.stat().st_size,
+    }
+    write_json(DEFAULT_ENCODER.with_suffix(".json"), provenance)
+    return DEFAULT_ENCODER
+
+
 def _cfg_dict(cfg: PretrainConfig) -> dict:
     d = asdict(cfg)
     d["encoder"] = cfg.encoder.as_dict()
