@@ -1,0 +1,244 @@
+"""The paper's claim, measured: the same Stage 2 budget from three starts, PSNR against wall-clock time.
+
+Starts: SCR initialisation (ours: the map's scene coordinates through the adapter and init head),
+sparse SIFT points triangulated with the known poses (the conventional SfM-style start), and 3DGS's
+random initialisation. Every start gets the same wall-clock budget, and its own preparation (SCR
+inference and head warm-up, SIFT matching and triangulation) is charged to it. After the start the
+optimisation is the same code (acesplat.splat.optimize) with the same lifecycle.
+
+Scenes: the built-in synthetic room (synthesized into --out if absent) and ../shared/data/herzjesu25
+(read in place). Maps come from --builtin-map / --herzjesu-map, or are made here with Stage 1
+(--map-minutes, with the shipped encoder or --encoder); a map made here is reused on the next run.
+
+Quality is sampled every --eval-every seconds of training time on a few training and test views
+(the evaluation time is not charged to the budget); at the end every training and test view is
+scored. Output: a table, <out>/bench_splat_init.json and <out>/bench_splat_init.png.
+
+    python bench/bench_splat_init.py --minutes 10 --out runs/bench_splat
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from acesplat.core.atomic import atomic_path, write_json
+from acesplat.core.machine import machine_line
+from acesplat.core.scene import read_split
+from acesplat.splat.evaluate import evaluate_views
+from acesplat.splat.optimize import OptimizeConfig, optimise_gaussians
+from acesplat.splat.params import gaussians_from_params, params_from_gaussians
+from acesplat.splat.pipeline import MAX_GAUSSIANS, MAX_INITIAL_GAUSSIANS, SplatConfig, scene_extent, spread, splat_scene
+from acesplat.splat.point_init import gaussians_from_points, random_points, triangulated_points
+from acesplat.splat.views import load_views
+
+REPO = Path(__file__).resolve().parents[1]
+HERZJESU = REPO.parent / "shared" / "data" / "herzjesu25"
+METHODS = ("scr", "sift", "random")
+RANDOM_HALF_SIDE = 3.0
+"""Random start: a cube of this many scene extents around the cameras (3DGS's random start is a fixed cube)."""
+
+
+def uptime() -> str:
+    try:
+        return subprocess.run(["uptime"], capture_output=True, text=True, check=False).stdout.strip()
+    except OSError:
+        return "load average %.2f %.2f %.2f" % os.getloadavg()
+
+
+def get_map(name: str, scene: Path, given: str | None, out: Path, minutes: float, encoder: str | None) -> Path:
+    if given:
+        return Path(given)
+    path = out / name / "map.pt"
+    if path.is_file():
+        return path
+    from acesplat.scr.encoders import load_encoder
+    from acesplat.scr.mapfile import SceneMap, save_map
+    from acesplat.scr.mapping import IMAGE_SHORT_SIDE, MappingConfig, map_scene
+
+    train = read_split(scene, "train")
+    enc, ident = load_encoder(encoder)
+    k = train.frames[0].intrinsics
+    side = min(IMAGE_SHORT_SIDE, k.width, k.height)
+    t0 = time.monotonic()
+    res = map_scene(train, enc, MappingConfig(minutes=minutes, short_side=side))
+    save_map(path, SceneMap(res.head, ident, res.mean, side, {"scene": str(scene), "seconds": res.seconds}))
+    print(f"  mapped {name} in {time.monotonic() - t0:.0f} s -> {path}")
+    return path
+
+
+class Curve:
+    """eval_fn for optimise_gaussians: PSNR on a few views against the start's own clock (evaluations excluded)."""
+
+    def __init__(self, start: float, train_views, test_views) -> None:
+        self.start = start
+        self.paused = 0.0
+        self.train_views = train_views
+        self.test_views = test_views
+        self.points: list[dict] = []
+
+    def clock(self) -> float:
+        return time.monotonic() - self.start - self.paused
+
+    def __call__(self, params, _train_seconds: float, iteration: int) -> None:
+        t = self.clock()
+        t_e = time.monotonic()
+        g = gaussians_from_params(params)
+        tr = evaluate_views(g, self.train_views)
+        te = evaluate_views(g, self.test_views) if self.test_views else {"psnr": None}
+        self.points.append({"seconds": round(t, 2), "iteration": iteration, "train_psnr": tr["psnr"],
+                            "test_psnr": te["psnr"], "gaussians": len(g)})
+        self.paused += time.monotonic() - t_e
+
+
+def run_method(method: str, scene: Path, map_path: Path, args, eval_train, eval_test, log) -> dict:
+    frames = read_split(scene, "train").frames
+    budget = args.minutes * 60.0
+    start = time.monotonic()
+    curve = Curve(start, eval_train, eval_test)
+    from acesplat.scr.mapfile import encoder_for_map, load_map
+
+    m = load_map(map_path)
+    info: dict = {}
+    if method == "scr":
+        net = m.network(encoder_for_map(m, map_path, args.encoder))
+        res = splat_scene(frames, net, m.short_side, SplatConfig(minutes=args.minutes, seed=args.seed), source=map_path,
+                          eval_fn=curve, eval_every_s=args.eval_every)
+        params, views, opt = res.params, res.train_views, res.optimize
+        info = {k: res.stats[k] for k in ("gaussians_initial", "stride", "valid_cell_fraction", "prepare_seconds",
+                                          "head_warmup_seconds")}
+    else:
+        views = load_views(frames, m.short_side)
+        poses = np.stack([v.pose for v in views])
+        extent = scene_extent(poses, fallback=1.0)
+        rng = np.random.default_rng(args.seed)
+        if method == "sift":
+            pts, cols = triangulated_points([v.gray for v in views], [v.rgb for v in views],
+                                            [v.intrinsics for v in views], list(poses))
+            if len(pts) < 2:
+                raise SystemExit(f"{scene}: SIFT triangulation found {len(pts)} points")
+        else:
+            pts, cols = random_points(MAX_INITIAL_GAUSSIANS, poses[:, :3, 3], RANDOM_HALF_SIDE * extent, rng)
+        g0 = gaussians_from_points(pts, cols)
+        params = params_from_gaussians(g0)
+        info = {"gaussians_initial": len(g0), "prepare_seconds": curve.clock()}
+        remaining = max(budget - curve.clock(), 1.0)
+        cfg = OptimizeConfig(scene_extent=extent, max_gaussians=MAX_GAUSSIANS, seed=args.seed)
+        opt = optimise_gaussians(params, views, cfg, remaining, eval_fn=curve, eval_every_s=args.eval_every)
+    seconds = curve.clock()
+    curve(params, opt.seconds, opt.iterations)  # the final point of the curve
+    g = gaussians_from_params(params)
+    final_train = views if args.final_train_views <= 0 else [views[i] for i in spread(len(views), args.final_train_views)]
+    tr = evaluate_views(g, final_train)
+    test_views = load_views(read_split(scene, "test").frames, m.short_side)
+    te = evaluate_views(g, test_views)
+    out = {"method": method, "seconds": seconds, "iterations": opt.iterations, "skipped_steps": opt.skipped_steps,
+           "gaussians_final": len(g), "train_psnr": tr["psnr"], "train_ssim": tr["ssim"], "train_views": tr["frames"],
+           "test_psnr": te["psnr"], "test_ssim": te["ssim"], "test_views": te["frames"], "lifecycle": opt.events,
+           "curve": curve.points, **info}
+    log(f"  {method:6s} {out['train_psnr']:6.2f} / {out['test_psnr']:6.2f} dB  SSIM {out['train_ssim']:.3f} / "
+        f"{out['test_ssim']:.3f}  {out['gaussians_initial']:>7d} -> {len(g):>7d} Gaussians  {opt.iterations} it  "
+        f"{seconds:.0f} s")
+    return out
+
+
+def plot(results: dict, path: Path, minutes: float) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = list(results)
+    fig, axes = plt.subplots(1, len(scenes), figsize=(6 * len(scenes), 4.5), squeeze=False)
+    colours = {"scr": "tab:red", "sift": "tab:blue", "random": "tab:gray"}
+    for ax, name in zip(axes[0], scenes):
+        for r in results[name]:
+            pts = r["curve"]
+            t = [p["seconds"] / 60 for p in pts]
+            ax.plot(t, [p["train_psnr"] for p in pts], "-", color=colours[r["method"]], label=f"{r['method']} train")
+            if pts and pts[0]["test_psnr"] is not None:
+                ax.plot(t, [p["test_psnr"] for p in pts], "--", color=colours[r["method"]], label=f"{r['method']} test")
+        ax.set_xlim(0, minutes)
+        ax.set_xlabel("wall-clock minutes (Stage 2, this start's preparation included)")
+        ax.set_ylabel("PSNR (dB)")
+        ax.set_title(name)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--minutes", type=float, default=10.0, help="Stage 2 budget per start")
+    ap.add_argument("--out", type=Path, default=REPO / "runs" / "bench_splat")
+    ap.add_argument("--scenes", default="builtin,herzjesu")
+    ap.add_argument("--methods", default=",".join(METHODS))
+    ap.add_argument("--builtin-map")
+    ap.add_argument("--herzjesu-map")
+    ap.add_argument("--map", help="map of a scene given by path in --scenes")
+    ap.add_argument("--herzjesu", type=Path, default=HERZJESU)
+    ap.add_argument("--encoder", help="encoder weights for maps made here / not where a map says")
+    ap.add_argument("--map-minutes", type=float, default=4.0)
+    ap.add_argument("--eval-every", type=float, default=30.0, help="seconds of training between curve points")
+    ap.add_argument("--eval-views", type=int, default=6, help="train and test views per curve point")
+    ap.add_argument("--final-train-views", type=int, default=0, help="0: score every training view at the end")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    args.out.mkdir(parents=True, exist_ok=True)
+    lines: list[str] = []
+
+    def log(s: str) -> None:
+        print(s, flush=True)
+        lines.append(s)
+
+    log(f"machine: {machine_line()}")
+    log(f"uptime at start: {uptime()}")
+    log(f"budget {args.minutes:g} min per start; torch threads {args.threads}")
+    results: dict = {}
+    for name in args.scenes.split(","):
+        if name == "builtin":
+            scene = args.out / "builtin"
+            if not (scene / "train").is_dir():
+                from acesplat.synth import synthesize
+
+                synthesize(scene, seed=0, overwrite=True)
+        elif name == "herzjesu":
+            scene = args.herzjesu
+        else:
+            scene = Path(name)
+        given = {"builtin": args.builtin_map, "herzjesu": args.herzjesu_map}.get(name, args.map)
+        map_path = get_map(Path(name).name, scene, given, args.out, args.map_minutes, args.encoder)
+        from acesplat.scr.mapfile import load_map
+
+        side = load_map(map_path).short_side
+        tr_frames = read_split(scene, "train").frames
+        te_frames = read_split(scene, "test").frames
+        eval_train = load_views([tr_frames[i] for i in spread(len(tr_frames), args.eval_views)], side)
+        eval_test = load_views([te_frames[i] for i in spread(len(te_frames), args.eval_views)], side)
+        log(f"{name}: {scene} ({len(tr_frames)} train / {len(te_frames)} test, short side {side}), map {map_path}")
+        log("  start  train / test PSNR     SSIM train / test   Gaussians start -> end   iterations   seconds")
+        results[name] = []
+        for method in args.methods.split(","):
+            results[name].append(run_method(method, scene, map_path, args, eval_train, eval_test, log))
+            write_json(args.out / "bench_splat_init.json", {"machine": machine_line(), "args": {k: str(v) for k, v in vars(args).items()},
+                                                            "results": results, "log": lines})
+    log(f"uptime at end: {uptime()}")
+    plot(results, args.out / "bench_splat_init.png", args.minutes)
+    write_json(args.out / "bench_splat_init.json", {"machine": machine_line(), "args": {k: str(v) for k, v in vars(args).items()},
+                                                    "results": results, "log": lines})
+    print(f"-> {args.out / 'bench_splat_init.json'}, {args.out / 'bench_splat_init.png'}")
+
+
+if __name__ == "__main__":
+    main()
