@@ -52,8 +52,12 @@ def quantize_int8(
     out_path: str | Path,
     calibration: list[np.ndarray],
     method: CalibrationMethod = CalibrationMethod.MinMax,
+    float_tail: bool = True,
 ) -> Path:
-    """Quantize the FP32 model at ``fp32_path`` using ``calibration`` grayscale images (H, W) uint8."""
+    """Quantize the FP32 model at ``fp32_path`` using ``calibration`` grayscale images (H, W) uint8.
+
+    ``float_tail=False`` quantizes the last convolution too (measured against in bench/bench_export.py).
+    """
     if not calibration:
         raise ValueError("INT8 calibration needs at least one image")
     out_path = Path(out_path)
@@ -61,13 +65,14 @@ def quantize_int8(
         pre = Path(td) / "pre.onnx"
         quant_pre_process(str(fp32_path), str(pre), skip_symbolic_shape=True)
         model = onnx.load(str(pre))
-        nodes = conv_nodes_to_quantize(model)
+        nodes = conv_nodes_to_quantize(model) if float_tail else [n.name for n in model.graph.node if n.op_type == "Conv"]
         with atomic_path(out_path) as tmp:
             quantize_static(
                 str(pre), str(tmp), _Images(calibration),
                 quant_format=QuantFormat.QDQ, per_channel=True,
                 activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
-                op_types_to_quantize=["Conv", "Relu", "Add"], nodes_to_quantize=_with_followers(model, nodes),
+                op_types_to_quantize=["Conv", "Relu", "Add"],
+                nodes_to_quantize=_with_followers(model, nodes) if float_tail else None,
                 calibrate_method=method,
                 extra_options={"ActivationSymmetric": False, "WeightSymmetric": True},
             )
