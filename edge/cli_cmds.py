@@ -51,6 +51,19 @@ def _pnp(method: Optional[str], min_inliers: Optional[int]) -> PnPSettings:
     return s
 
 
+def _refine_session(enabled: bool, loc: EdgeLocalizer, b: Bundle, budget_ms: float, save_splat: Optional[Path],
+                    pace: bool, evaluate: bool = False):
+    """Refinement beside localization (edge/refine), or None when off or the bundle has no Gaussians."""
+    if not enabled:
+        return None
+    from .refine.session import RefineOptions, start_refinement
+
+    if budget_ms <= 0:
+        raise InputError(None, f"--budget-ms must be positive, got {budget_ms}")
+    opts = RefineOptions(budget_ms=budget_ms, save_path=save_splat, pace=pace, evaluate=evaluate)
+    return start_refinement(loc, b, opts, lambda msg: console.print(f"[yellow]{msg}[/yellow]"))
+
+
 def stage_table(title: str, stages_by_run: dict[str, dict], fps: dict[str, float]) -> Table:
     t = Table(title=title)
     t.add_column("stage (ms)")
@@ -96,6 +109,9 @@ def localize_command(
     protocol: str = typer.Option("frame", help="frame (acesplat protocol v1) or mavlink."),
     rate: Optional[float] = typer.Option(None, help="Cap on poses per second sent over --serial."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the run summary here."),
+    refine: bool = typer.Option(False, "--refine", help="Refine the bundle's Gaussians from keyframes on a second thread."),
+    budget_ms: float = typer.Option(100.0, "--budget-ms", help="Per-frame time of localization + refinement."),
+    save_splat: Optional[Path] = typer.Option(None, "--save-splat", help="With --refine: write the refined Gaussians here (PLY)."),
 ) -> None:
     """Localize frames from a live or recorded source; Ctrl-C ends with a summary."""
     precision = "int8" if int8 else "fp32"
@@ -103,6 +119,7 @@ def localize_command(
     calib = read_calibration_file(intrinsics) if intrinsics else None
     loc = EdgeLocalizer(b, precision, threads, _pnp(pnp, min_inliers))
     src = open_source(source, SourceOptions(calibration=calib, input_size=b.input_size, realtime=realtime))
+    refiner = _refine_session(refine, loc, b, budget_ms, save_splat, pace=not src.live)
     sink = None
     if serial is not None:
         from firmware_bridge.sink import open_sink
@@ -151,7 +168,11 @@ def localize_command(
         if sink is not None:
             sink.close()
             bridge_stats = sink.stats().as_dict()
+        refine_stats = refiner.close() if refiner is not None else None
     summary = {"bundle": str(b.root), "source": src.description, "precision": precision, **stats.as_dict()}
+    if refine_stats is not None:
+        summary["refine"] = refine_stats
+        console.print(refine_line(refine_stats))
     if bridge_stats is not None:
         summary["bridge"] = bridge_stats
     ended = "interrupted" if stats.interrupted else "done"
@@ -161,6 +182,16 @@ def localize_command(
         f"{stats.disconnects} disconnects ({stats.gap_s:.1f} s without frames)"
     )
     report_json(json_out, summary)
+
+
+def refine_line(r: dict) -> str:
+    """One summary line of a refinement run (edge/refine/session.py's report)."""
+    t = r["timing_ms"]
+    psnr = f"PSNR {r['psnr_before']:.2f} -> {r['psnr_after']:.2f} dB over {r['psnr_views']} views; " if "psnr_before" in r else ""
+    return (f"refine: {psnr}{r['keyframes']} keyframes ({r['keyframes_committed']} committed, {r['keyframes_rolled_back']} "
+            f"rolled back), {r['steps']} steps (p50 {t['step']['p50']:.1f} ms), {r['gaussians_initial']} -> "
+            f"{r['gaussians_final']} Gaussians (+{r['gaussians_added']}), {r['dropped']} dropped; refine ms per frame "
+            f"p50 {t['frame']['p50']:.1f} p95 {t['frame']['p95']:.1f}")
 
 
 def _bridge_step(sink, out: FrameOutcome, paused: threading.Event) -> None:
@@ -190,6 +221,9 @@ def replay_command(
     threads: Optional[int] = typer.Option(None, help="onnxruntime intra-op threads (default: all cores)."),
     pnp: Optional[str] = typer.Option(None, help="PnP method (default: the measured choice)."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the numbers here."),
+    refine: bool = typer.Option(False, "--refine", help="Refine the bundle's Gaussians from keyframes; report PSNR before/after."),
+    budget_ms: float = typer.Option(100.0, "--budget-ms", help="Per-frame time of localization + refinement."),
+    save_splat: Optional[Path] = typer.Option(None, "--save-splat", help="With --refine: write the refined Gaussians here (PLY)."),
 ) -> None:
     """Replay a posed split: `acesplat eval`'s accuracy plus per-stage timing statistics."""
     from .replay import replay_split
@@ -197,8 +231,16 @@ def replay_command(
     precision = "int8" if int8 else "fp32"
     b = open_bundle(bundle, [precision])
     loc = EdgeLocalizer(b, precision, threads, _pnp(pnp, None))
+    refiner = _refine_session(refine, loc, b, budget_ms, save_splat, pace=True, evaluate=True)
     with PhaseProgress("replay ") as bar:
-        s = replay_split(loc, scene, split, lambda i, n: bar("localize", i / n, {"frame": i}))
+        try:
+            s = replay_split(loc, scene, split, lambda i, n: bar("localize", i / n, {"frame": i}))
+        finally:
+            if refiner is not None:
+                refiner.close()
+    if refiner is not None:
+        s["refine"] = refiner.summary
+        s["timing_ms"]["refine"] = refiner.summary["timing_ms"]["frame"]
     t = Table(title=f"{Path(scene).name} / {split} ({precision}, {b.input_size[0]}x{b.input_size[1]})")
     keys = ("frames", "localized", "median_translation_m", "median_rotation_deg", "recall_5cm_5deg",
             "recall_10cm_5deg", "recall_25cm_2deg", "mean_ms")
@@ -210,6 +252,8 @@ def replay_command(
                                 {precision: 1000.0 / s["timing_ms"]["total"]["mean"] if s["frames"] else 0.0}))
     if s.get("skipped"):
         console.print(f"[yellow]{s['skipped']} unreadable frames skipped[/yellow]: {', '.join(s['skipped_frames'])}")
+    if "refine" in s:
+        console.print(refine_line(s["refine"]))
     report_json(json_out, s)
 
 
@@ -252,7 +296,9 @@ def profile_command(
         stages, fps = {precisions[0]: res["stages"]}, {precisions[0]: res["fps"]}
     else:
         stages, fps = res["stages"], res["fps"]
-    Console().print(stage_table(f"{source}: {res['frames']} frames after {res['warmup_frames']} warm-up", stages, fps))
+    for p in stages:  # one table per precision: twelve statistic columns side by side do not fit a terminal
+        Console().print(stage_table(f"{p.upper()} on {source}: {res['frames']} frames after {res['warmup_frames']} warm-up",
+                                    {p: stages[p]}, {p: fps[p]}))
     if "int8_inference_speedup_p50" in res:
         Console().print(f"INT8 inference speed-up (p50): {res['int8_inference_speedup_p50']:.2f}x")
     report_json(json_out, res)
