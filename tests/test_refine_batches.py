@@ -1,0 +1,114 @@
+"""Refinement batches on a tiny synthetic room: quality goes up, a wrong pose is rolled back, the deadline and the cap hold."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import edge.refine.refiner as refiner_mod
+from edge.refine.deadline import Deadline
+from edge.refine.refiner import RefineConfig, Refiner
+
+from .refine_scene import keyframe, mean_psnr, perturbed_map, tiny_room
+from .test_edge_scene import jitter
+
+
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory):
+    return tiny_room(tmp_path_factory)
+
+
+@pytest.fixture(scope="module")
+def start_map(frames):
+    """Gaussians from the true depth of every third of the first frames, then moved and recoloured at random."""
+    return perturbed_map(frames[0:9:3])
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def test_refinement_raises_psnr_on_the_refined_views(frames, start_map) -> None:
+    views = frames[4:10]
+    before = mean_psnr(start_map, views)
+    ref = Refiner(start_map, RefineConfig(max_steps=10, cap=20_000))
+    reports = [ref.refine(keyframe(f), Deadline.after(60.0)) for f in views]
+    after = mean_psnr(ref.map, views)
+    assert sum(r.committed for r in reports) >= 4
+    assert sum(r.added for r in reports) > 0 and ref.totals["steps"] >= 30
+    assert after > before + 3.0, (before, after)
+    assert all(np.isfinite(a).all() for a in (ref.map.means, ref.map.sh, ref.map.opacity_logits))
+
+
+def test_a_wrong_pose_keyframe_is_rolled_back_and_other_views_keep_their_psnr(frames, start_map) -> None:
+    ref = Refiner(start_map, RefineConfig(max_steps=10, cap=20_000, held=2))
+    for f in frames[4:7]:
+        ref.refine(keyframe(f), Deadline.after(60.0))
+    others = frames[2:8]
+    psnr_before = mean_psnr(ref.map, others)
+    n_before = len(ref.map)
+    wrong = jitter(frames[7].pose, np.random.default_rng(3), 0.3, 10.0)
+    rep = ref.refine(keyframe(frames[7], pose=wrong), Deadline.after(60.0))
+    assert rep.outcome.startswith("rolled_back"), rep
+    assert len(ref.map) == n_before
+    assert mean_psnr(ref.map, others) >= psnr_before - 1e-9
+
+
+def test_a_step_that_would_overrun_the_deadline_is_not_started(frames, start_map, monkeypatch) -> None:
+    """Each optimisation step costs 0.1 s on a fake clock; with 0.35 s left, three steps fit and the fourth is not started."""
+    clock = FakeClock()
+    real_backward = refiner_mod.rasterize_backward
+
+    def slow_backward(*a, **k):
+        clock.t += 0.1
+        return real_backward(*a, **k)
+
+    monkeypatch.setattr(refiner_mod, "rasterize_backward", slow_backward)
+    cfg = RefineConfig(max_steps=100, held=0, step_prior_s=0.1, render_prior_s=0.0)
+    ref = Refiner(start_map, cfg, clock=clock)
+    deadline = Deadline(0.35, clock)
+    rep = ref.refine(keyframe(frames[5]), deadline)
+    assert rep.steps == 3 and rep.stopped_by_deadline
+    assert clock.t <= deadline.at
+    # Too little time for even one step: nothing starts and the map is untouched.
+    n = len(ref.map)
+    means = ref.map.means.copy()
+    rep = ref.refine(keyframe(frames[6]), Deadline(clock.t + 0.05, clock))
+    assert rep.outcome == "no_time" and rep.steps == 0
+    assert len(ref.map) == n and np.array_equal(ref.map.means, means)
+
+
+def test_non_finite_gradients_are_skipped_and_counted(frames, start_map, monkeypatch) -> None:
+    real_backward = refiner_mod.rasterize_backward
+    calls = {"n": 0}
+
+    def poisoned(*a, **k):
+        g = real_backward(*a, **k)
+        calls["n"] += 1
+        if calls["n"] % 2:
+            g.means[0, 0] = np.nan
+            g.sh[-1, 0, 0] = np.inf
+        return g
+
+    monkeypatch.setattr(refiner_mod, "rasterize_backward", poisoned)
+    ref = Refiner(start_map, RefineConfig(max_steps=8, held=0))
+    rep = ref.refine(keyframe(frames[5]), Deadline.after(60.0))
+    assert rep.nonfinite_skipped == 4 and rep.steps == 4
+    for p in ("means", "log_scales", "quats", "opacity_logits", "sh"):
+        assert np.isfinite(getattr(ref.map, p)).all()
+
+
+def test_the_cap_holds_over_a_long_run(frames, start_map) -> None:
+    cap = len(start_map) + 150
+    ref = Refiner(start_map, RefineConfig(max_steps=1, cap=cap, max_new=200, held=0))
+    counts = []
+    for i in range(24):
+        f = frames[i % len(frames)]
+        ref.refine(keyframe(f), Deadline.after(60.0))
+        counts.append(len(ref.map))
+    assert max(counts) <= cap
+    assert ref.totals["capped"] > 0 and ref.totals["gaussians_added"] > 150
