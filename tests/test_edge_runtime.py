@@ -334,21 +334,20 @@ def test_tampered_bundle_is_refused_by_the_edge(tiny, tmp_path: Path) -> None:
 
 
 def test_pose_sink_latest_wins() -> None:
-    import time
-
     from acesplat.core.pose import PoseRecord
     from edge.outputs import AsyncPoseSink
 
     got = []
-    gate = threading.Event()
+    gate, busy = threading.Event(), threading.Event()
 
     def slow(rec) -> None:
-        gate.wait(1.0)
+        busy.set()
+        gate.wait(5.0)
         got.append(rec.frame_id)
 
     sink = AsyncPoseSink(slow)
     sink.send(PoseRecord(0, frame_id=0))
-    time.sleep(0.05)  # the consumer is now blocked on frame 0
+    assert busy.wait(5.0)  # the consumer is now blocked on frame 0
     for i in range(1, 6):
         sink.send(PoseRecord(i, frame_id=i))
     gate.set()
