@@ -83,7 +83,7 @@ def make_optimizer(params: GaussianParams, scene_extent: float, nets: torch.nn.M
     if nets is not None:
         groups.append({"params": list(nets.parameters()), "name": "nets", "peak_lr": NET_LR_MAX, "lr": NET_LR_MAX,
                        "weight_decay": NET_WEIGHT_DECAY, "eps": 1e-8})
-    return torch.optim.AdamW(groups)
+    return torch.optim.AdamW(groups, fused=True)
 
 
 def set_learning_rates(optimizer: torch.optim.Optimizer, progress: float) -> None:
@@ -97,7 +97,8 @@ def finite_gradients(optimizer: torch.optim.Optimizer) -> bool:
     """True if every gradient is finite; otherwise clears all gradients (the step must then be skipped)."""
     for g in optimizer.param_groups:
         for p in g["params"]:
-            if p.grad is not None and not bool(torch.isfinite(p.grad).all()):
+            # one reduction per tensor: any NaN or infinity makes the sum non-finite
+            if p.grad is not None and not bool(torch.isfinite(p.grad.sum())):
                 optimizer.zero_grad(set_to_none=True)
                 return False
     return True
