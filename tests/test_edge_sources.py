@@ -276,3 +276,24 @@ def test_camera_that_is_absent_at_start_is_bad_input() -> None:
 
     with pytest.raises(InputError, match="camera 7 cannot be opened"):
         CameraSource(7, CameraCalibration(focal=100.0), opener=lambda i: Closed())
+
+
+def test_video_source_gives_container_timestamps_and_rescaled_intrinsics(tmp_path: Path) -> None:
+    path = tmp_path / "clip.avi"
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10, (80, 64))
+    if not w.isOpened():
+        pytest.skip("this OpenCV build cannot write MJPG/AVI")
+    for i in range(4):
+        w.write(np.full((64, 80, 3), 50 * i, np.uint8))
+    w.release()
+    calib = CameraCalibration(K=np.array([[100.0, 0, 79.5], [0, 100.0, 63.5], [0, 0, 1]]), size=(160, 128))
+    src = open_source(f"video:{path}", SourceOptions(calibration=calib))
+    frames = []
+    while (f := src.read()) is not None:
+        frames.append(f)
+    src.close()
+    assert [f.frame_id for f in frames] == [0, 1, 2, 3]
+    assert [f.timestamp for f in frames] == pytest.approx([0.0, 0.1, 0.2, 0.3])
+    assert frames[0].intrinsics == calib.intrinsics_for(80, 64) and frames[0].intrinsics.fx == 50.0
+    with pytest.raises(InputError, match="needs --intrinsics"):
+        open_source(f"video:{path}", SourceOptions())
