@@ -32,23 +32,20 @@ _SPAN_SLACK = 1e-3
 
 
 @njit(cache=True)
-def bin_tiles(rec, bbox, visible, order, tiles_x, tiles_y):
-    """Bin the visible Gaussians into per-tile lists, each list in depth order.
+def bin_tiles(bbox, visible, order, tiles_x, tiles_y):
+    """Assign every (visible Gaussian, overlapped tile) pair a position in its tile's list.
 
-    rec (N, REC_WIDTH), bbox (N, 4) pixel ranges and visible (N,) are indexed by Gaussian;
-    order (V,) lists the visible ones front to back. Returns
-    - tile_offsets (n_tiles + 1,) and tile_rec (M, REC_WIDTH): each tile's records copied
-      contiguously in depth order (a stable counting sort), so compositing streams through memory
-      instead of chasing depth-sorted indices across the record array (measured: that random
-      access cost more than the compositing arithmetic);
-    - g_offsets (N + 1,) and entry_slot (M,): tile entry k's gradient goes to slot entry_slot[k],
-      and Gaussian i's slots are g_offsets[i]:g_offsets[i + 1], contiguous, so the per-Gaussian
-      reduction reads sequentially.
-    Only the small bbox rows are read in depth order; records are read in index order and
-    scattered once, which measured faster than gathering them into depth order first.
+    bbox (N, 4) pixel ranges and visible (N,) are indexed by Gaussian; order (V,) lists the
+    visible ones front to back. Returns
+    - tile_offsets (n_tiles + 1,): tile t's list is rows tile_offsets[t]:tile_offsets[t + 1] of the
+      per-tile record array, in depth order (a stable counting sort);
+    - g_offsets (N + 1,): Gaussian i owns gradient slots g_offsets[i]:g_offsets[i + 1], one per
+      tile it overlaps, contiguous so the per-Gaussian reduction reads sequentially;
+    - slot_pos (M,): the list row of each slot, for :func:`scatter_records`.
+    Only the small bbox rows are read in depth order.
     """
     n_tiles = tiles_x * tiles_y
-    n = rec.shape[0]
+    n = bbox.shape[0]
     tile_offsets = np.zeros(n_tiles + 1, np.int64)
     g_offsets = np.zeros(n + 1, np.int64)
     for i in range(n):
@@ -65,12 +62,10 @@ def bin_tiles(rec, bbox, visible, order, tiles_x, tiles_y):
         g_offsets[i + 1] = g_offsets[i] + cnt
     for t in range(n_tiles):
         tile_offsets[t + 1] += tile_offsets[t]
-    m = tile_offsets[n_tiles]
     cursor = np.empty(n_tiles, np.int64)
     for t in range(n_tiles):
         cursor[t] = tile_offsets[t]
-    # Depth order decides each (Gaussian, tile) pair's list position...
-    slot_pos = np.empty(m, np.int64)
+    slot_pos = np.empty(tile_offsets[n_tiles], np.int64)
     for s in range(order.shape[0]):
         i = order[s]
         tx0 = bbox[i, 0] // TILE
@@ -84,16 +79,24 @@ def bin_tiles(rec, bbox, visible, order, tiles_x, tiles_y):
                 slot_pos[j] = cursor[t]
                 cursor[t] += 1
                 j += 1
-    # ...then records are copied there, reading them in index order.
-    tile_rec = np.empty((m, REC_WIDTH), rec.dtype)
-    entry_slot = np.empty(m, np.int64)
-    for i in range(n):
+    return tile_offsets, g_offsets, slot_pos
+
+
+@njit(nogil=True, cache=True)
+def scatter_records(lo, hi, rec, g_offsets, slot_pos, tile_rec, entry_slot):
+    """Copy the records of Gaussians lo..hi-1 to their rows of every tile list they are in.
+
+    tile_rec (M, REC_WIDTH) then holds each tile's records contiguously in depth order, so
+    compositing streams through memory instead of chasing depth-sorted indices across the record
+    array (measured: that random access cost more than the compositing arithmetic). Records are
+    read in index order; entry_slot[row] remembers the gradient slot of each row. GIL-free.
+    """
+    for i in range(lo, hi):
         for j in range(g_offsets[i], g_offsets[i + 1]):
             pos = slot_pos[j]
             for c in range(REC_WIDTH):
                 tile_rec[pos, c] = rec[i, c]
             entry_slot[pos] = j
-    return tile_offsets, tile_rec, g_offsets, entry_slot
 
 
 @njit(cache=True, inline="always")

@@ -29,7 +29,9 @@ from ..geometry import invert_pose, rigidity_problem
 from . import _layout as L
 from ._project_kernels import ALPHA_MIN, DILATION, FRUSTUM_SLACK, MAHA2_MAX, project_backward, project_forward
 from ._threads import parallel_for
-from ._tile_kernels import ALPHA_MAX, T_MIN, TILE, bin_tiles, composite_backward, composite_forward
+from ._tile_kernels import (
+    ALPHA_MAX, T_MIN, TILE, bin_tiles, composite_backward, composite_forward, scatter_records,
+)
 
 DEFAULT_NEAR = 0.01
 DEFAULT_FAR = 1e10
@@ -143,7 +145,11 @@ def rasterize(
     order = _depth_order(rec[vis_idx, L.DEPTH], vis_idx)
     tiles_x = -(-width // TILE)
     tiles_y = -(-height // TILE)
-    tile_offsets, tile_rec, g_offsets, entry_slot = bin_tiles(rec, bbox, visible, order, tiles_x, tiles_y)
+    tile_offsets, g_offsets, slot_pos = bin_tiles(bbox, visible, order, tiles_x, tiles_y)
+    m = int(tile_offsets[-1])
+    tile_rec = np.empty((m, L.REC_WIDTH), dtype)
+    entry_slot = np.empty(m, np.int64)
+    parallel_for(scatter_records, n, rec, g_offsets, slot_pos, tile_rec, entry_slot)
     tile_order = _tile_order(tiles_x * tiles_y)
 
     color = np.empty((height, width, 3), dtype)
