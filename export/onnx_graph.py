@@ -5,7 +5,6 @@ Normalisation and the mean offset live inside the network, so the graph needs no
 
 from __future__ import annotations
 
-import copy
 import logging
 import warnings
 from pathlib import Path
@@ -20,26 +19,13 @@ OUTPUT_NAME = "coords"
 OPSET = 18
 """Opset 18: supported by onnxruntime >= 1.14 and by the dynamo exporter without down-conversion."""
 
-_SCALAR_BUFFERS = ("h_beta", "min_inv_scale")
-"""Head buffers that forward() turns into Python floats; the exporter cannot trace that, constants it can."""
-
-
-def exportable_copy(net: SCRNetwork) -> SCRNetwork:
-    """A copy of ``net`` whose scalar buffers are plain floats (identical arithmetic, traceable by torch.export)."""
-    out = copy.deepcopy(net).eval()
-    for name in _SCALAR_BUFFERS:
-        if name in out.head._buffers:
-            value = float(out.head._buffers.pop(name))
-            setattr(out.head, name, value)
-    return out
-
 
 def export_scr_onnx(net: SCRNetwork, size_hw: tuple[int, int], out_path: str | Path) -> Path:
     """Write ``net`` at the fixed input size ``size_hw`` (H, W) to ``out_path`` as a single-file ONNX model."""
     h, w = size_hw
     if h % 8 or w % 8:
         raise ValueError(f"input size must be a multiple of 8 in both sides, got {h}x{w}")
-    model = exportable_copy(net)
+    model = net.eval()
     example = torch.full((1, 1, h, w), 128.0)
     out_path = Path(out_path)
     with atomic_path(out_path) as tmp, warnings.catch_warnings():

@@ -138,6 +138,10 @@ class Head(nn.Module):
         self.register_buffer("h_beta", math.log(2) / (1.0 - self.max_inv_scale))
         self.register_buffer("min_inv_scale", 1.0 / self.min_scale)
         self.register_buffer("mean", torch.as_tensor(mean, dtype=torch.float32).clone().view(1, 3, 1, 1))
+        # The same constants as plain floats for forward(): traced graphs (ONNX) then see literals, not tensor reads.
+        self._h_beta = math.log(2) / (1.0 - 1.0 / HOMOGENEOUS_MAX_SCALE)
+        self._max_inv_scale = 1.0 / HOMOGENEOUS_MAX_SCALE
+        self._min_inv_scale = 1.0 / HOMOGENEOUS_MIN_SCALE
 
     def forward(self, feats: torch.Tensor) -> torch.Tensor:
         """(B, C, h, w) features -> (B, 3, h, w) scene coordinates."""
@@ -154,8 +158,8 @@ class Head(nn.Module):
         sc = F.relu(self.fc2(sc))
         sc = self.fc3(sc)
         if self.cfg.homogeneous:
-            h = F.softplus(sc[:, 3:4], beta=float(self.h_beta)) + self.max_inv_scale
-            h = torch.clamp(h, max=float(self.min_inv_scale))
+            h = F.softplus(sc[:, 3:4], beta=self._h_beta) + self._max_inv_scale
+            h = torch.clamp(h, max=self._min_inv_scale)
             sc = sc[:, :3] / h
         return sc + self.mean
 
