@@ -57,6 +57,7 @@ def export_command(
     encoder: Optional[Path] = typer.Option(None, help="Encoder weights if not where the map says."),
     scene: Optional[Path] = typer.Option(None, help="Scene folder if not where the map says (calibration and checks)."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the manifest and timings here."),
+    splat: Optional[Path] = typer.Option(None, "--splat", help="Splat folder from `acesplat splat`: add its Gaussians and initializer (edge refinement)."),
 ) -> None:
     """Export a map to an ONNX bundle (FP32, optionally INT8) that checks itself."""
     import torch
@@ -67,6 +68,10 @@ def export_command(
     opts = ExportOptions(int8=int8, size_hw=parse_size(size) if size else None, encoder_path=encoder, scene_path=scene)
     with PhaseProgress() as bar:
         rep = export_bundle(map_path, out, opts, bar)
+        if splat is not None:
+            from .splat_export import export_splat
+
+            rep.manifest = export_splat(out, splat, map_path, encoder, bar)["manifest"]
     console.print(checks_table(rep.manifest))
     files = ", ".join(f"{f['path']} ({f['bytes'] / 1e6:.2f} MB)" for f in rep.manifest["files"])
     console.print(f"bundle {out}: {files}; {rep.seconds:.1f} s")

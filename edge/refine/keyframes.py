@@ -14,8 +14,10 @@ import numpy as np
 
 from acesplat.core.geometry import pose_error
 
-MIN_INLIERS = 100
-"""Twice the PnP gate (50): refinement trusts a pose more than the flight controller needs to."""
+MIN_INLIERS = 50
+"""The PnP gate's count (small inputs have few cells: 80 at 64x80)..."""
+MIN_INLIER_RATIO = 0.5
+"""...plus half of all cells agreeing: refinement trusts a pose more than the gate alone does."""
 MIN_TRANSLATION_M = 0.10
 MIN_ROTATION_DEG = 8.0
 MIN_COVERAGE = 0.85
@@ -25,6 +27,7 @@ MIN_COVERAGE = 0.85
 @dataclass(frozen=True)
 class KeyframePolicy:
     min_inliers: int = MIN_INLIERS
+    min_inlier_ratio: float = MIN_INLIER_RATIO
     min_translation_m: float = MIN_TRANSLATION_M
     min_rotation_deg: float = MIN_ROTATION_DEG
     min_coverage: float = MIN_COVERAGE
@@ -32,6 +35,8 @@ class KeyframePolicy:
     def __post_init__(self) -> None:
         if self.min_inliers < 0 or self.min_translation_m < 0 or self.min_rotation_deg < 0:
             raise ValueError(f"keyframe thresholds must be non-negative, got {self}")
+        if not 0.0 <= self.min_inlier_ratio <= 1.0:
+            raise ValueError(f"min_inlier_ratio must be in [0, 1], got {self.min_inlier_ratio}")
         if not 0.0 <= self.min_coverage <= 1.0:
             raise ValueError(f"min_coverage must be in [0, 1], got {self.min_coverage}")
 
@@ -43,15 +48,16 @@ def keyframe_decision(
     last_keyframe_pose: np.ndarray | None,
     coverage: float | None,
     policy: KeyframePolicy = KeyframePolicy(),
+    inlier_ratio: float = 1.0,
 ) -> tuple[bool, str]:
     """(is a keyframe, reason). Reasons: 'lost', 'inliers', 'first', 'viewpoint', 'coverage', 'redundant'.
 
     pose_c2w (4, 4) the frame's estimated pose; coverage the share of the view the map covers (None:
-    unknown, then only motion counts).
+    unknown, then only motion counts); inlier_ratio inliers / correspondences.
     """
     if not tracking or pose_c2w is None or not np.all(np.isfinite(pose_c2w)):
         return False, "lost"
-    if inliers < policy.min_inliers:
+    if inliers < policy.min_inliers or inlier_ratio < policy.min_inlier_ratio:
         return False, "inliers"
     if last_keyframe_pose is None:
         return True, "first"
@@ -71,8 +77,9 @@ class KeyframeSelector:
         self.last_pose: np.ndarray | None = None
         self.counts: dict[str, int] = {}
 
-    def consider(self, pose_c2w: np.ndarray | None, inliers: int, tracking: bool, coverage: float | None = None) -> bool:
-        ok, reason = keyframe_decision(pose_c2w, inliers, tracking, self.last_pose, coverage, self.policy)
+    def consider(self, pose_c2w: np.ndarray | None, inliers: int, tracking: bool, coverage: float | None = None,
+                 inlier_ratio: float = 1.0) -> bool:
+        ok, reason = keyframe_decision(pose_c2w, inliers, tracking, self.last_pose, coverage, self.policy, inlier_ratio)
         self.counts[reason] = self.counts.get(reason, 0) + 1
         return ok
 

@@ -85,6 +85,8 @@ class Keyframe:
     coords: np.ndarray | None = None
     k_input: Intrinsics | None = None
     name: str = ""
+    gray: np.ndarray | None = None
+    """The network's grayscale input (k_input's size), for the ONNX initializer."""
 
 
 class Seeder(Protocol):
@@ -143,11 +145,25 @@ class Refiner:
         self.covered_history: deque[float] = deque(maxlen=POSE_CHECK_HISTORY)
         self.step_cost = CostEstimate(cfg.step_prior_s)
         self.render_cost = CostEstimate(cfg.render_prior_s)
-        self.guard_cost = CostEstimate(cfg.render_prior_s * (1 + 2 * cfg.held))
+        self.commit_cost = CostEstimate(0.0)
+        self.seed_cost = CostEstimate(0.0)
+        self.guard_view_cost = CostEstimate(cfg.render_prior_s)
+        """One held-view render at guard resolution; the guard renders each held view twice."""
         self.totals = {"keyframes": 0, "committed": 0, "rolled_back": 0, "no_time": 0, "steps": 0,
                        "nonfinite_skipped": 0, "gaussians_added": 0, "pruned": 0, "capped": 0}
 
     # ------------------------------------------------------------------------------------------
+    def warm_up(self) -> None:
+        """Load (or compile) the rasterizer's kernels now, not inside the first keyframe's deadline."""
+        from acesplat.core.camera import Intrinsics as _K
+
+        g = Gaussians.zeros(2, self.map.sh_degree, np.float32)
+        g.means[:, 2] = 2.0
+        g.log_scales[:] = -3.0
+        k = _K.from_focal(16.0, 16, 16)
+        r = rasterize(g, np.eye(4), k, self.bg)
+        rasterize_backward(r, np.ones((16, 16, 3), np.float32))
+
     def refine(self, kf: Keyframe, deadline: Deadline) -> BatchReport:
         """Run one batch for ``kf`` before ``deadline``; the map changes only if the batch is committed."""
         _check_keyframe(kf)
@@ -155,7 +171,8 @@ class Refiner:
         rep = BatchReport(name=kf.name, outcome="no_time")
         self.totals["keyframes"] += 1
         t_start = clock()
-        if not deadline.allows(self.render_cost.predict() + self.step_cost.predict(), self.guard_cost.predict()):
+        if not deadline.allows(self.render_cost.predict() + self.seed_cost.predict() + self.step_cost.predict(),
+                               self.guard_reserve(kf.k.width * kf.k.height)):
             self.totals["no_time"] += 1
             return rep
 
@@ -188,6 +205,7 @@ class Refiner:
         room = max(0, min(cfg.max_new, cfg.cap))
         new = self.seeder(kf, an.need, room, self.map.sh_degree, self.rng) if room else Gaussians.empty(self.map.sh_degree)
         new = new.with_sh_degree(self.map.sh_degree).astype(np.float32) if len(new) else Gaussians.empty(self.map.sh_degree)
+        self.seed_cost.record(clock() - t0)
         rep.ms["seed"] = 1000.0 * (clock() - t0)
         active_idx = in_view[seen] if len(sub) else np.zeros(0, np.int64)
         n_old = active_idx.size
@@ -204,7 +222,7 @@ class Refiner:
         target = np.ascontiguousarray(kf.rgb, np.float32)
         measured = 0
         while rep.steps + rep.nonfinite_skipped < cfg.max_steps:
-            if not deadline.allows(self.step_cost.predict(), self.guard_cost.predict()):
+            if not deadline.allows(self.step_cost.predict(), self.guard_reserve(kf.k.width * kf.k.height)):
                 rep.stopped_by_deadline = True
                 break
             ts = clock()
@@ -255,7 +273,8 @@ class Refiner:
                 rep.held_before.append(view_mse(self.map, hv.pose, hv.k, hv.target, self.bg))
                 rep.held_after.append(view_mse(candidate, hv.pose, hv.k, hv.target, self.bg))
             ok_held = held_verdict(rep.mse_before, best_mse, rep.held_before, rep.held_after, cfg.held_tolerance)
-        self.guard_cost.record(clock() - t0)
+        if rep.held_before:
+            self.guard_view_cost.record((clock() - t0) / (2 * len(rep.held_before)))
         rep.ms["guard"] = 1000.0 * (clock() - t0)
         if not (ok_kf and ok_held):
             rep.outcome = "rolled_back_keyframe" if not ok_kf else "rolled_back_held"
@@ -279,6 +298,7 @@ class Refiner:
         small_rgb, small_k = downsample(kf.rgb, kf.k, cfg.guard_max_side)
         self.held.add(HeldView(np.array(kf.pose, np.float64), small_k, small_rgb, kf.name))
         rep.outcome = "committed"
+        self.commit_cost.record(clock() - t0)
         if np.isfinite(rep.covered_mse):
             self.covered_history.append(rep.covered_mse)
         rep.ms["commit"] = 1000.0 * (clock() - t0)
@@ -289,6 +309,18 @@ class Refiner:
         self._count(rep)
         rep.ms["total"] = 1000.0 * (clock() - t_start)
         return rep
+
+    def guard_reserve(self, kf_pixels: int) -> float:
+        """Time kept for the guard (two renders per held view) and the commit. Until one was measured, a keyframe render's
+        measured cost scaled by the pixel ratio stands in for it (a fixed prior could block the guard forever)."""
+        if not len(self.held):
+            return self.commit_cost.predict()
+        if self.guard_view_cost.count:
+            per_view = self.guard_view_cost.predict()
+        else:
+            px = sum(h.k.width * h.k.height for h in self.held) / len(self.held)
+            per_view = self.render_cost.predict() * min(1.0, px / max(kf_pixels, 1))
+        return 2 * len(self.held) * per_view + self.commit_cost.predict()
 
     def render_cost_record(self, seconds: float) -> float:
         self.render_cost.record(seconds)

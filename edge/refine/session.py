@@ -49,6 +49,8 @@ class RefineOptions:
     pace: bool = True
     evaluate: bool = False
     """Keep each frame with a ground-truth pose to report PSNR before/after (replay)."""
+    use_initializer: bool = True
+    """Seed through the bundle's ONNX initializer when it has one (else from SCR coordinates alone)."""
     config: RefineConfig = field(default_factory=RefineConfig)
     policy: KeyframePolicy = field(default_factory=KeyframePolicy)
 
@@ -85,6 +87,7 @@ class _SessionTap:
     def run(self, gray: np.ndarray) -> np.ndarray:
         coords = self._inner.run(gray)
         self._session._last_coords = coords
+        self._session._last_gray = gray
         return coords
 
     def __getattr__(self, name: str) -> Any:
@@ -100,6 +103,7 @@ class RefineSession:
         self.clock = clock
         self.initial = gaussians.astype(np.float32)
         self.refiner = Refiner(self.initial.copy(), opts.config, seeder=seeder, clock=clock)
+        self.refiner.warm_up()
         self.saver = SplatSaver(opts.save_path, opts.save_every_s) if opts.save_path else None
         self.worker = RefineWorker(self.refiner, KeyframeSelector(opts.policy), self.saver, clock)
         self.frames = 0
@@ -107,8 +111,10 @@ class RefineSession:
         self.counts_over_time: list[tuple[int, int]] = [(0, len(self.initial))]
         self._eval: list[tuple[np.ndarray, Intrinsics, np.ndarray]] = []
         self._last_coords: np.ndarray | None = None
+        self._last_gray: np.ndarray | None = None
         self._closed = False
         self.summary: dict | None = None
+        self.seeder_name = "scr" if seeder is None else "custom"
         localizer.session = _SessionTap(localizer.session, self)
         inner = localizer.localize
 
@@ -125,7 +131,7 @@ class RefineSession:
     def on_outcome(self, frame: Any, out: Any) -> None:
         """Offer a localized frame to the worker; with pacing, wait for the worker or the frame's deadline."""
         self.frames += 1
-        coords = self._last_coords
+        coords, gray = self._last_coords, self._last_gray
         image, intr, dist, k_input = frame.image, frame.intrinsics, frame.distortion, out.intrinsics
         if k_input is None:
             return
@@ -141,12 +147,13 @@ class RefineSession:
             name = out.name or str(rec.frame_id)
 
             def make_keyframe() -> Keyframe:
-                return Keyframe(pose, colour_at(image, intr, dist, k_input, k_ref), k_ref, coords, k_input, name)
+                return Keyframe(pose, colour_at(image, intr, dist, k_input, k_ref), k_ref, coords, k_input, name, gray)
 
             def cell_depth() -> tuple[np.ndarray, Intrinsics]:
                 return cell_trust(coords, pose, k_input)[0], k_input
 
-            self.worker.submit(Candidate(pose, rec.inliers, tracking, deadline_at, make_keyframe, cell_depth, name))
+            self.worker.submit(Candidate(pose, rec.inliers, tracking, deadline_at, make_keyframe, cell_depth, name,
+                                         float(rec.quality)))
         if self.opts.pace:
             t0 = self.clock()
             self.worker.wait_idle(max(0.0, deadline_at - self.clock()))
@@ -165,6 +172,7 @@ class RefineSession:
         t = self.refiner.totals
         s: dict = {
             "budget_ms": self.opts.budget_ms,
+            "seeder": self.seeder_name,
             "refine_size": None,
             "frames": self.frames,
             "candidates": ws.candidates,
@@ -217,4 +225,9 @@ def start_refinement(localizer: Any, bundle: Any, opts: RefineOptions, warn: Cal
     if g is None:
         warn(no_models_message(bundle))
         return None
-    return RefineSession(localizer, g, opts)
+    from .onnx_seeder import onnx_seeder_for
+
+    seeder = onnx_seeder_for(bundle, threads=1, spacing=opts.config.seed_spacing) if opts.use_initializer else None
+    session = RefineSession(localizer, g, opts, seeder=seeder)
+    session.seeder_name = "onnx_initializer" if seeder is not None else "scr"
+    return session

@@ -41,6 +41,7 @@ class Candidate:
     cell_depth: Callable[[], tuple[np.ndarray, Any]] | None = None
     """Optional: SCR cell depths (h, w) and the input intrinsics, for the coverage test of keyframe selection."""
     name: str = ""
+    inlier_ratio: float = 1.0
 
 
 @dataclass
@@ -134,7 +135,7 @@ class RefineWorker:
         if c.cell_depth is not None and self.selector.last_pose is not None and len(self.refiner.map):
             depth, k_input = c.cell_depth()
             coverage = projected_coverage(self.refiner.map.means, c.pose, k_input, depth)
-        if not self.selector.consider(c.pose, c.inliers, c.tracking, coverage):
+        if not self.selector.consider(c.pose, c.inliers, c.tracking, coverage, c.inlier_ratio):
             return
         with self._cond:
             self._deadline = deadline

@@ -1,0 +1,105 @@
+"""Seeding through the bundle's initializer (SCR encoder + feature adapter + init head, one ONNX graph).
+
+The graph predicts residuals around the same analytic start the SCR seeder uses (colour from the
+pixel, isotropic scale covering the seeding gap, identity rotation, a prior opacity); it runs at the
+network input resolution and its residuals are resampled to the refinement resolution. Centres
+stay the SCR depths along pixel rays. Decoding mirrors acesplat/splat/init_head.decode_gaussians.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import onnxruntime as ort
+
+from acesplat.core.bundle import Bundle, verify_file
+from acesplat.core.errors import InputError
+from acesplat.core.gaussians import SH_C0, Gaussians, logit, sh_coeff_count
+
+from .bundle_models import ROLE_SPLAT_INIT, splat_section
+from .seeding import block_colours, pixel_depths, seed_pixels
+
+PRIOR_CHANNELS = 7
+
+
+class OnnxSeeder:
+    """Callable with the refiner's seeder signature; needs keyframes with ``gray`` and ``coords``."""
+
+    def __init__(self, model_path: str | Path, splat: dict, threads: int = 1, spacing: int = 2) -> None:
+        self.path = Path(model_path)
+        try:
+            init = splat["init"]
+            self.size = (int(init["input_size"][0]), int(init["input_size"][1]))
+            self.opacity_prior = float(init["opacity_prior"])
+            self.scale_prior = float(init["scale_prior"])
+            self.head_degree = int(splat["head"]["sh_degree"])
+            norm = splat["scene_norm"]
+            self.centre = np.asarray(norm["centre"], np.float64).reshape(3)
+            self.scale = float(norm["scale"])
+        except (KeyError, TypeError, ValueError):
+            raise InputError(self.path, "bundle manifest's 'splat' section lacks the initializer's description") from None
+        so = ort.SessionOptions()
+        so.intra_op_num_threads = threads
+        so.inter_op_num_threads = 1
+        so.log_severity_level = 3
+        try:
+            self.sess = ort.InferenceSession(str(self.path), sess_options=so, providers=["CPUExecutionProvider"])
+        except Exception as e:  # onnxruntime raises its own types
+            raise InputError(self.path, f"onnxruntime cannot load the initializer ({str(e).splitlines()[0][:200]})") from None
+        self.spacing = spacing
+        self.channels = 1 + 3 * sh_coeff_count(self.head_degree) + 7
+
+    def residuals(self, gray: np.ndarray, prior: np.ndarray) -> np.ndarray:
+        """(H, W, C) head residuals for a grayscale (H, W) image and a prior (PRIOR_CHANNELS, H, W)."""
+        out = self.sess.run(None, {"gray": gray.astype(np.float32)[None, None], "prior": prior[None].astype(np.float32)})[0]
+        if out.shape != (1, self.channels, *self.size):
+            raise InputError(self.path, f"initializer output {out.shape} is not (1, {self.channels}, {self.size[0]}, {self.size[1]})")
+        return np.ascontiguousarray(np.moveaxis(out[0], 0, -1))
+
+    def __call__(self, kf, need: np.ndarray, max_new: int, sh_degree: int, rng: np.random.Generator) -> Gaussians:
+        if kf.coords is None or kf.k_input is None or getattr(kf, "gray", None) is None:
+            return Gaussians.empty(sh_degree)
+        if sh_degree < self.head_degree:
+            raise ValueError(f"map SH degree {sh_degree} is below the initializer's {self.head_degree}")
+        k_in = kf.k_input
+        pix_in = pixel_depths(kf.coords, kf.pose, k_in, k_in)
+        rgb_in = cv2.resize(kf.rgb, (k_in.width, k_in.height), interpolation=cv2.INTER_LINEAR)
+        prior = np.concatenate([rgb_in - 0.5, (pix_in.centres - self.centre) / self.scale,
+                                np.log(np.maximum(pix_in.depth, 1e-6) / self.scale)[..., None]], axis=-1)
+        prior = np.nan_to_num(prior).transpose(2, 0, 1)
+        raw_in = self.residuals(kf.gray, prior)
+        raw = np.stack([cv2.resize(raw_in[..., c], (kf.k.width, kf.k.height), interpolation=cv2.INTER_AREA)
+                        for c in range(raw_in.shape[2])], axis=-1)
+        pix = pixel_depths(kf.coords, kf.pose, k_in, kf.k)
+        idx, s = seed_pixels(need & pix.valid, self.spacing, max_new, rng)
+        if idx.size == 0:
+            return Gaussians.empty(sh_degree)
+        return self.decode(raw.reshape(-1, raw.shape[2])[idx], block_colours(kf.rgb, float(s)).reshape(-1, 3)[idx],
+                           pix.centres.reshape(-1, 3)[idx], pix.depth.reshape(-1)[idx],
+                           0.5 * (kf.k.fx + kf.k.fy), float(s), sh_degree)
+
+    def decode(self, raw: np.ndarray, rgb: np.ndarray, centres: np.ndarray, depth: np.ndarray, focal_px: float,
+               spacing_px: float, sh_degree: int) -> Gaussians:
+        """Gaussians from residuals raw (N, C), colours (N, 3), centres (N, 3), camera depths (N,)."""
+        n, kh = raw.shape[0], sh_coeff_count(self.head_degree)
+        g = Gaussians.zeros(n, sh_degree, np.float32)
+        g.opacity_logits[:] = raw[:, 0] + float(logit(np.array(self.opacity_prior)))
+        sh_head = raw[:, 1 : 1 + 3 * kh].reshape(n, kh, 3)
+        g.sh[:, :kh] = sh_head
+        g.sh[:, 0] += (rgb - 0.5) / SH_C0
+        base = np.log(self.scale_prior * spacing_px * np.maximum(depth, 1e-6) / focal_px)
+        g.log_scales[:] = raw[:, 1 + 3 * kh : 4 + 3 * kh] + base[:, None]
+        g.quats[:] = raw[:, 4 + 3 * kh : 8 + 3 * kh] + np.array([1.0, 0.0, 0.0, 0.0])
+        g.means[:] = centres
+        return g
+
+
+def onnx_seeder_for(bundle: Bundle, threads: int = 1, spacing: int = 2) -> OnnxSeeder | None:
+    """The bundle's initializer as a seeder, or None when the bundle has none (the SCR seeder is used)."""
+    if not bundle.has(ROLE_SPLAT_INIT):
+        return None
+    f = bundle.files[ROLE_SPLAT_INIT]
+    verify_file(bundle.root, f)
+    return OnnxSeeder(bundle.root / f.path, splat_section(bundle), threads, spacing)
