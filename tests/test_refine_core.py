@@ -36,7 +36,7 @@ def pose_at(x: float, yaw_deg: float = 0.0) -> np.ndarray:
 # ----------------------------------------------------------------------------------- keyframes
 def test_keyframe_sequence_by_hand() -> None:
     """A hand-made walk: first frame, small moves skipped, a 12 cm move, a 10 degree turn, a lost frame, few inliers."""
-    sel = KeyframeSelector(KeyframePolicy(min_inliers=100, min_translation_m=0.10, min_rotation_deg=8.0, min_coverage=0.8))
+    sel = KeyframeSelector(KeyframePolicy(min_inliers=100, min_inlier_ratio=0.0, min_translation_m=0.10, min_rotation_deg=8.0, min_coverage=0.8))
     seq = [
         (pose_at(0.00), 300, True, None, True),      # first
         (pose_at(0.05), 300, True, None, False),     # 5 cm: redundant

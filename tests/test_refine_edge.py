@@ -1,0 +1,202 @@
+"""Refinement in the edge runtime: replay --refine numbers, bundles with and without Gaussian models, the worker thread, export --splat."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from acesplat.core.gaussians import Gaussians, concat_gaussians
+from acesplat.core.ply import read_ply, write_ply
+from acesplat.core.scene import read_split
+from edge.cli import app
+from edge.refine.deadline import Deadline
+from edge.refine.keyframes import KeyframePolicy, KeyframeSelector
+from edge.refine.refiner import BatchReport
+from edge.refine.worker import Candidate, RefineWorker
+
+from .refine_scene import depth_gaussians
+from .test_edge_scene import tiny_setup
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    return tiny_setup(tmp_path_factory)
+
+
+@pytest.fixture(scope="module")
+def bundle_with_gaussians(tiny, tmp_path_factory) -> Path:
+    """The tiny bundle plus Gaussians from three training views' depth, moved and recoloured at random."""
+    from export.splat_export import add_gaussians
+
+    root = tmp_path_factory.mktemp("refine_bundle")
+    b = root / "bundle"
+    shutil.copytree(tiny["bundle"], b)
+    frames = read_split(tiny["scene"], "train").frames
+    rng = np.random.default_rng(0)
+    g = concat_gaussians([depth_gaussians(f, 3, rng, 0.02, 0.15) for f in frames[:6:2]])
+    write_ply(root / "start.ply", g)
+    add_gaussians(b, root / "start.ply")
+    return b
+
+
+def test_replay_refine_reports_psnr_gain_and_saves_the_map(tiny, bundle_with_gaussians, tmp_path) -> None:
+    out, saved = tmp_path / "r.json", tmp_path / "refined.ply"
+    r = CliRunner().invoke(app, ["replay", str(bundle_with_gaussians), str(tiny["scene"]), "--split", "train", "--refine",
+                                 "--budget-ms", "100", "--threads", "1", "--json", str(out), "--save-splat", str(saved)])
+    assert r.exit_code == 0, r.output
+    s = json.loads(out.read_text())
+    assert s["localized"] == s["frames"] == 12
+    ref = s["refine"]
+    for k in ("psnr_before", "psnr_after", "keyframes", "gaussians_added", "gaussians_final", "steps", "timing_ms"):
+        assert k in ref
+    for k in ("frame", "batch", "step", "render", "guard"):
+        assert set(ref["timing_ms"][k]) == {"mean", "p50", "p90", "p95", "p99", "max"}
+    assert "refine" in s["timing_ms"]  # beside the localization stages
+    assert ref["keyframes"] >= 3 and ref["keyframes_committed"] >= 2 and ref["steps"] >= 1
+    assert ref["psnr_after"] > ref["psnr_before"] + 1.0
+    assert ref["gaussians_final"] == ref["gaussians_initial"] + ref["gaussians_added"] - ref["gaussians_pruned"] - ref["gaussians_capped"]
+    assert ref["errors"] == []
+    assert len(read_ply(saved)) == ref["gaussians_final"] and ref["save"]["failures"] == 0
+    assert "refine: PSNR" in r.output
+
+
+def test_refine_on_a_bundle_without_gaussians_says_so_and_localizes(tiny, tmp_path) -> None:
+    out = tmp_path / "r.json"
+    r = CliRunner().invoke(app, ["replay", str(tiny["bundle"]), str(tiny["scene"]), "--refine", "--threads", "1",
+                                 "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    assert "no Gaussian model" in r.output
+    s = json.loads(out.read_text())
+    assert s["localized"] == s["frames"] and "refine" not in s
+
+
+def test_refine_refuses_a_tampered_gaussians_file(bundle_with_gaussians, tiny, tmp_path) -> None:
+    b = tmp_path / "b"
+    shutil.copytree(bundle_with_gaussians, b)
+    with open(b / "gaussians.ply", "r+b") as f:
+        f.seek(-8, 2)
+        f.write(b"\x01" * 8)
+    r = CliRunner().invoke(app, ["replay", str(b), str(tiny["scene"]), "--refine", "--threads", "1"])
+    assert r.exit_code == 2
+    assert "gaussians.ply" in r.output and "sha256" in r.output
+
+
+class _SlowRefiner:
+    """Stands in for Refiner: each batch runs until its deadline (or a preemption)."""
+
+    def __init__(self) -> None:
+        self.map = Gaussians.zeros(0, 0)
+        self.started = threading.Event()
+        self.names: list[str] = []
+
+    def refine(self, kf, deadline: Deadline) -> BatchReport:
+        self.names.append(kf.name)
+        self.started.set()
+        while not deadline.expired():
+            time.sleep(0.001)
+        return BatchReport(name=kf.name, outcome="committed")
+
+
+def _candidate(name: str, seconds: float, moved: float) -> Candidate:
+    pose = np.eye(4)
+    pose[0, 3] = moved
+    return Candidate(pose, 500, True, time.perf_counter() + seconds, lambda: type("K", (), {"name": name})(), None, name)
+
+
+def test_worker_keeps_the_latest_frame_and_stops_when_preempted() -> None:
+    ref = _SlowRefiner()
+    w = RefineWorker(ref, KeyframeSelector(KeyframePolicy(min_inliers=0, min_translation_m=0.0)))
+    try:
+        w.submit(_candidate("a", 30.0, 0.0))
+        assert ref.started.wait(5.0)
+        for i, name in enumerate(("b", "c", "d")):  # arrive while "a" runs: only the newest survives
+            w.submit(_candidate(name, 30.0, 1.0 + i))
+        t0 = time.perf_counter()
+        w.preempt()  # the next frame's localization starts: "a" stops at once
+        ref.started.clear()
+        assert ref.started.wait(5.0)
+        assert time.perf_counter() - t0 < 2.0
+        w.preempt()
+        assert w.wait_idle(5.0)
+    finally:
+        w.close()
+    assert ref.names == ["a", "d"] and w.dropped == 2
+    assert w.stats.candidates == 4 and len(w.stats.reports) == 2
+
+
+def test_worker_skips_a_frame_whose_deadline_passed() -> None:
+    ref = _SlowRefiner()
+    w = RefineWorker(ref, KeyframeSelector(KeyframePolicy(min_inliers=0)))
+    try:
+        w.submit(_candidate("late", -0.01, 0.0))
+        assert w.wait_idle(5.0)
+    finally:
+        w.close()
+    assert ref.names == [] and w.stats.late == 1
+
+
+@pytest.fixture(scope="module")
+def splat_bundle(tiny, tmp_path_factory) -> Path:
+    """`acesplat splat` (a few iterations) and export --splat on the tiny room."""
+    from acesplat.cli import app as desktop
+
+    root = tmp_path_factory.mktemp("splat_export")
+    r = CliRunner().invoke(desktop, ["splat", str(tiny["scene"]), "--map", str(tiny["map"]), "-o", str(root / "splat"),
+                                     "--iterations", "5", "--max-gaussians", "4000"])
+    assert r.exit_code == 0, r.output
+    b = root / "bundle"
+    shutil.copytree(tiny["bundle"], b)
+    from export.splat_export import export_splat
+
+    export_splat(b, root / "splat", tiny["map"])
+    return b
+
+
+def test_export_splat_lists_models_checked_against_torch(splat_bundle) -> None:
+    from acesplat.core.bundle import load_bundle
+    from edge.refine.bundle_models import ROLE_GAUSSIANS, ROLE_SPLAT_INIT, bundle_gaussians
+    from export.splat_export import ROLE_GAUSSIANS as EXPORT_GAUSSIANS
+    from export.splat_export import ROLE_SPLAT_INIT as EXPORT_INIT
+
+    assert (ROLE_GAUSSIANS, ROLE_SPLAT_INIT) == (EXPORT_GAUSSIANS, EXPORT_INIT)
+    b = load_bundle(splat_bundle)  # verifies every listed file's size and sha256
+    assert b.has(ROLE_GAUSSIANS) and b.has(ROLE_SPLAT_INIT) and b.has("scr_fp32")
+    parity = b.manifest["checks"]["splat_init_fp32_vs_torch"]
+    assert parity["max_abs_diff"] < 1e-4 * max(1.0, parity["max_abs_output"])
+    assert len(bundle_gaussians(b)) == b.manifest["splat"]["gaussians"]
+
+
+def test_onnx_seeder_places_gaussians_on_scr_rays(splat_bundle, tiny) -> None:
+    from acesplat.core.bundle import load_bundle
+    from acesplat.core.preprocess import to_gray_input
+    from edge.refine.onnx_seeder import onnx_seeder_for
+    from edge.refine.refiner import Keyframe
+    from edge.refine.seeding import pixel_depths
+
+    from .refine_scene import true_cells
+
+    b = load_bundle(splat_bundle)
+    seeder = onnx_seeder_for(b)
+    f = read_split(tiny["scene"], "train").frames[3]
+    gray, k_in = to_gray_input(f.load_rgb(), f.intrinsics, b.input_size)
+    kf = Keyframe(f.pose, f.load_rgb().astype(np.float32) / 255, f.intrinsics, true_cells(f), k_in, f.name, gray)
+    g = seeder(kf, np.ones((f.intrinsics.height, f.intrinsics.width), bool), 300, 3, np.random.default_rng(0))
+    assert 0 < len(g) <= 300 and g.sh_degree == 3
+    for p in ("means", "log_scales", "quats", "opacity_logits", "sh"):
+        assert np.isfinite(getattr(g, p)).all()
+    pix = pixel_depths(kf.coords, f.pose, k_in, f.intrinsics)
+    d = np.linalg.norm(pix.centres.reshape(-1, 3)[None] - g.means[:, None], axis=2).min(axis=1)
+    assert d.max() < 1e-4  # every centre is a pixel's SCR point
+    # Zero residuals decode to the analytic start: the pixel's colour, the prior opacity, identity rotation.
+    z = seeder.decode(np.zeros((1, seeder.channels)), np.array([[0.2, 0.4, 0.6]]), np.zeros((1, 3)), np.array([2.0]), 100.0, 2.0, 3)
+    assert np.allclose(g.sh.shape[1:], (16, 3))
+    assert np.allclose(z.sh[0, 0] * 0.28209479177387814 + 0.5, [0.2, 0.4, 0.6], atol=1e-6)
+    assert np.allclose(z.opacities(), 0.8, atol=1e-6) and np.allclose(z.quats, [[1, 0, 0, 0]])
+    assert np.allclose(np.exp(z.log_scales), 0.7 * 2.0 * 2.0 / 100.0)
