@@ -269,6 +269,8 @@ def profile_command(
     threads: Optional[int] = typer.Option(None, help="onnxruntime intra-op threads (default: all cores)."),
     pnp: Optional[str] = typer.Option(None, help="PnP method (default: the measured choice)."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the numbers here."),
+    refine: bool = typer.Option(False, "--refine", help="Refine the bundle's Gaussians beside localization; time both."),
+    budget_ms: float = typer.Option(100.0, "--budget-ms", help="Per-frame time of localization + refinement."),
 ) -> None:
     """Per-stage latency (mean/p50/p90/p95/p99/max) and FPS, warm-up excluded."""
     from .profile import run_profile
@@ -285,8 +287,12 @@ def profile_command(
     calib = read_calibration_file(intrinsics) if intrinsics else None
     src = open_source(source, SourceOptions(calibration=calib, input_size=b.input_size))
     nthreads = threads or default_threads()
+    def attach(loc: EdgeLocalizer):
+        session = _refine_session(refine, loc, b, budget_ms, None, pace=True)
+        return session.close if session is not None else None
+
     with PhaseProgress() as bar:
-        res = run_profile(b, src, precisions, frames, nthreads, warmup, _pnp(pnp, None), bar)
+        res = run_profile(b, src, precisions, frames, nthreads, warmup, _pnp(pnp, None), bar, attach if refine else None)
     h = res["header"]
     console.print(f"cpu: {h['cpu']} ({h['cores']} cores, load {h['load_average']}), threads {h['threads']}; "
                   f"onnxruntime {h['onnxruntime']}, numpy {h['numpy']}, opencv {h['opencv']}")
@@ -301,6 +307,9 @@ def profile_command(
                                     {p: stages[p]}, {p: fps[p]}))
     if "int8_inference_speedup_p50" in res:
         Console().print(f"INT8 inference speed-up (p50): {res['int8_inference_speedup_p50']:.2f}x")
+    refine_runs = {precisions[0]: res["refine"]} if len(precisions) == 1 and "refine" in res else res.get("refine") or {}
+    for p, r in refine_runs.items():
+        console.print(f"{p} " + refine_line(r))
     report_json(json_out, res)
 
 

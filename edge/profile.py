@@ -101,13 +101,26 @@ def profile_precision(localizer: EdgeLocalizer, frames: Sequence[tuple[SourceFra
 
 def run_profile(bundle: Bundle, source: FrameSource, precisions: Sequence[str], frames: int, threads: int,
                 warmup: int = WARMUP_FRAMES, pnp: PnPSettings | None = None,
-                progress: Callable[[str, float, dict], None] | None = None) -> dict:
-    """Profile each precision on the same frames; one run's JSON (keys stages, fps, precision, input_size)."""
+                progress: Callable[[str, float, dict], None] | None = None,
+                attach: Callable[[EdgeLocalizer], Callable[[], dict] | None] | None = None) -> dict:
+    """Profile each precision on the same frames; one run's JSON (keys stages, fps, precision, input_size).
+
+    ``attach`` (edge refinement) hooks each localizer before it runs and returns what adds a run's 'refine' report."""
     data = read_frames(source, frames + warmup)
-    runs = [profile_precision(EdgeLocalizer(bundle, p, threads, pnp), data, warmup, progress) for p in precisions]
+    runs = []
+    for p in precisions:
+        loc = EdgeLocalizer(bundle, p, threads, pnp)
+        finish = attach(loc) if attach is not None else None
+        runs.append(profile_precision(loc, data, warmup, progress))
+        if finish is not None:
+            runs[-1]["refine"] = finish()
     header = machine_header(bundle, precisions, threads)
     if len(runs) == 1:
         return {**runs[0], "header": header}
+    if any("refine" in r for r in runs):
+        refine = {r["precision"]: r["refine"] for r in runs if "refine" in r}
+    else:
+        refine = None
     out = {
         "stages": {r["precision"]: r["stages"] for r in runs},
         "fps": {r["precision"]: r["fps"] for r in runs},
@@ -118,6 +131,8 @@ def run_profile(bundle: Bundle, source: FrameSource, precisions: Sequence[str], 
         "warmup_frames": warmup,
         "header": header,
     }
+    if refine is not None:
+        out["refine"] = refine
     if {"fp32", "int8"} <= set(out["fps"]):
         a, b = out["stages"]["fp32"]["inference"]["p50"], out["stages"]["int8"]["inference"]["p50"]
         out["int8_inference_speedup_p50"] = a / b if b > 0 else None

@@ -54,14 +54,17 @@ def psnr(mse: float) -> float:
     return float("inf") if mse <= 0 else float(-10.0 * np.log10(mse))
 
 
-@dataclass(frozen=True)
+@dataclass
 class HeldView:
-    """An earlier committed keyframe kept at guard resolution."""
+    """An earlier committed keyframe kept at guard resolution, with its error under map ``version`` (the
+    guard's 'after' render of one commit is the next batch's 'before', so it is rendered once, not twice)."""
 
     pose: np.ndarray
     k: Intrinsics
     target: np.ndarray
     name: str = ""
+    mse: float | None = None
+    version: int = -1
 
 
 def downsample(rgb: np.ndarray, k: Intrinsics, max_side: int) -> tuple[np.ndarray, Intrinsics]:

@@ -143,12 +143,14 @@ class Refiner:
         self.bg = np.asarray(cfg.background, np.float64)
         self.held = HeldViews(cfg.held)
         self.covered_history: deque[float] = deque(maxlen=POSE_CHECK_HISTORY)
+        self.version = 0
+        """Bumped at every commit: held views' cached errors are valid for one version."""
         self.step_cost = CostEstimate(cfg.step_prior_s)
         self.render_cost = CostEstimate(cfg.render_prior_s)
         self.commit_cost = CostEstimate(0.0)
         self.seed_cost = CostEstimate(0.0)
         self.guard_view_cost = CostEstimate(cfg.render_prior_s)
-        """One held-view render at guard resolution; the guard renders each held view twice."""
+        """One held-view render at guard resolution."""
         self.totals = {"keyframes": 0, "committed": 0, "rolled_back": 0, "no_time": 0, "steps": 0,
                        "nonfinite_skipped": 0, "gaussians_added": 0, "pruned": 0, "capped": 0}
 
@@ -264,17 +266,22 @@ class Refiner:
         t0 = clock()
         ok_kf = best_mse < rep.mse_before
         ok_held = True
+        renders = 0
         if ok_kf and len(self.held):
             is_active = np.zeros(len(self.map), bool)
             is_active[active_idx] = True
             rest = self.map.subset(~is_active)
             candidate = concat_gaussians([rest, best.subset(~gone)])
             for hv in self.held:
-                rep.held_before.append(view_mse(self.map, hv.pose, hv.k, hv.target, self.bg))
+                if hv.version != self.version or hv.mse is None:
+                    hv.mse, hv.version = view_mse(self.map, hv.pose, hv.k, hv.target, self.bg), self.version
+                    renders += 1
+                rep.held_before.append(hv.mse)
                 rep.held_after.append(view_mse(candidate, hv.pose, hv.k, hv.target, self.bg))
+                renders += 1
             ok_held = held_verdict(rep.mse_before, best_mse, rep.held_before, rep.held_after, cfg.held_tolerance)
-        if rep.held_before:
-            self.guard_view_cost.record((clock() - t0) / (2 * len(rep.held_before)))
+        if renders:
+            self.guard_view_cost.record((clock() - t0) / renders)
         rep.ms["guard"] = 1000.0 * (clock() - t0)
         if not (ok_kf and ok_held):
             rep.outcome = "rolled_back_keyframe" if not ok_kf else "rolled_back_held"
@@ -295,6 +302,10 @@ class Refiner:
         rep.capped = int((~keep).sum())
         self.map = merged if keep.all() else merged.subset(keep)
         rep.added = len(added)
+        self.version += 1
+        if rep.capped == 0:  # the guard rendered exactly this map: its 'after' errors are current
+            for hv, after in zip(self.held, rep.held_after):
+                hv.mse, hv.version = after, self.version
         small_rgb, small_k = downsample(kf.rgb, kf.k, cfg.guard_max_side)
         self.held.add(HeldView(np.array(kf.pose, np.float64), small_k, small_rgb, kf.name))
         rep.outcome = "committed"
@@ -311,8 +322,9 @@ class Refiner:
         return rep
 
     def guard_reserve(self, kf_pixels: int) -> float:
-        """Time kept for the guard (two renders per held view) and the commit. Until one was measured, a keyframe render's
-        measured cost scaled by the pixel ratio stands in for it (a fixed prior could block the guard forever)."""
+        """Time kept for the guard (one render per held view, two when its cached error is stale) and the commit.
+        Until a guard render was measured, a keyframe render's measured cost scaled by the pixel ratio stands in
+        for it (a fixed prior could block the guard forever)."""
         if not len(self.held):
             return self.commit_cost.predict()
         if self.guard_view_cost.count:
@@ -320,7 +332,8 @@ class Refiner:
         else:
             px = sum(h.k.width * h.k.height for h in self.held) / len(self.held)
             per_view = self.render_cost.predict() * min(1.0, px / max(kf_pixels, 1))
-        return 2 * len(self.held) * per_view + self.commit_cost.predict()
+        renders = sum(1 if (h.version == self.version and h.mse is not None) else 2 for h in self.held)
+        return renders * per_view + self.commit_cost.predict()
 
     def render_cost_record(self, seconds: float) -> float:
         self.render_cost.record(seconds)

@@ -1,0 +1,203 @@
+"""Edge refinement on the built-in scene: PSNR gain on unseen frames, localization latency with and without it.
+
+Protocol (issue 6): Gaussians optimised by Stage 2 (`acesplat splat`) on the first half of the training
+trajectory; the second half is replayed through the edge runtime with `--refine --budget-ms 100`.
+Reported: PSNR over the replayed frames rendered from their true poses (the map before vs after the
+replay), localization latency (the 'total' stage: capture to pose) without refinement, with paced
+refinement (what `replay`/`localize` on files do: each frame gets the budget, refinement takes what
+localization leaves), and with unpaced refinement (frames back to back, the worker beside the
+localizer all the time: the worst case for contention on 2 cores and the GIL), the Gaussian count
+over time, and the machine's load. Every number comes from this run.
+
+The SCR map is fitted directly to depth-derived coordinates (tests/test_edge_scene.train_tiny_map: the
+project's default encoder is still being pretrained); pass --map to use a real one.
+
+    python bench/bench_refine.py --workdir runs/bench_refine [--json runs/bench_refine/result.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def log(msg: str) -> None:
+    print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
+
+
+def load_avg() -> list[float]:
+    return [round(v, 2) for v in os.getloadavg()]
+
+
+def link_split(src_split: Path, names: list[str], dst_split: Path) -> None:
+    """A split folder made of links to some frames of another (rgb, poses, calibration, depth)."""
+    for sub in ("rgb", "poses", "calibration", "depth"):
+        if not (src_split / sub).is_dir():
+            continue
+        (dst_split / sub).mkdir(parents=True, exist_ok=True)
+        for p in sorted((src_split / sub).iterdir()):
+            if p.stem in names:
+                (dst_split / sub / p.name).symlink_to(p.resolve())
+
+
+def prepare(work: Path, args) -> dict:
+    """Scene, map, first-half splat and the bundle (each step skipped when its output exists)."""
+    from acesplat.core.scene import read_split
+    from acesplat.synth import synthesize
+
+    scene = work / "scene"
+    if not (scene / "synth.json").is_file():
+        log(f"synthesize the built-in scene at {args.size[0]}x{args.size[1]}, {args.frames} training frames")
+        synthesize(scene, seed=0, train_frames=args.frames, test_frames=4, size=tuple(args.size), overwrite=True)
+    names = [f.name for f in read_split(scene, "train").frames]
+    half = len(names) // 2
+    first, second = work / "first_half", work / "second_half"
+    if not first.is_dir():
+        link_split(scene / "train", names[:half], first / "train")
+    if not second.is_dir():
+        link_split(scene / "train", names[half:], second / "test")
+    map_path = Path(args.map) if args.map else work / "tiny.map"
+    if not map_path.is_file():
+        from tests.test_edge_scene import train_tiny_map
+
+        log("fit an SCR map to the training frames (depth-derived coordinates)")
+        t0 = time.monotonic()
+        train_tiny_map(scene, work, steps=args.map_steps)
+        log(f"map: {time.monotonic() - t0:.0f} s")
+    splat = work / "splat_first_half"
+    if not (splat / "gaussians.ply").is_file():
+        from typer.testing import CliRunner
+
+        from acesplat.cli import app
+
+        log(f"Stage 2 on the first half ({half} frames), {args.splat_minutes} min")
+        r = CliRunner().invoke(app, ["splat", str(first), "--map", str(map_path), "-o", str(splat),
+                                     "--minutes", str(args.splat_minutes), "--max-gaussians", str(args.max_gaussians)])
+        if r.exit_code:
+            raise SystemExit(r.output)
+        log(r.output.strip().splitlines()[-1])
+    bundle = work / "bundle"
+    if not (bundle / "manifest.json").is_file() or not (bundle / "gaussians.ply").is_file():
+        from export.bundle_export import ExportOptions, export_bundle
+        from export.splat_export import export_splat
+
+        log("export the bundle with --splat")
+        export_bundle(map_path, bundle, ExportOptions(scene_path=scene))
+        export_splat(bundle, splat, map_path)
+    return {"scene": scene, "second": second, "bundle": bundle, "first_frames": half, "second_frames": len(names) - half}
+
+
+def replay(bundle: Path, split_root: Path, threads: int, refine: dict | None) -> dict:
+    """One replay of the second half; refine=None: localization only."""
+    from acesplat.core.bundle import load_bundle
+    from edge.refine.session import RefineOptions, start_refinement
+    from edge.replay import replay_split
+    from edge.runtime import EdgeLocalizer
+
+    b = load_bundle(bundle)
+    loc = EdgeLocalizer(b, "fp32", threads)
+    session = None
+    if refine is not None:
+        session = start_refinement(loc, b, RefineOptions(evaluate=True, **refine), log)
+    t0 = time.monotonic()
+    try:
+        s = replay_split(loc, split_root, "test")
+    finally:
+        if session is not None:
+            session.close()
+    s["wall_s"] = time.monotonic() - t0
+    s["load_after"] = load_avg()
+    if session is not None:
+        s["refine"] = session.summary
+    return s
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--workdir", type=Path, default=ROOT / "runs" / "bench_refine")
+    ap.add_argument("--size", type=int, nargs=2, default=[120, 160], metavar=("H", "W"))
+    ap.add_argument("--frames", type=int, default=80, help="training frames of the built-in scene (half seed, half replayed)")
+    ap.add_argument("--map", type=str, default=None, help="an existing map of this scene instead of the fitted one")
+    ap.add_argument("--map-steps", type=int, default=300)
+    ap.add_argument("--splat-minutes", type=float, default=2.0)
+    ap.add_argument("--max-gaussians", type=int, default=30_000)
+    ap.add_argument("--budget-ms", type=float, default=100.0)
+    ap.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
+    ap.add_argument("--repeats", type=int, default=1, help="replays per setting (latency statistics pool them)")
+    ap.add_argument("--fresh", action="store_true", help="rebuild the scene, map, splat and bundle")
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args()
+
+    from acesplat.core.machine import machine_info
+    from acesplat.core.metrics import timing_stats
+
+    work = args.workdir
+    if args.fresh and work.exists():
+        shutil.rmtree(work)
+    work.mkdir(parents=True, exist_ok=True)
+    load_start = load_avg()
+    prep = prepare(work, args)
+    runs: dict[str, list[dict]] = {"off": [], "paced": [], "unpaced": []}
+    settings = {"off": None, "paced": {"budget_ms": args.budget_ms, "pace": True},
+                "unpaced": {"budget_ms": args.budget_ms, "pace": False}}
+    replay(prep["bundle"], prep["second"], args.threads, None)  # warm-up: onnxruntime, numba kernels, page cache
+    for rep in range(args.repeats):
+        for name, cfg in settings.items():  # interleaved, so drifting load hits all settings alike
+            log(f"replay {rep + 1}/{args.repeats}: refinement {name}")
+            runs[name].append(replay(prep["bundle"], prep["second"], args.threads, cfg))
+
+    def loc_ms(name: str) -> list[float]:
+        return [f["ms"] for r in runs[name] for f in r["per_frame"]]
+
+    lat = {name: timing_stats(loc_ms(name)) for name in runs}
+    paced = runs["paced"][-1]["refine"]
+    result = {
+        "machine": machine_info(),
+        "load_average": {"start": load_start, "end": load_avg()},
+        "scene": {"size": args.size, "seed_frames": prep["first_frames"], "replayed_frames": prep["second_frames"]},
+        "budget_ms": args.budget_ms,
+        "psnr_before": paced["psnr_before"],
+        "psnr_after": paced["psnr_after"],
+        "psnr_gain_db": paced["psnr_after"] - paced["psnr_before"],
+        "psnr_unpaced_after": runs["unpaced"][-1]["refine"]["psnr_after"],
+        "localization_ms": lat,
+        "localization_p95_ratio_paced": lat["paced"]["p95"] / lat["off"]["p95"],
+        "localization_p95_ratio_unpaced": lat["unpaced"]["p95"] / lat["off"]["p95"],
+        "localized": {name: [r["localized"] for r in runs[name]] for name in runs},
+        "refine_paced": {k: v for k, v in paced.items() if k != "gaussians_over_time"},
+        "refine_unpaced": {k: v for k, v in runs["unpaced"][-1]["refine"].items() if k != "gaussians_over_time"},
+        "gaussians_over_time": paced["gaussians_over_time"],
+    }
+    m = result["machine"]
+    print(f"\nmachine: {m.get('cpu')} ({m.get('cores')} cores); load {load_start} -> {result['load_average']['end']}")
+    print(f"scene {args.size[0]}x{args.size[1]}: Gaussians from the first {prep['first_frames']} frames, "
+          f"{prep['second_frames']} frames replayed, budget {args.budget_ms:.0f} ms")
+    print(f"PSNR on the replayed frames: {result['psnr_before']:.2f} -> {result['psnr_after']:.2f} dB "
+          f"(+{result['psnr_gain_db']:.2f}; unpaced run: {result['psnr_unpaced_after']:.2f})")
+    for name in runs:
+        t = lat[name]
+        print(f"localization ({name:8s}) ms: p50 {t['p50']:.1f}  p95 {t['p95']:.1f}  max {t['max']:.1f}")
+    print(f"p95 ratio with/without refinement: paced {result['localization_p95_ratio_paced']:.3f}, "
+          f"unpaced {result['localization_p95_ratio_unpaced']:.3f}")
+    r = paced
+    print(f"refinement (paced): {r['keyframes']} keyframes, {r['keyframes_committed']} committed, {r['steps']} steps, "
+          f"step p50 {r['timing_ms']['step']['p50']:.1f} ms, refine per frame p95 {r['timing_ms']['frame']['p95']:.1f} ms, "
+          f"Gaussians {r['gaussians_initial']} -> {r['gaussians_final']} (cap {r['gaussian_cap']})")
+    counts = r["gaussians_over_time"]
+    step = max(1, len(counts) // 8)
+    print("Gaussians over time (frame, count): " + ", ".join(f"({f}, {c})" for f, c in counts[::step] + [counts[-1]]))
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(result, indent=2))
+
+
+if __name__ == "__main__":
+    main()
