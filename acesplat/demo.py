@@ -60,6 +60,27 @@ def _stage_map(scene: Path, work: Path, minutes: float, summary: dict) -> Path:
     return map_path
 
 
+def _stage_edge(map_path: Path, scene: Path, work: Path, summary: dict) -> Path:
+    """Export FP32 + INT8 ONNX and replay the test split on the torch-free edge runtime with both."""
+    from acesplat.core.bundle import load_bundle
+    from edge.replay import replay_split
+    from edge.runtime import EdgeLocalizer
+    from export.bundle_export import ExportOptions, export_bundle
+
+    bundle_dir = work / "bundle"
+    with PhaseProgress("demo export ") as bar:
+        rep = export_bundle(map_path, bundle_dir, ExportOptions(int8=True, scene_path=scene), bar)
+    summary["export"] = {"seconds": rep.seconds, "checks": rep.manifest.get("checks", {})}
+    bundle = load_bundle(bundle_dir)
+    for precision in ("fp32", "int8"):
+        loc = EdgeLocalizer(bundle, precision)
+        with PhaseProgress(f"demo replay {precision} ") as bar:
+            r = replay_split(loc, scene, "test", lambda i, n: bar("localize", i / n, {"frame": i}))
+        r.pop("per_frame", None)
+        summary[f"replay_{precision}"] = r
+    return bundle_dir
+
+
 def results_table(summary: dict) -> Table:
     t = Table(title="acesplat demo: built-in synthetic scene")
     t.add_column("stage")
@@ -72,12 +93,22 @@ def results_table(summary: dict) -> Table:
     if "map" in summary:
         m, e = summary["map"], summary["eval"]
         t.add_row("map", f"{m['iterations']} iterations, {m['buffer_features']} buffered features", f"{m['seconds']:.1f}")
-        med_t = e["median_translation_m"]
-        med_r = e["median_rotation_deg"]
-        med = f"median {med_t * 100:.1f} cm / {med_r:.2f} deg" if med_t is not None else "median: not localized"
-        t.add_row("eval (torch)", f"{e['localized']}/{e['frames']} localized, 5cm/5deg {e['recall_5cm_5deg']:.1f}%, {med}",
-                  f"{e['mean_ms'] * e['frames'] / 1000:.1f}")
+        t.add_row("eval (torch)", _accuracy(e), f"{e['mean_ms'] * e['frames'] / 1000:.1f}")
+    if "export" in summary:
+        t.add_row("export (ONNX FP32 + INT8)", "bundle with manifest and hashes", f"{summary['export']['seconds']:.1f}")
+    for precision in ("fp32", "int8"):
+        r = summary.get(f"replay_{precision}")
+        if r:
+            tm = r["timing_ms"]["total"]
+            t.add_row(f"edge replay ({precision})", f"{_accuracy(r)}; total p50 {tm['p50']:.0f} ms, p95 {tm['p95']:.0f} ms",
+                      f"{tm['mean'] * r['frames'] / 1000:.1f}")
     return t
+
+
+def _accuracy(e: dict) -> str:
+    med_t, med_r = e["median_translation_m"], e["median_rotation_deg"]
+    med = f"median {med_t * 100:.1f} cm / {med_r:.2f} deg" if med_t is not None else "median: not localized"
+    return f"{e['localized']}/{e['frames']} localized, 5cm/5deg {e['recall_5cm_5deg']:.1f}%, {med}"
 
 
 @one_line_errors
@@ -86,12 +117,13 @@ def demo_command(
     map_minutes: float = typer.Option(4.0, help="Mapping budget."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write all numbers here."),
 ) -> None:
-    """Run synth -> map -> eval on the built-in synthetic scene and print the results."""
+    """Run synth -> map -> eval -> export -> edge replay on the built-in synthetic scene and print the results."""
     t0 = time.monotonic()
     workdir.mkdir(parents=True, exist_ok=True)
     summary: dict = {}
     scene = _stage_synth(workdir, summary)
-    _stage_map(scene, workdir, map_minutes, summary)
+    map_path = _stage_map(scene, workdir, map_minutes, summary)
+    _stage_edge(map_path, scene, workdir, summary)
     summary["seconds"] = time.monotonic() - t0
     console.print(results_table(summary))
     report_json(json_out if json_out else workdir / "demo.json", summary)

@@ -44,8 +44,10 @@ SAMPLES_PER_IMAGE = 1024
 ACE_BUFFER_SIZE = 8_000_000
 BUFFER_SIZE = 1_000_000
 """ACE buffers 8M features; on CPU the head sees ~2000 batches in a few minutes, so 1M already gives ~10 epochs."""
+TARGETS_TIME_FRACTION = 0.08
+"""At most this share of the budget goes to matching and triangulating targets."""
 BUFFER_TIME_FRACTION = 0.25
-"""At most this share of the budget fills the buffer; the rest trains the head."""
+"""Targets and buffer together use at most this share of the budget; the rest trains the head."""
 ONE_CYCLE_WARMUP = 0.25
 """Share of training spent rising from LR_MIN to LR_MAX (cosine), then cosine annealing back down."""
 TARGET_WEIGHT = 10.0
@@ -264,7 +266,10 @@ def map_scene(
         p.requires_grad_(False)
     images = load_training_images(split, cfg.short_side)
     if cfg.triangulate and len(images) > 1:
-        tg = triangulate_targets([im.gray for im in images], [im.intrinsics for im in images], [im.c2w for im in images])
+        tg = triangulate_targets(
+            [im.gray for im in images], [im.intrinsics for im in images], [im.c2w for im in images],
+            deadline=t0 + TARGETS_TIME_FRACTION * cfg.minutes * 60.0,
+        )
         for im, t in zip(images, tg):
             im.targets = t
         if progress:
