@@ -286,3 +286,29 @@ def test_thread_pool_survives_fork() -> None:
         assert os.waitstatus_to_exitcode(status) == 0
     finally:
         set_num_threads(before)
+
+
+def test_parallel_for_covers_every_index_once_and_reraises() -> None:
+    from acesplat.core.raster._threads import parallel_for
+
+    before = get_num_threads()
+    set_num_threads(3)
+    try:
+        hits = np.zeros(1000, np.int64)
+
+        def mark(lo: int, hi: int, out: np.ndarray) -> None:
+            out[lo:hi] += 1
+
+        parallel_for(mark, 1000, hits)
+        assert (hits == 1).all()
+
+        def fail(lo: int, hi: int) -> None:
+            if lo <= 500 < hi:
+                raise RuntimeError("chunk failed")
+
+        with pytest.raises(RuntimeError, match="chunk failed"):
+            parallel_for(fail, 1000)
+        with pytest.raises(ValueError, match="at least one thread"):
+            set_num_threads(0)
+    finally:
+        set_num_threads(before)

@@ -52,9 +52,10 @@ def get_num_threads() -> int:
 def parallel_for(kernel: Callable[..., Any], n: int, *args: Any) -> None:
     """Run ``kernel(lo, hi, *args)`` over chunks covering range(n), in parallel; return when all are done.
 
-    The calling thread works too, and every thread takes the next chunk from a shared counter, so
-    a worker the OS has descheduled (on a busy machine) delays at most its own chunk instead of
-    the whole pass. Results must not depend on the chunking: kernels write disjoint outputs.
+    The calling thread works too and every thread takes the next chunk from a shared counter, so
+    on a busy machine a worker that the OS wakes late finds nothing left and nobody waits for it:
+    the call returns as soon as every chunk is finished. Results must not depend on the chunking:
+    kernels write disjoint outputs.
     """
     global _pool, _pool_pid
     threads = get_num_threads()
@@ -65,23 +66,35 @@ def parallel_for(kernel: Callable[..., Any], n: int, *args: Any) -> None:
         return
     chunks = min(n, threads * CHUNKS_PER_THREAD)
     bounds = [n * c // chunks for c in range(chunks + 1)]
-    next_chunk = iter(range(chunks))
+    state = {"next": 0, "done": 0}
+    errors: list[BaseException] = []
     take = threading.Lock()
+    finished = threading.Event()
 
     def work() -> None:
         while True:
             with take:
-                c = next(next_chunk, None)
-            if c is None:
-                return
-            kernel(bounds[c], bounds[c + 1], *args)
+                c = state["next"]
+                if c >= chunks:
+                    return
+                state["next"] = c + 1
+            try:
+                kernel(bounds[c], bounds[c + 1], *args)
+            except BaseException as e:  # re-raised in the caller
+                errors.append(e)
+            with take:
+                state["done"] += 1
+                if state["done"] == chunks:
+                    finished.set()
 
     with _lock:
         if _pool is None or _pool_pid != os.getpid():
             _pool = ThreadPoolExecutor(max_workers=threads - 1, thread_name_prefix="acesplat-raster")
             _pool_pid = os.getpid()
         pool = _pool
-    helpers = [pool.submit(work) for _ in range(threads - 1)]
+    for _ in range(threads - 1):
+        pool.submit(work)
     work()
-    for f in helpers:
-        f.result()
+    finished.wait()
+    if errors:
+        raise errors[0]
