@@ -120,6 +120,63 @@ def replay(bundle: Path, split_root: Path, threads: int, refine: dict | None) ->
     return s
 
 
+def gil_probe(bundle: Path, split_root: Path, seconds: float) -> dict:
+    """How long a thread waits for the GIL while refinement runs beside it (and while nothing does).
+
+    The probe sleeps 1 ms at a time (releasing the GIL) and measures how late it wakes: a wake-up needs the
+    GIL back, so the lateness beyond the OS's own is time some other thread held the GIL (a GIL-holding
+    kernel cannot be interrupted; Python code is asked to switch after 5 ms).
+    """
+    import threading
+
+    import numpy as np
+
+    from acesplat.core.bundle import load_bundle
+    from acesplat.core.scene import read_split
+    from edge.refine.bundle_models import bundle_gaussians
+    from edge.refine.deadline import Deadline
+    from edge.refine.refiner import Keyframe, RefineConfig, Refiner
+
+    def probe(stop: threading.Event) -> list[float]:
+        late = []
+        while not stop.is_set():
+            t0 = time.perf_counter()
+            time.sleep(0.001)
+            late.append(1000.0 * (time.perf_counter() - t0) - 1.0)
+        return late
+
+    def run(busy: bool) -> list[float]:
+        stop = threading.Event()
+        out: list[float] = []
+        worker = None
+        if busy:
+            g = bundle_gaussians(load_bundle(bundle))
+            frames = read_split(split_root, "test").frames
+            ref = Refiner(g, RefineConfig())
+            ref.warm_up()
+
+            def refine_loop() -> None:
+                i = 0
+                while not stop.is_set():
+                    f = frames[i % len(frames)]
+                    rgb = f.load_rgb().astype(np.float32) / 255.0
+                    ref.refine(Keyframe(f.pose, rgb, f.intrinsics), Deadline.after(0.1))
+                    i += 1
+
+            worker = threading.Thread(target=refine_loop)
+            worker.start()
+        t = threading.Timer(seconds, stop.set)
+        t.start()
+        out = probe(stop)
+        if worker is not None:
+            worker.join()
+        return out
+
+    from acesplat.core.metrics import timing_stats
+
+    return {"idle_ms": timing_stats(run(False)), "refining_ms": timing_stats(run(True))}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--workdir", type=Path, default=ROOT / "runs" / "bench_refine")
@@ -158,6 +215,8 @@ def main() -> None:
         return [f["ms"] for r in runs[name] for f in r["per_frame"]]
 
     lat = {name: timing_stats(loc_ms(name)) for name in runs}
+    log("GIL probe")
+    gil = gil_probe(prep["bundle"], prep["second"], 4.0)
     paced = runs["paced"][-1]["refine"]
     result = {
         "machine": machine_info(),
@@ -175,6 +234,7 @@ def main() -> None:
         "refine_paced": {k: v for k, v in paced.items() if k != "gaussians_over_time"},
         "refine_unpaced": {k: v for k, v in runs["unpaced"][-1]["refine"].items() if k != "gaussians_over_time"},
         "gaussians_over_time": paced["gaussians_over_time"],
+        "gil_wait": gil,
     }
     m = result["machine"]
     print(f"\nmachine: {m.get('cpu')} ({m.get('cores')} cores); load {load_start} -> {result['load_average']['end']}")
@@ -187,6 +247,8 @@ def main() -> None:
         print(f"localization ({name:8s}) ms: p50 {t['p50']:.1f}  p95 {t['p95']:.1f}  max {t['max']:.1f}")
     print(f"p95 ratio with/without refinement: paced {result['localization_p95_ratio_paced']:.3f}, "
           f"unpaced {result['localization_p95_ratio_unpaced']:.3f}")
+    print(f"GIL probe (lateness of a 1 ms sleep): idle p95 {gil['idle_ms']['p95']:.2f} max {gil['idle_ms']['max']:.2f} ms; "
+          f"beside refinement p95 {gil['refining_ms']['p95']:.2f} max {gil['refining_ms']['max']:.2f} ms")
     r = paced
     print(f"refinement (paced): {r['keyframes']} keyframes, {r['keyframes_committed']} committed, {r['steps']} steps, "
           f"step p50 {r['timing_ms']['step']['p50']:.1f} ms, refine per frame p95 {r['timing_ms']['frame']['p95']:.1f} ms, "

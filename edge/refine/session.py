@@ -199,7 +199,9 @@ class RefineSession:
                 "render": timing_stats([r.ms["render"] for r in reps if "render" in r.ms]),
                 "guard": timing_stats([r.ms["guard"] for r in reps if "guard" in r.ms]),
                 "wait": timing_stats(self.wait_ms),
+                "overrun": timing_stats(ws.overrun_ms),
             },
+            "batches_over_deadline": int(sum(v > 0 for v in ws.overrun_ms)),
             "gaussians_over_time": [list(p) for p in self.counts_over_time],
             "errors": ws.errors[:20],
         }

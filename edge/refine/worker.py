@@ -53,6 +53,8 @@ class WorkerStats:
     busy_ms: list[float] = field(default_factory=list)
     """Wall time the worker spent on each candidate it took (selection + batch)."""
     errors: list[str] = field(default_factory=list)
+    overrun_ms: list[float] = field(default_factory=list)
+    """For each keyframe batch: how long after its deadline it finished (0 when on time)."""
 
 
 class RefineWorker:
@@ -146,6 +148,7 @@ class RefineWorker:
         finally:
             with self._cond:
                 self._deadline = None
+        self.stats.overrun_ms.append(max(0.0, 1000.0 * (self.clock() - c.deadline_at)))
         if len(self.stats.reports) < self.keep_reports:
             self.stats.reports.append(rep)
         if rep.committed:
