@@ -63,6 +63,7 @@ def _compare_with_reference(params, pose, k, bg, sh_degree, seed, tol_value, tol
         err = _rel(getattr(grads, name), t[name].grad.numpy())
         assert err < tol_grad, (name, err)
     assert _rel(grads.means2d, ref.means2d.grad.numpy()) < tol_grad
+    np.testing.assert_allclose(grads.means2d_ndc_norm, ndc_grad_norm(grads.means2d, k.width, k.height))
     return res, ref
 
 

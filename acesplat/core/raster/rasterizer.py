@@ -91,7 +91,8 @@ class RasterGradients:
     """Gradients of a scalar loss for every Gaussian parameter, shaped like the parameters.
 
     means2d (N, 2) is the gradient with respect to the projected centres in pixels, the signal 3DGS
-    densification accumulates (see :func:`ndc_grad_norm` for its normalised-device-coordinate norm).
+    densification accumulates; means2d_ndc_norm (N,) is its norm in normalised device coordinates,
+    the quantity 3DGS compares with its 2e-4 threshold (see :func:`ndc_grad_norm`).
     """
 
     means: np.ndarray
@@ -100,6 +101,7 @@ class RasterGradients:
     opacity_logits: np.ndarray
     sh: np.ndarray
     means2d: np.ndarray
+    means2d_ndc_norm: np.ndarray
 
 
 def rasterize(
@@ -224,6 +226,7 @@ def rasterize_backward(
         opacity_logits=np.zeros(n, dtype),
         sh=np.zeros(g.sh.shape, dtype),
         means2d=np.zeros((n, 2), dtype),
+        means2d_ndc_norm=np.zeros(n),
     )
     if len(c.order):
         parallel_for(
@@ -232,6 +235,7 @@ def rasterize_backward(
             c.g_offsets, slot_grads,
             out.means, out.log_scales, out.quats, out.opacity_logits, out.sh, out.means2d,
         )
+        out.means2d_ndc_norm[:] = ndc_grad_norm(out.means2d, w, h)
     return out
 
 
