@@ -8,7 +8,7 @@ import pytest
 from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import look_at, make_pose
 from acesplat.splat.fusion import covered_by, novel_masks
-from acesplat.splat.pixel_coords import pixel_coordinates, pixel_rays
+from acesplat.splat.pixel_coords import filled_depths, pixel_coordinates, pixel_rays
 from acesplat.splat.validity import ValidityConfig, cell_pixels, cell_validity
 
 K = Intrinsics(50.0, 50.0, 31.5, 23.5, 64, 48)
@@ -81,6 +81,24 @@ def test_depth_edges_and_invalid_cells():
     np.testing.assert_allclose(depth[valid & (np.arange(64) < 28)], 1.0, rtol=1e-12)  # the garbage cell did not leak in
     assert not valid[11, 11]  # the invalid cell carries most of this pixel's weight
     assert valid[11, 16] and depth[11, 16] == pytest.approx(1.0)  # here valid cells carry more than half
+
+
+def test_untrusted_pixels_take_the_nearest_trusted_depth_on_their_own_rays():
+    z = np.full((6, 8), 2.0)
+    z[:, 5:] = 4.0
+    ok = np.zeros((6, 8), bool)
+    ok[0, 0] = ok[5, 7] = True  # two trusted cells: depth 2 top-left, depth 4 bottom-right
+    centres, depth = filled_depths(plane_coords(z), ok, POSE, K)
+    assert depth[0, 0] == pytest.approx(2.0) and depth[47, 63] == pytest.approx(4.0)
+    assert depth[8, 2] == pytest.approx(2.0) and depth[44, 60] == pytest.approx(4.0)  # nearest trusted cell, per block
+    assert np.all(np.isclose(depth, 2.0) | np.isclose(depth, 4.0))  # nothing between the two surfaces
+    w2c = np.linalg.inv(POSE)
+    Xc = centres @ w2c[:3, :3].T + w2c[:3, 3]
+    u, v = np.meshgrid(np.arange(64), np.arange(48))
+    np.testing.assert_allclose(K.fx * Xc[..., 0] / Xc[..., 2] + K.cx, u, atol=1e-9)
+    np.testing.assert_allclose(K.fy * Xc[..., 1] / Xc[..., 2] + K.cy, v, atol=1e-9)
+    _, none = filled_depths(plane_coords(z), np.zeros((6, 8), bool), POSE, K)
+    assert not none.any()
 
 
 def _pixels(pose: np.ndarray, plane_z: float):

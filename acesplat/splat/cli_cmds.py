@@ -50,6 +50,7 @@ def splat_command(
     encoder: Optional[Path] = typer.Option(None, help="Encoder weights if not where the map says."),
     max_gaussians: int = typer.Option(200_000, help="Cap on the number of Gaussians."),
     reproj_px: float = typer.Option(8.0, help="Validity: SCR coordinates must reproject within this many pixels."),
+    fill: bool = typer.Option(True, help="Also seed untrusted pixels, at the depth of the nearest trusted cell."),
     iterations: Optional[int] = typer.Option(
         None, help="Fixed optimisation iterations (and 1/5 as many head warm-up steps) instead of the budget: reproducible runs."),
     device: str = typer.Option("auto", help="auto, cpu or cuda (networks only: the rasterizer runs on the CPU)."),
@@ -84,7 +85,7 @@ def splat_command(
         raise InputError(None, f"--reproj-px must be positive, got {reproj_px}")
     cfg = SplatConfig(minutes=minutes, protocol=protocol, sparse_views=_parse_pair(views), max_gaussians=max_gaussians,
                       iterations=iterations, head_iterations=None if iterations is None else iterations // 5,
-                      validity=ValidityConfig(reproj_max_px=reproj_px), seed=seed)
+                      validity=ValidityConfig(reproj_max_px=reproj_px), fill=fill, seed=seed)
     dev = resolve_device(device)
     m = load_map(map_path)
     enc = encoder_for_map(m, map_path, encoder)

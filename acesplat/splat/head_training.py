@@ -53,12 +53,14 @@ class HeadTrainer:
         stride: int = HEAD_STRIDE,
         neighbours: int = HEAD_NEIGHBOURS,
         background: np.ndarray | None = None,
+        fill: bool = False,
     ) -> None:
         self.init = init
         self.views = list(views)
         self.norm = norm
         self.sh_degree = sh_degree
         self.stride = stride
+        self.fill = fill
         self.neighbours = nearest_views(np.stack([v.pose for v in self.views]), neighbours)
         self.background = np.zeros(3) if background is None else np.asarray(background, np.float64)
         self._pixels: dict[int, ViewPixels] = {}
@@ -66,7 +68,7 @@ class HeadTrainer:
 
     def pixels(self, i: int) -> ViewPixels:
         if i not in self._pixels:
-            self._pixels[i] = view_pixels(self.views[i], self.norm)
+            self._pixels[i] = view_pixels(self.views[i], self.norm, fill=self.fill)
         return self._pixels[i]
 
     def loss(self, rng: np.random.Generator) -> torch.Tensor | None:

@@ -22,7 +22,7 @@ from .adapter import AdapterConfig, FeatureAdapter
 from .fusion import novel_masks
 from .init_head import InitHead, InitHeadConfig, SceneNorm, coordinate_prior, decode_gaussians
 from .params import cat_tensors
-from .pixel_coords import pixel_coordinates
+from .pixel_coords import filled_depths, pixel_coordinates
 from .validity import MAX_DEPTH_RATIO
 from .views import SplatView
 
@@ -35,7 +35,8 @@ class ViewPixels:
     depth: torch.Tensor  # (H*W,) camera z
     rgb: torch.Tensor  # (H*W, 3)
     prior: torch.Tensor  # (1, PRIOR_CHANNELS, H, W)
-    valid: np.ndarray  # (H, W) bool
+    valid: np.ndarray  # (H, W) bool: may seed a Gaussian
+    trusted: np.ndarray  # (H, W) bool: its depth comes from trusted cells (valid minus the filled pixels)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -48,11 +49,25 @@ class ViewPixels:
         return self.centres.numpy().reshape(*self.shape, 3)
 
 
-def view_pixels(view: SplatView, norm: SceneNorm, max_depth_ratio: float = MAX_DEPTH_RATIO) -> ViewPixels:
-    """Pixel-resolution centres, depths, prior and validity of a view whose SCR outputs are filled."""
+def view_pixels(
+    view: SplatView, norm: SceneNorm, max_depth_ratio: float = MAX_DEPTH_RATIO, fill: bool = False
+) -> ViewPixels:
+    """Pixel-resolution centres, depths, prior and validity of a view whose SCR outputs are filled.
+
+    With ``fill``, pixels without a trusted depth (but in a view with some trusted cells) may seed
+    Gaussians too, at the depth of the nearest trusted cell: on their own rays, so their own view
+    still sees them in the right place, and the optimisation moves them.
+    """
     if view.coords is None or view.validity is None:
         raise ValueError(f"view {view.name} has no SCR coordinates; run views.run_scr first")
-    centres, depth, valid = pixel_coordinates(view.coords, view.validity.valid, view.pose, view.intrinsics, max_depth_ratio)
+    centres, depth, trusted = pixel_coordinates(view.coords, view.validity.valid, view.pose, view.intrinsics,
+                                                max_depth_ratio)
+    valid = trusted
+    if fill and view.validity.valid.any():
+        c_fill, d_fill = filled_depths(view.coords, view.validity.valid, view.pose, view.intrinsics)
+        centres = np.where(trusted[..., None], centres, c_fill)
+        depth = np.where(trusted, depth, d_fill)
+        valid = depth > 0
     prior = coordinate_prior(view.rgb, centres, depth, norm)
     return ViewPixels(
         centres=torch.from_numpy(centres.reshape(-1, 3).astype(np.float32)),
@@ -60,6 +75,7 @@ def view_pixels(view: SplatView, norm: SceneNorm, max_depth_ratio: float = MAX_D
         rgb=torch.from_numpy(view.rgb.reshape(-1, 3)),
         prior=torch.from_numpy(prior)[None],
         valid=valid,
+        trusted=trusted,
     )
 
 

@@ -26,7 +26,7 @@ from .adapter import AdapterConfig
 from .head_training import HeadTrainer
 from .init_head import InitHeadConfig, SceneNorm
 from .instantiate import GaussianInitializer, merge_views
-from .optimize import EvalFn, OptimizeConfig, OptimizeResult, optimise_gaussians
+from .optimize import HEAD_EVERY, EvalFn, OptimizeConfig, OptimizeResult, optimise_gaussians
 from .params import GaussianParams, params_from_tensors
 from .schedule import NET_LR_MAX, NET_LR_MIN, one_cycle
 from .validity import ValidityConfig
@@ -65,6 +65,8 @@ class SplatConfig:
     head_warmup: float = HEAD_WARMUP
     joint_head: bool = True
     fuse: bool = True
+    fill: bool = True
+    """Seed untrusted pixels of views with some trusted cells at their nearest trusted depth (see instantiate.view_pixels)."""
     sparse_views: tuple[int, int] | None = None
     validity: ValidityConfig = field(default_factory=ValidityConfig)
     adapter_widths: tuple[int, int, int, int] = AdapterConfig.widths
@@ -160,13 +162,14 @@ def splat_scene(
 
     adapter_cfg = AdapterConfig(in_channels=int(usable[0].features.shape[1]), widths=cfg.adapter_widths)  # type: ignore[union-attr]
     initializer = GaussianInitializer(adapter_cfg, cfg.head)
-    head = HeadTrainer(initializer, usable, norm, cfg.sh_degree)
+    head = HeadTrainer(initializer, usable, norm, cfg.sh_degree, fill=cfg.fill)
     t_prep = time.monotonic() - t0
     warm_steps, warm_skipped = _warm_up(head, cfg, time.monotonic() + cfg.head_warmup * budget, rng, progress)
     t_warm = time.monotonic() - t0 - t_prep
 
     pixels = [head.pixels(i) for i in range(len(usable))]
     valid_px = int(sum(int(p.valid.sum()) for p in pixels))
+    trusted_px = int(sum(int(p.trusted.sum()) for p in pixels))
     tensors, merge = merge_views(usable, pixels, initializer, cfg.max_initial, cfg.sh_degree, rng, fuse=cfg.fuse)
     if not tensors:
         raise InputError(source, "validity mask is empty at pixel resolution in every view (no Gaussian to start from)")
@@ -175,7 +178,7 @@ def splat_scene(
     remaining = max(budget - (time.monotonic() - t0), 1.0)
     ocfg = OptimizeConfig(scene_extent=extent, max_gaussians=max(cfg.max_gaussians, n_initial), sh_degree=cfg.sh_degree,
                           iterations=cfg.iterations, opacity_reset=cfg.opacity_reset, densify=cfg.densify,
-                          head_every=5 if cfg.joint_head else 0, seed=cfg.seed)
+                          head_every=HEAD_EVERY if cfg.joint_head else 0, seed=cfg.seed)
     opt = optimise_gaussians(params, views, ocfg, remaining, head=head if cfg.joint_head else None,
                              progress=progress, eval_fn=eval_fn, eval_every_s=eval_every_s)
     stats = {
@@ -188,7 +191,8 @@ def splat_scene(
         "init_views": len(init_views),
         "init_views_used": len(usable),
         "valid_cell_fraction": overall,
-        "valid_pixels": valid_px,
+        "trusted_pixels": trusted_px,
+        "seeding_pixels": valid_px,
         "novel_pixels": merge.novel_pixels,
         "stride": merge.stride,
         "gaussians_initial": n_initial,

@@ -12,6 +12,7 @@ take no part: depth is interpolated over the valid ones.
 from __future__ import annotations
 
 import numpy as np
+from scipy.ndimage import distance_transform_edt
 
 from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import invert_pose
@@ -97,3 +98,27 @@ def pixel_coordinates(
     pose = np.asarray(pose_c2w, np.float64)
     centres = X_cam @ pose[:3, :3].T + pose[:3, 3]
     return centres, depth, valid
+
+
+def filled_depths(
+    coords: np.ndarray, cell_valid: np.ndarray, pose_c2w: np.ndarray, intrinsics: Intrinsics
+) -> tuple[np.ndarray, np.ndarray]:
+    """Stand-in world centres (H, W, 3) and depths (H, W) for pixels whose own cells are not trusted.
+
+    Every cell takes the depth of its nearest trusted cell and every pixel the depth of the cell it
+    lies in (no interpolation, so no pixel lands between two surfaces); centres stay on their pixels'
+    rays. All zeros if no cell is trusted.
+    """
+    H, W = intrinsics.height, intrinsics.width
+    z = cell_depths(np.asarray(coords, np.float64), pose_c2w)
+    ok = np.asarray(cell_valid, bool) & np.isfinite(z) & (z > 0)
+    if not ok.any():
+        return np.zeros((H, W, 3)), np.zeros((H, W))
+    _, (iy, ix) = distance_transform_edt(~ok, return_indices=True)
+    z_full = z[iy, ix]
+    rows = np.minimum(np.arange(H) // STRIDE, z.shape[0] - 1)
+    cols = np.minimum(np.arange(W) // STRIDE, z.shape[1] - 1)
+    depth = z_full[rows][:, cols]
+    X_cam = pixel_rays(intrinsics) * depth[..., None]
+    pose = np.asarray(pose_c2w, np.float64)
+    return X_cam @ pose[:3, :3].T + pose[:3, 3], depth
