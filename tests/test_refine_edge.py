@@ -47,9 +47,11 @@ def bundle_with_gaussians(tiny, tmp_path_factory) -> Path:
 
 
 def test_replay_refine_reports_psnr_gain_and_saves_the_map(tiny, bundle_with_gaussians, tmp_path) -> None:
+    """A generous budget, so the quality check does not depend on how busy the machine is (the deadline
+    itself is tested with a fake clock in test_refine_batches)."""
     out, saved = tmp_path / "r.json", tmp_path / "refined.ply"
     r = CliRunner().invoke(app, ["replay", str(bundle_with_gaussians), str(tiny["scene"]), "--split", "train", "--refine",
-                                 "--budget-ms", "100", "--threads", "1", "--json", str(out), "--save-splat", str(saved)])
+                                 "--budget-ms", "2000", "--threads", "1", "--json", str(out), "--save-splat", str(saved)])
     assert r.exit_code == 0, r.output
     s = json.loads(out.read_text())
     assert s["localized"] == s["frames"] == 12
