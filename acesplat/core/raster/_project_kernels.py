@@ -9,12 +9,11 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 from numba import njit
 
 from ._layout import (
     BLUE, CA, CB, CC, DEPTH, EXT_X, EXT_Y, G_BLUE, G_CA, G_CB, G_CC, G_DEPTH, G_GREEN, G_MX, G_MY, G_OPAC,
-    G_RED, GRAD_WIDTH, GREEN, MAHA2, MX, MY, OPAC, POWER_MIN, RED,
+    G_RED, GREEN, MAHA2, MX, MY, OPAC, POWER_MIN, RED,
 )
 
 DILATION = 0.3

@@ -14,7 +14,7 @@ import numpy as np
 from numba import njit
 
 from ._layout import (
-    REC_WIDTH, BLUE, CA, CB, CC, DEPTH, EXT_X, EXT_Y, G_BLUE, G_CA, G_CB, G_CC, G_DEPTH, G_GREEN, G_MX, G_MY, G_OPAC,
+    REC_WIDTH, BLUE, CA, CB, CC, DEPTH, EXT_Y, G_BLUE, G_CA, G_CB, G_CC, G_DEPTH, G_GREEN, G_MX, G_MY, G_OPAC,
     G_RED, GREEN, MAHA2, MX, MY, OPAC, POWER_MIN, RED,
 )
 
