@@ -318,80 +318,6 @@ def _tangent_limits(fx, fy, cx, cy, width, height):
     )
 
 
-@njit(cache=True, inline="always")
-def _project_one(
-    i, means, log_scales, quats, opacity_logits, sh, sh_degree, view, campos,
-    fx, fy, cx, cy, width, height, near, far, lims, rec, bbox, radii, visible, means2d,
-):
-    lim_xn, lim_xp, lim_yn, lim_yp = lims
-    visible[i] = False
-    radii[i] = 0
-    means2d[i, 0] = 0.0
-    means2d[i, 1] = 0.0
-    px, py, pz, ok, qn, q, R, s, T, cov = _camera_frame(means, log_scales, quats, i, view)
-    if not (ok and pz >= near and pz <= far):
-        return
-    op = _sigmoid(opacity_logits[i] * 1.0)
-    # Largest squared Mahalanobis distance at which alpha = op * exp(-d2 / 2) still reaches ALPHA_MIN.
-    maha2 = 2.0 * math.log(op / ALPHA_MIN) if op > ALPHA_MIN else 0.0
-    if not (maha2 > 0.0):
-        return
-    maha2 = min(maha2, MAHA2_MAX)
-    j00, j02, j11, j12, uc, vc, xcl, ycl = _jacobian(px, py, pz, fx, fy, lim_xn, lim_xp, lim_yn, lim_yp)
-    a, b, c = _cov2d(j00, j02, j11, j12, cov)
-    a += DILATION
-    c += DILATION
-    det = a * c - b * b
-    if not (det > 0.0 and det < math.inf):
-        return
-    iz = 1.0 / pz
-    mx = fx * px * iz + cx
-    my = fy * py * iz + cy
-    ex = math.sqrt(maha2 * a)
-    ey = math.sqrt(maha2 * c)
-    if not (ex <= MAX_EXTENT and ey <= MAX_EXTENT):
-        return
-    # Pixel centres sit at integer coordinates; the ellipse's bounding box must hit the image.
-    if not (mx + ex >= 0.0 and mx - ex <= width - 1.0 and my + ey >= 0.0 and my - ey <= height - 1.0):
-        return
-    x0 = int(max(0.0, math.ceil(mx - ex)))
-    x1 = int(min(width - 1.0, math.floor(mx + ex)))
-    y0 = int(max(0.0, math.ceil(my - ey)))
-    y1 = int(min(height - 1.0, math.floor(my + ey)))
-    if x0 > x1 or y0 > y1:
-        return
-    if sh_degree > 0:
-        dx, dy, dz, _ = _view_dir(means, i, campos)
-    else:
-        dx, dy, dz = 0.0, 0.0, 1.0
-    r, g, bl = _sh_raw_color(sh, i, sh_degree, dx, dy, dz)
-    visible[i] = True
-    mid = 0.5 * (a + c)
-    lam = mid + math.sqrt(max(0.1, mid * mid - det))
-    radii[i] = int(math.ceil(3.0 * math.sqrt(lam)))
-    means2d[i, 0] = mx
-    means2d[i, 1] = my
-    bbox[i, 0] = x0
-    bbox[i, 1] = x1
-    bbox[i, 2] = y0
-    bbox[i, 3] = y1
-    rec[i, MX] = mx
-    rec[i, MY] = my
-    inv_det = 1.0 / det
-    rec[i, CA] = c * inv_det
-    rec[i, CB] = -b * inv_det
-    rec[i, CC] = a * inv_det
-    rec[i, OPAC] = op
-    rec[i, RED] = max(r + 0.5, 0.0)
-    rec[i, GREEN] = max(g + 0.5, 0.0)
-    rec[i, BLUE] = max(bl + 0.5, 0.0)
-    rec[i, DEPTH] = pz
-    rec[i, POWER_MIN] = -0.5 * maha2
-    rec[i, MAHA2] = maha2
-    rec[i, EXT_X] = ex
-    rec[i, EXT_Y] = ey
-
-
 @njit(nogil=True, cache=True)
 def project_forward(
     lo, hi, means, log_scales, quats, opacity_logits, sh, sh_degree, view, campos,
@@ -400,177 +326,74 @@ def project_forward(
     """For Gaussians lo..hi-1 fill rec (N, REC_WIDTH), bbox (N, 4) pixel range x0 x1 y0 y1,
     radii (N,), visible (N,) and means2d (N, 2) (zeros where culled). Releases the GIL: chunks run
     on a thread pool."""
-    lims = _tangent_limits(fx, fy, cx, cy, width, height)
+    lim_xn, lim_xp, lim_yn, lim_yp = _tangent_limits(fx, fy, cx, cy, width, height)
     for i in range(lo, hi):
-        _project_one(
-            i, means, log_scales, quats, opacity_logits, sh, sh_degree, view, campos,
-            fx, fy, cx, cy, width, height, near, far, lims, rec, bbox, radii, visible, means2d,
-        )
-
-
-@njit(cache=True, inline="always")
-def _project_backward_one(
-    i, means, log_scales, quats, opacity_logits, sh, sh_degree, view, campos,
-    fx, fy, lims, g_offsets, slot_grads,
-    v_means, v_log_scales, v_quats, v_opacity_logits, v_sh, v_means2d,
-):
-    lim_xn, lim_xp, lim_yn, lim_yp = lims
-    if g_offsets[i] == g_offsets[i + 1]:
-        return
-    v_mx = 0.0
-    v_my = 0.0
-    v_ca = 0.0
-    v_cb = 0.0
-    v_cc = 0.0
-    v_r = 0.0
-    v_g = 0.0
-    v_b = 0.0
-    v_op = 0.0
-    v_z = 0.0
-    for row in range(g_offsets[i], g_offsets[i + 1]):
-        v_mx += slot_grads[row, G_MX]
-        v_my += slot_grads[row, G_MY]
-        v_ca += slot_grads[row, G_CA]
-        v_cb += slot_grads[row, G_CB]
-        v_cc += slot_grads[row, G_CC]
-        v_r += slot_grads[row, G_RED]
-        v_g += slot_grads[row, G_GREEN]
-        v_b += slot_grads[row, G_BLUE]
-        v_op += slot_grads[row, G_OPAC]
-        v_z += slot_grads[row, G_DEPTH]
-    v_means2d[i, 0] = v_mx
-    v_means2d[i, 1] = v_my
-
-    px, py, pz, ok, qn, q, R, s, T, cov = _camera_frame(means, log_scales, quats, i, view)
-    j00, j02, j11, j12, uc, vc, xcl, ycl = _jacobian(px, py, pz, fx, fy, lim_xn, lim_xp, lim_yn, lim_yp)
-    a, b, c = _cov2d(j00, j02, j11, j12, cov)
-    a += DILATION
-    c += DILATION
-    det = a * c - b * b
-
-    # Opacity.
-    op = _sigmoid(opacity_logits[i] * 1.0)
-    v_opacity_logits[i] = v_op * op * (1.0 - op)
-
-    # Colour: SH evaluated along the view direction, +0.5, clamped at 0.
-    v_px = 0.0
-    v_py = 0.0
-    v_pz = v_z
-    if sh_degree > 0:
-        dx, dy, dz, dist = _view_dir(means, i, campos)
-    else:
-        dx, dy, dz, dist = 0.0, 0.0, 1.0, 1.0
-    r, g, bl = _sh_raw_color(sh, i, sh_degree, dx, dy, dz)
-    if r + 0.5 < 0.0:
-        v_r = 0.0
-    if g + 0.5 < 0.0:
-        v_g = 0.0
-    if bl + 0.5 < 0.0:
-        v_b = 0.0
-    ux, uy, uz = _sh_backward(sh, i, sh_degree, dx, dy, dz, v_r, v_g, v_b, v_sh)
-    v_wx = 0.0
-    v_wy = 0.0
-    v_wz = 0.0
-    if sh_degree > 0 and dist > 0.0:
-        # d(unit dir)/d(vector) = (I - d d^T) / |vector|
-        dot = ux * dx + uy * dy + uz * dz
-        inv_dist = 1.0 / dist
-        v_wx = (ux - dot * dx) * inv_dist
-        v_wy = (uy - dot * dy) * inv_dist
-        v_wz = (uz - dot * dz) * inv_dist
-
-    # Conic (inverse of [[a, b], [b, c]]) -> 2D covariance.
-    inv_det = 1.0 / det
-    ca = c * inv_det
-    cb = -b * inv_det
-    cc = a * inv_det
-    v_det = -(v_ca * ca + v_cb * cb + v_cc * cc) * inv_det
-    v_a = v_cc * inv_det + v_det * c
-    v_b2 = -v_cb * inv_det - 2.0 * v_det * b
-    v_c = v_ca * inv_det + v_det * a
-
-    # 2D covariance = J cov J^T.
-    sxx, sxy, sxz, syy, syz, szz = cov
-    v_sxx = v_a * j00 * j00
-    v_sxz = v_a * 2.0 * j00 * j02 + v_b2 * j00 * j12
-    v_szz = v_a * j02 * j02 + v_b2 * j02 * j12 + v_c * j12 * j12
-    v_sxy = v_b2 * j00 * j11
-    v_syz = v_b2 * j02 * j11 + v_c * 2.0 * j11 * j12
-    v_syy = v_c * j11 * j11
-    v_j00 = v_a * (2.0 * j00 * sxx + 2.0 * j02 * sxz) + v_b2 * (j11 * sxy + j12 * sxz)
-    v_j02 = v_a * (2.0 * j00 * sxz + 2.0 * j02 * szz) + v_b2 * (j11 * syz + j12 * szz)
-    v_j11 = v_b2 * (j00 * sxy + j02 * syz) + v_c * (2.0 * j11 * syy + 2.0 * j12 * syz)
-    v_j12 = v_b2 * (j00 * sxz + j02 * szz) + v_c * (2.0 * j11 * syz + 2.0 * j12 * szz)
-
-    # Jacobian entries -> camera point (x or y gets nothing through a clamped tangent).
-    iz = 1.0 / pz
-    iz2 = iz * iz
-    v_pz += -v_j00 * fx * iz2 + v_j02 * fx * uc * iz2 - v_j11 * fy * iz2 + v_j12 * fy * vc * iz2
-    v_uc = -v_j02 * fx * iz
-    v_vc = -v_j12 * fy * iz
-    if not xcl:
-        v_px += v_uc * iz
-        v_pz -= v_uc * px * iz2
-    if not ycl:
-        v_py += v_vc * iz
-        v_pz -= v_vc * py * iz2
-    # Projected mean.
-    v_px += v_mx * fx * iz
-    v_py += v_my * fy * iz
-    v_pz -= (v_mx * fx * px + v_my * fy * py) * iz2
-
-    # Camera covariance = T T^T with symmetric gradient G (off-diagonals halved): dL/dT = 2 G T.
-    g00 = v_sxx
-    g11 = v_syy
-    g22 = v_szz
-    g01 = 0.5 * v_sxy
-    g02 = 0.5 * v_sxz
-    g12 = 0.5 * v_syz
-    t00, t01, t02, t10, t11, t12, t20, t21, t22 = T
-    vt00 = 2.0 * (g00 * t00 + g01 * t10 + g02 * t20)
-    vt01 = 2.0 * (g00 * t01 + g01 * t11 + g02 * t21)
-    vt02 = 2.0 * (g00 * t02 + g01 * t12 + g02 * t22)
-    vt10 = 2.0 * (g01 * t00 + g11 * t10 + g12 * t20)
-    vt11 = 2.0 * (g01 * t01 + g11 * t11 + g12 * t21)
-    vt12 = 2.0 * (g01 * t02 + g11 * t12 + g12 * t22)
-    vt20 = 2.0 * (g02 * t00 + g12 * t10 + g22 * t20)
-    vt21 = 2.0 * (g02 * t01 + g12 * t11 + g22 * t21)
-    vt22 = 2.0 * (g02 * t02 + g12 * t12 + g22 * t22)
-    # T = Vr M  ->  dL/dM = Vr^T dL/dT
-    vm00 = view[0, 0] * vt00 + view[1, 0] * vt10 + view[2, 0] * vt20
-    vm01 = view[0, 0] * vt01 + view[1, 0] * vt11 + view[2, 0] * vt21
-    vm02 = view[0, 0] * vt02 + view[1, 0] * vt12 + view[2, 0] * vt22
-    vm10 = view[0, 1] * vt00 + view[1, 1] * vt10 + view[2, 1] * vt20
-    vm11 = view[0, 1] * vt01 + view[1, 1] * vt11 + view[2, 1] * vt21
-    vm12 = view[0, 1] * vt02 + view[1, 1] * vt12 + view[2, 1] * vt22
-    vm20 = view[0, 2] * vt00 + view[1, 2] * vt10 + view[2, 2] * vt20
-    vm21 = view[0, 2] * vt01 + view[1, 2] * vt11 + view[2, 2] * vt21
-    vm22 = view[0, 2] * vt02 + view[1, 2] * vt12 + view[2, 2] * vt22
-    # M = R diag(s)
-    s0, s1, s2 = s
-    v_log_scales[i, 0] = (vm00 * R[0] + vm10 * R[3] + vm20 * R[6]) * s0
-    v_log_scales[i, 1] = (vm01 * R[1] + vm11 * R[4] + vm21 * R[7]) * s1
-    v_log_scales[i, 2] = (vm02 * R[2] + vm12 * R[5] + vm22 * R[8]) * s2
-    G00, G01, G02 = vm00 * s0, vm01 * s1, vm02 * s2
-    G10, G11, G12 = vm10 * s0, vm11 * s1, vm12 * s2
-    G20, G21, G22 = vm20 * s0, vm21 * s1, vm22 * s2
-    qw, qx, qy, qz = q
-    vqw = 2.0 * (-qz * G01 + qy * G02 + qz * G10 - qx * G12 - qy * G20 + qx * G21)
-    vqx = 2.0 * (qy * G01 + qz * G02 + qy * G10 - 2.0 * qx * G11 - qw * G12 + qz * G20 + qw * G21 - 2.0 * qx * G22)
-    vqy = 2.0 * (-2.0 * qy * G00 + qx * G01 + qw * G02 + qx * G10 + qz * G12 - qw * G20 + qz * G21 - 2.0 * qy * G22)
-    vqz = 2.0 * (-2.0 * qz * G00 - qw * G01 + qx * G02 + qw * G10 - 2.0 * qz * G11 + qy * G12 + qx * G20 + qy * G21)
-    # Through the normalisation q / |q|.
-    dotq = vqw * qw + vqx * qx + vqy * qy + vqz * qz
-    inv_qn = 1.0 / qn
-    v_quats[i, 0] = (vqw - dotq * qw) * inv_qn
-    v_quats[i, 1] = (vqx - dotq * qx) * inv_qn
-    v_quats[i, 2] = (vqy - dotq * qy) * inv_qn
-    v_quats[i, 3] = (vqz - dotq * qz) * inv_qn
-
-    # Camera point -> world mean (p = Vr m + t), plus the SH view-direction path.
-    v_means[i, 0] = view[0, 0] * v_px + view[1, 0] * v_py + view[2, 0] * v_pz + v_wx
-    v_means[i, 1] = view[0, 1] * v_px + view[1, 1] * v_py + view[2, 1] * v_pz + v_wy
-    v_means[i, 2] = view[0, 2] * v_px + view[1, 2] * v_py + view[2, 2] * v_pz + v_wz
+        visible[i] = False
+        radii[i] = 0
+        means2d[i, 0] = 0.0
+        means2d[i, 1] = 0.0
+        px, py, pz, ok, qn, q, R, s, T, cov = _camera_frame(means, log_scales, quats, i, view)
+        if not (ok and pz >= near and pz <= far):
+            continue
+        op = _sigmoid(opacity_logits[i] * 1.0)
+        # Largest squared Mahalanobis distance at which alpha = op * exp(-d2 / 2) still reaches ALPHA_MIN.
+        maha2 = 2.0 * math.log(op / ALPHA_MIN) if op > ALPHA_MIN else 0.0
+        if not (maha2 > 0.0):
+            continue
+        maha2 = min(maha2, MAHA2_MAX)
+        j00, j02, j11, j12, uc, vc, xcl, ycl = _jacobian(px, py, pz, fx, fy, lim_xn, lim_xp, lim_yn, lim_yp)
+        a, b, c = _cov2d(j00, j02, j11, j12, cov)
+        a += DILATION
+        c += DILATION
+        det = a * c - b * b
+        if not (det > 0.0 and det < math.inf):
+            continue
+        iz = 1.0 / pz
+        mx = fx * px * iz + cx
+        my = fy * py * iz + cy
+        ex = math.sqrt(maha2 * a)
+        ey = math.sqrt(maha2 * c)
+        if not (ex <= MAX_EXTENT and ey <= MAX_EXTENT):
+            continue
+        # Pixel centres sit at integer coordinates; the ellipse's bounding box must hit the image.
+        if not (mx + ex >= 0.0 and mx - ex <= width - 1.0 and my + ey >= 0.0 and my - ey <= height - 1.0):
+            continue
+        x0 = int(max(0.0, math.ceil(mx - ex)))
+        x1 = int(min(width - 1.0, math.floor(mx + ex)))
+        y0 = int(max(0.0, math.ceil(my - ey)))
+        y1 = int(min(height - 1.0, math.floor(my + ey)))
+        if x0 > x1 or y0 > y1:
+            continue
+        if sh_degree > 0:
+            dx, dy, dz, _ = _view_dir(means, i, campos)
+        else:
+            dx, dy, dz = 0.0, 0.0, 1.0
+        r, g, bl = _sh_raw_color(sh, i, sh_degree, dx, dy, dz)
+        visible[i] = True
+        mid = 0.5 * (a + c)
+        lam = mid + math.sqrt(max(0.1, mid * mid - det))
+        radii[i] = int(math.ceil(3.0 * math.sqrt(lam)))
+        means2d[i, 0] = mx
+        means2d[i, 1] = my
+        bbox[i, 0] = x0
+        bbox[i, 1] = x1
+        bbox[i, 2] = y0
+        bbox[i, 3] = y1
+        rec[i, MX] = mx
+        rec[i, MY] = my
+        inv_det = 1.0 / det
+        rec[i, CA] = c * inv_det
+        rec[i, CB] = -b * inv_det
+        rec[i, CC] = a * inv_det
+        rec[i, OPAC] = op
+        rec[i, RED] = max(r + 0.5, 0.0)
+        rec[i, GREEN] = max(g + 0.5, 0.0)
+        rec[i, BLUE] = max(bl + 0.5, 0.0)
+        rec[i, DEPTH] = pz
+        rec[i, POWER_MIN] = -0.5 * maha2
+        rec[i, MAHA2] = maha2
+        rec[i, EXT_X] = ex
+        rec[i, EXT_Y] = ey
 
 
 @njit(nogil=True, cache=True)
@@ -586,10 +409,161 @@ def project_backward(
     parameter reads and gradient writes stream. Outputs are pre-zeroed; culled Gaussians stay zero.
     Handles Gaussians lo..hi-1 and releases the GIL.
     """
-    lims = _tangent_limits(fx, fy, cx, cy, width, height)
+    lim_xn, lim_xp, lim_yn, lim_yp = _tangent_limits(fx, fy, cx, cy, width, height)
     for i in range(lo, hi):
-        _project_backward_one(
-            i, means, log_scales, quats, opacity_logits, sh, sh_degree, view, campos,
-            fx, fy, lims, g_offsets, slot_grads,
-            v_means, v_log_scales, v_quats, v_opacity_logits, v_sh, v_means2d,
-        )
+        if g_offsets[i] == g_offsets[i + 1]:
+            continue
+        v_mx = 0.0
+        v_my = 0.0
+        v_ca = 0.0
+        v_cb = 0.0
+        v_cc = 0.0
+        v_r = 0.0
+        v_g = 0.0
+        v_b = 0.0
+        v_op = 0.0
+        v_z = 0.0
+        for row in range(g_offsets[i], g_offsets[i + 1]):
+            v_mx += slot_grads[row, G_MX]
+            v_my += slot_grads[row, G_MY]
+            v_ca += slot_grads[row, G_CA]
+            v_cb += slot_grads[row, G_CB]
+            v_cc += slot_grads[row, G_CC]
+            v_r += slot_grads[row, G_RED]
+            v_g += slot_grads[row, G_GREEN]
+            v_b += slot_grads[row, G_BLUE]
+            v_op += slot_grads[row, G_OPAC]
+            v_z += slot_grads[row, G_DEPTH]
+        v_means2d[i, 0] = v_mx
+        v_means2d[i, 1] = v_my
+
+        px, py, pz, ok, qn, q, R, s, T, cov = _camera_frame(means, log_scales, quats, i, view)
+        j00, j02, j11, j12, uc, vc, xcl, ycl = _jacobian(px, py, pz, fx, fy, lim_xn, lim_xp, lim_yn, lim_yp)
+        a, b, c = _cov2d(j00, j02, j11, j12, cov)
+        a += DILATION
+        c += DILATION
+        det = a * c - b * b
+
+        # Opacity.
+        op = _sigmoid(opacity_logits[i] * 1.0)
+        v_opacity_logits[i] = v_op * op * (1.0 - op)
+
+        # Colour: SH evaluated along the view direction, +0.5, clamped at 0.
+        v_px = 0.0
+        v_py = 0.0
+        v_pz = v_z
+        if sh_degree > 0:
+            dx, dy, dz, dist = _view_dir(means, i, campos)
+        else:
+            dx, dy, dz, dist = 0.0, 0.0, 1.0, 1.0
+        r, g, bl = _sh_raw_color(sh, i, sh_degree, dx, dy, dz)
+        if r + 0.5 < 0.0:
+            v_r = 0.0
+        if g + 0.5 < 0.0:
+            v_g = 0.0
+        if bl + 0.5 < 0.0:
+            v_b = 0.0
+        ux, uy, uz = _sh_backward(sh, i, sh_degree, dx, dy, dz, v_r, v_g, v_b, v_sh)
+        v_wx = 0.0
+        v_wy = 0.0
+        v_wz = 0.0
+        if sh_degree > 0 and dist > 0.0:
+            # d(unit dir)/d(vector) = (I - d d^T) / |vector|
+            dot = ux * dx + uy * dy + uz * dz
+            inv_dist = 1.0 / dist
+            v_wx = (ux - dot * dx) * inv_dist
+            v_wy = (uy - dot * dy) * inv_dist
+            v_wz = (uz - dot * dz) * inv_dist
+
+        # Conic (inverse of [[a, b], [b, c]]) -> 2D covariance.
+        inv_det = 1.0 / det
+        ca = c * inv_det
+        cb = -b * inv_det
+        cc = a * inv_det
+        v_det = -(v_ca * ca + v_cb * cb + v_cc * cc) * inv_det
+        v_a = v_cc * inv_det + v_det * c
+        v_b2 = -v_cb * inv_det - 2.0 * v_det * b
+        v_c = v_ca * inv_det + v_det * a
+
+        # 2D covariance = J cov J^T.
+        sxx, sxy, sxz, syy, syz, szz = cov
+        v_sxx = v_a * j00 * j00
+        v_sxz = v_a * 2.0 * j00 * j02 + v_b2 * j00 * j12
+        v_szz = v_a * j02 * j02 + v_b2 * j02 * j12 + v_c * j12 * j12
+        v_sxy = v_b2 * j00 * j11
+        v_syz = v_b2 * j02 * j11 + v_c * 2.0 * j11 * j12
+        v_syy = v_c * j11 * j11
+        v_j00 = v_a * (2.0 * j00 * sxx + 2.0 * j02 * sxz) + v_b2 * (j11 * sxy + j12 * sxz)
+        v_j02 = v_a * (2.0 * j00 * sxz + 2.0 * j02 * szz) + v_b2 * (j11 * syz + j12 * szz)
+        v_j11 = v_b2 * (j00 * sxy + j02 * syz) + v_c * (2.0 * j11 * syy + 2.0 * j12 * syz)
+        v_j12 = v_b2 * (j00 * sxz + j02 * szz) + v_c * (2.0 * j11 * syz + 2.0 * j12 * szz)
+
+        # Jacobian entries -> camera point (x or y gets nothing through a clamped tangent).
+        iz = 1.0 / pz
+        iz2 = iz * iz
+        v_pz += -v_j00 * fx * iz2 + v_j02 * fx * uc * iz2 - v_j11 * fy * iz2 + v_j12 * fy * vc * iz2
+        v_uc = -v_j02 * fx * iz
+        v_vc = -v_j12 * fy * iz
+        if not xcl:
+            v_px += v_uc * iz
+            v_pz -= v_uc * px * iz2
+        if not ycl:
+            v_py += v_vc * iz
+            v_pz -= v_vc * py * iz2
+        # Projected mean.
+        v_px += v_mx * fx * iz
+        v_py += v_my * fy * iz
+        v_pz -= (v_mx * fx * px + v_my * fy * py) * iz2
+
+        # Camera covariance = T T^T with symmetric gradient G (off-diagonals halved): dL/dT = 2 G T.
+        g00 = v_sxx
+        g11 = v_syy
+        g22 = v_szz
+        g01 = 0.5 * v_sxy
+        g02 = 0.5 * v_sxz
+        g12 = 0.5 * v_syz
+        t00, t01, t02, t10, t11, t12, t20, t21, t22 = T
+        vt00 = 2.0 * (g00 * t00 + g01 * t10 + g02 * t20)
+        vt01 = 2.0 * (g00 * t01 + g01 * t11 + g02 * t21)
+        vt02 = 2.0 * (g00 * t02 + g01 * t12 + g02 * t22)
+        vt10 = 2.0 * (g01 * t00 + g11 * t10 + g12 * t20)
+        vt11 = 2.0 * (g01 * t01 + g11 * t11 + g12 * t21)
+        vt12 = 2.0 * (g01 * t02 + g11 * t12 + g12 * t22)
+        vt20 = 2.0 * (g02 * t00 + g12 * t10 + g22 * t20)
+        vt21 = 2.0 * (g02 * t01 + g12 * t11 + g22 * t21)
+        vt22 = 2.0 * (g02 * t02 + g12 * t12 + g22 * t22)
+        # T = Vr M  ->  dL/dM = Vr^T dL/dT
+        vm00 = view[0, 0] * vt00 + view[1, 0] * vt10 + view[2, 0] * vt20
+        vm01 = view[0, 0] * vt01 + view[1, 0] * vt11 + view[2, 0] * vt21
+        vm02 = view[0, 0] * vt02 + view[1, 0] * vt12 + view[2, 0] * vt22
+        vm10 = view[0, 1] * vt00 + view[1, 1] * vt10 + view[2, 1] * vt20
+        vm11 = view[0, 1] * vt01 + view[1, 1] * vt11 + view[2, 1] * vt21
+        vm12 = view[0, 1] * vt02 + view[1, 1] * vt12 + view[2, 1] * vt22
+        vm20 = view[0, 2] * vt00 + view[1, 2] * vt10 + view[2, 2] * vt20
+        vm21 = view[0, 2] * vt01 + view[1, 2] * vt11 + view[2, 2] * vt21
+        vm22 = view[0, 2] * vt02 + view[1, 2] * vt12 + view[2, 2] * vt22
+        # M = R diag(s)
+        s0, s1, s2 = s
+        v_log_scales[i, 0] = (vm00 * R[0] + vm10 * R[3] + vm20 * R[6]) * s0
+        v_log_scales[i, 1] = (vm01 * R[1] + vm11 * R[4] + vm21 * R[7]) * s1
+        v_log_scales[i, 2] = (vm02 * R[2] + vm12 * R[5] + vm22 * R[8]) * s2
+        G00, G01, G02 = vm00 * s0, vm01 * s1, vm02 * s2
+        G10, G11, G12 = vm10 * s0, vm11 * s1, vm12 * s2
+        G20, G21, G22 = vm20 * s0, vm21 * s1, vm22 * s2
+        qw, qx, qy, qz = q
+        vqw = 2.0 * (-qz * G01 + qy * G02 + qz * G10 - qx * G12 - qy * G20 + qx * G21)
+        vqx = 2.0 * (qy * G01 + qz * G02 + qy * G10 - 2.0 * qx * G11 - qw * G12 + qz * G20 + qw * G21 - 2.0 * qx * G22)
+        vqy = 2.0 * (-2.0 * qy * G00 + qx * G01 + qw * G02 + qx * G10 + qz * G12 - qw * G20 + qz * G21 - 2.0 * qy * G22)
+        vqz = 2.0 * (-2.0 * qz * G00 - qw * G01 + qx * G02 + qw * G10 - 2.0 * qz * G11 + qy * G12 + qx * G20 + qy * G21)
+        # Through the normalisation q / |q|.
+        dotq = vqw * qw + vqx * qx + vqy * qy + vqz * qz
+        inv_qn = 1.0 / qn
+        v_quats[i, 0] = (vqw - dotq * qw) * inv_qn
+        v_quats[i, 1] = (vqx - dotq * qx) * inv_qn
+        v_quats[i, 2] = (vqy - dotq * qy) * inv_qn
+        v_quats[i, 3] = (vqz - dotq * qz) * inv_qn
+
+        # Camera point -> world mean (p = Vr m + t), plus the SH view-direction path.
+        v_means[i, 0] = view[0, 0] * v_px + view[1, 0] * v_py + view[2, 0] * v_pz + v_wx
+        v_means[i, 1] = view[0, 1] * v_px + view[1, 1] * v_py + view[2, 1] * v_pz + v_wy
+        v_means[i, 2] = view[0, 2] * v_px + view[1, 2] * v_py + view[2, 2] * v_pz + v_wz

@@ -141,12 +141,6 @@ def exp_neg(p):
     return e * e
 
 
-@njit(cache=True, inline="always")
-def _u(i):
-    """Index as unsigned: numba then skips the negative-index wrap-around code on every access."""
-    return np.uint64(i)
-
-
 # Per-pixel state of the tile being composited, one 64-byte line per pixel.
 _F_T, _F_R, _F_G, _F_B, _F_D, _F_LAST = 0, 1, 2, 3, 4, 5
 # Per-pixel state of the backward replay.
@@ -196,9 +190,9 @@ def _composite_forward_tile(
         for y in range(ya, yb + 1):
             dy = my - y
             xa, xb = _col_span(mx, dy, ca, cb, cc, maha2, px0, px1)
-            ly = _u(y - py0)
+            ly = np.uint64(y - py0)
             for x in range(xa, xb + 1):
-                lx = _u(x - px0)
+                lx = np.uint64(x - px0)
                 t = st[ly, lx, _F_T]
                 if t <= 0.0:  # finished: the sign marks it, the magnitude keeps the transmittance
                     continue
@@ -220,9 +214,9 @@ def _composite_forward_tile(
                 st[ly, lx, _F_T] = t_next
                 st[ly, lx, _F_LAST] = n_in
     for y in range(py0, py1 + 1):
-        ly = _u(y - py0)
+        ly = np.uint64(y - py0)
         for x in range(px0, px1 + 1):
-            lx = _u(x - px0)
+            lx = np.uint64(x - px0)
             t = abs(st[ly, lx, _F_T])
             a = 1.0 - t
             out_trans[y, x] = t
@@ -271,9 +265,9 @@ def _composite_backward_tile(
     end = tile_offsets[tile + 1]
     n_max = 0
     for y in range(py0, py1 + 1):
-        ly = _u(y - py0)
+        ly = np.uint64(y - py0)
         for x in range(px0, px1 + 1):
-            lx = _u(x - px0)
+            lx = np.uint64(x - px0)
             tf = final_trans[y, x]
             vr = v_color[y, x, 0] * 1.0
             vg = v_color[y, x, 1] * 1.0
@@ -320,9 +314,9 @@ def _composite_backward_tile(
         for y in range(ya, yb + 1):
             dy = my - y
             xa, xb = _col_span(mx, dy, ca, cb, cc, maha2, px0, px1)
-            ly = _u(y - py0)
+            ly = np.uint64(y - py0)
             for x in range(xa, xb + 1):
-                lx = _u(x - px0)
+                lx = np.uint64(x - px0)
                 if kk >= st[ly, lx, _B_LAST]:
                     continue
                 dx = mx - x
