@@ -74,10 +74,13 @@ def test_a_step_that_would_overrun_the_deadline_is_not_started(frames, start_map
     rep = ref.refine(keyframe(frames[5]), deadline)
     assert rep.steps == 3 and rep.stopped_by_deadline
     assert clock.t <= deadline.at
-    # Too little time for even one step: nothing starts and the map is untouched.
+    # Too little time for a step: none starts (the keyframe may still get seeded Gaussians, checked at guard size).
+    rep = ref.refine(keyframe(frames[6]), Deadline(clock.t + 0.05, clock))
+    assert rep.steps == 0 and rep.stopped_by_deadline and rep.outcome != "no_time"
+    # No time at all: nothing starts and the map is untouched.
     n = len(ref.map)
     means = ref.map.means.copy()
-    rep = ref.refine(keyframe(frames[6]), Deadline(clock.t + 0.05, clock))
+    rep = ref.refine(keyframe(frames[7]), Deadline(clock.t - 0.01, clock))
     assert rep.outcome == "no_time" and rep.steps == 0
     assert len(ref.map) == n and np.array_equal(ref.map.means, means)
 

@@ -38,35 +38,45 @@ class RowAdam:
     def __init__(self, gaussians: Gaussians, lr: LearningRates, beta1: float = 0.9, beta2: float = 0.999, eps: float = 1e-15):
         self.lr = lr
         self.beta1, self.beta2, self.eps = beta1, beta2, eps
-        self.m = {p: np.zeros_like(getattr(gaussians, p)) for p in PARAMS}
-        self.v = {p: np.zeros_like(getattr(gaussians, p)) for p in PARAMS}
+        self.m = {p: np.zeros(getattr(gaussians, p).shape, np.float32) for p in PARAMS}
+        self.v = {p: np.zeros(getattr(gaussians, p).shape, np.float32) for p in PARAMS}
         self.t = np.zeros(len(gaussians), np.int64)
         """Per-row step count: bias correction is per row, since rows are updated at different times."""
 
     def step(self, g: Gaussians, grads, rows: np.ndarray | None = None) -> None:
-        """Update ``g`` in place from ``grads`` (anything with the five gradient arrays) on boolean ``rows`` (N,)."""
+        """Update ``g`` in place from ``grads`` (anything with the five gradient arrays) on boolean ``rows`` (N,).
+
+        Whole-array arithmetic with the row mask folded in (no gather/scatter of rows): on a refinement batch
+        most rows are visible, and measured this ran several times faster than updating indexed rows.
+        """
         n = len(g)
         if self.t.shape[0] != n:
             raise ValueError(f"optimiser was made for {self.t.shape[0]} Gaussians, got {n}")
-        idx = np.flatnonzero(np.ones(n, bool) if rows is None else rows)
-        if idx.size == 0:
+        mask = np.ones(n, bool) if rows is None else np.asarray(rows, bool)
+        if mask.shape != (n,):
+            raise ValueError(f"rows must have shape ({n},), got {mask.shape}")
+        if not mask.any():
             return
-        self.t[idx] += 1
-        t = self.t[idx].astype(np.float64)
-        c1 = (1.0 - self.beta1**t)
-        c2 = (1.0 - self.beta2**t)
+        self.t += mask
+        t = np.maximum(self.t, 1).astype(np.float64)
+        step_scale = (np.sqrt(1.0 - self.beta2**t) / (1.0 - self.beta1**t)).astype(np.float32)
+        b1, b2 = np.float32(self.beta1), np.float32(self.beta2)
+        c1, c2 = np.float32(1.0 - self.beta1), np.float32(1.0 - self.beta2)  # not 1 - float32(beta): 1e-5 off
         for p in PARAMS:
-            grad = getattr(grads, p)[idx].astype(np.float64)
-            m = self.beta1 * self.m[p][idx] + (1.0 - self.beta1) * grad
-            v = self.beta2 * self.v[p][idx] + (1.0 - self.beta2) * grad * grad
-            self.m[p][idx] = m
-            self.v[p][idx] = v
+            grad = np.asarray(getattr(grads, p), np.float32)
             shape = (-1,) + (1,) * (grad.ndim - 1)
-            update = (m / c1.reshape(shape)) / (np.sqrt(v / c2.reshape(shape)) + self.eps)
+            live = mask.reshape(shape)
+            m, v = self.m[p], self.v[p]
+            np.copyto(m, b1 * m + c1 * grad, where=live)
+            np.copyto(v, b2 * v + c2 * grad * grad, where=live)
+            # Adam with the bias corrections folded into the step: m_hat / (sqrt(v_hat) + eps).
+            update = (step_scale.reshape(shape) * m) / (np.sqrt(v) + np.float32(self.eps) * np.sqrt(
+                (1.0 - self.beta2**t).astype(np.float32)).reshape(shape))
+            update = np.where(live, update, np.float32(0.0))
             arr = getattr(g, p)
             if p == "sh":
-                lr = np.full(arr.shape[1], self.lr.sh_rest)
+                lr = np.full(arr.shape[1], self.lr.sh_rest, np.float32)
                 lr[0] = self.lr.sh_dc
-                arr[idx] -= (update * lr[None, :, None]).astype(arr.dtype)
+                arr -= (update * lr[None, :, None]).astype(arr.dtype)
             else:
-                arr[idx] -= (getattr(self.lr, p) * update).astype(arr.dtype)
+                arr -= (np.float32(getattr(self.lr, p)) * update).astype(arr.dtype)

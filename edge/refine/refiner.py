@@ -120,6 +120,7 @@ class BatchReport:
     held_before: list[float] = field(default_factory=list)
     held_after: list[float] = field(default_factory=list)
     coverage: float = float("nan")
+    seeded_by: str = ""
     covered_mse: float = float("nan")
     ms: dict[str, float] = field(default_factory=dict)
     step_ms: list[float] = field(default_factory=list)
@@ -138,7 +139,8 @@ class Refiner:
         self.map = gaussians.astype(np.float32)
         self.cfg = cfg
         self.clock = clock
-        self.seeder = seeder or (lambda kf, need, n, deg, rng: scr_seeder(kf, need, n, deg, rng, cfg.seed_spacing))
+        self.scr_seeder = lambda kf, need, n, deg, rng: scr_seeder(kf, need, n, deg, rng, cfg.seed_spacing)
+        self.seeder = seeder or self.scr_seeder
         self.rng = np.random.default_rng(cfg.seed)
         self.bg = np.asarray(cfg.background, np.float64)
         self.held = HeldViews(cfg.held)
@@ -149,22 +151,59 @@ class Refiner:
         self.render_cost = CostEstimate(cfg.render_prior_s)
         self.commit_cost = CostEstimate(0.0)
         self.seed_cost = CostEstimate(0.0)
+        self.scr_seed_cost = CostEstimate(0.0)
+        self.kf_check_cost = CostEstimate(0.0)
         self.guard_view_cost = CostEstimate(cfg.render_prior_s)
         """One held-view render at guard resolution."""
         self.totals = {"keyframes": 0, "committed": 0, "rolled_back": 0, "no_time": 0, "steps": 0,
                        "nonfinite_skipped": 0, "gaussians_added": 0, "pruned": 0, "capped": 0}
 
     # ------------------------------------------------------------------------------------------
-    def warm_up(self) -> None:
-        """Load (or compile) the rasterizer's kernels now, not inside the first keyframe's deadline."""
-        from acesplat.core.camera import Intrinsics as _K
+    def warm_up(self, k: Intrinsics | None = None) -> dict:
+        """Load (or compile) the rasterizer's kernels, then measure what a batch's pieces cost on this map.
 
+        Without measurements every piece would wait for a prior guess to fit the deadline, and a pessimistic
+        guess would never let the first piece run (so nothing would ever be measured). The measurement renders
+        the map at ``k``'s size from its median centre towards its widest direction, as a camera inside the
+        scene looking at a wall would; returns the measured milliseconds.
+        """
         g = Gaussians.zeros(2, self.map.sh_degree, np.float32)
         g.means[:, 2] = 2.0
         g.log_scales[:] = -3.0
-        k = _K.from_focal(16.0, 16, 16)
-        r = rasterize(g, np.eye(4), k, self.bg)
+        small = Intrinsics.from_focal(16.0, 16, 16)
+        r = rasterize(g, np.eye(4), small, self.bg)
         rasterize_backward(r, np.ones((16, 16, 3), np.float32))
+        if k is None or len(self.map) < 2:
+            return {}
+        from acesplat.core.geometry import look_at
+
+        m = self.map.means.astype(np.float64)
+        c = np.median(m, axis=0)
+        axis = np.linalg.svd(m - c, full_matrices=False)[2][0]
+        up = np.array([0.0, 0.0, 1.0]) if abs(axis[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+        pose = look_at(c, c + axis, up)
+        target = np.full((k.height, k.width, 3), 0.5, np.float32)
+        held_rgb, held_k = downsample(target, k, self.cfg.guard_max_side)
+        out = {}
+        for _ in range(2):  # the second round is the measurement (the first touches caches)
+            t0 = self.clock()
+            in_view = frustum_mask(self.map.means, self.map.log_scales, pose, k)
+            sub = self.map.subset(in_view)
+            t1 = self.clock()
+            if not len(sub):
+                return {}
+            r = rasterize(sub, pose, k, self.bg)
+            t2 = self.clock()
+            grads = rasterize_backward(r, (2.0 / target.size) * (r.color - target))
+            RowAdam(sub, self.cfg.lr).step(sub, grads, rows=r.visible)
+            t3 = self.clock()
+            view_mse(self.map, pose, held_k, held_rgb, self.bg)
+            t4 = self.clock()
+            out = {"render_ms": 1000 * (t2 - t0), "step_ms": 1000 * (t3 - t1), "guard_view_ms": 1000 * (t4 - t3)}
+        self.render_cost.record(out["render_ms"] / 1000)
+        self.step_cost.record(out["step_ms"] / 1000)
+        self.guard_view_cost.record(out["guard_view_ms"] / 1000)
+        return out
 
     def refine(self, kf: Keyframe, deadline: Deadline) -> BatchReport:
         """Run one batch for ``kf`` before ``deadline``; the map changes only if the batch is committed."""
@@ -173,8 +212,9 @@ class Refiner:
         rep = BatchReport(name=kf.name, outcome="no_time")
         self.totals["keyframes"] += 1
         t_start = clock()
-        if not deadline.allows(self.render_cost.predict() + self.seed_cost.predict() + self.step_cost.predict(),
-                               self.guard_reserve(kf.k.width * kf.k.height)):
+        kf_px = kf.k.width * kf.k.height
+        if not deadline.allows(self.render_cost.predict() + self.scr_seed_cost.predict(),
+                               self.guard_reserve(kf_px) + self.kf_check_reserve()):
             self.totals["no_time"] += 1
             return rep
 
@@ -203,11 +243,16 @@ class Refiner:
                 return rep
 
         # 2. New Gaussians where the map is missing or wrong.
+        # The primary seeder (the ONNX initializer runs an encoder) only when it fits; else the SCR seeder.
         t0 = clock()
         room = max(0, min(cfg.max_new, cfg.cap))
-        new = self.seeder(kf, an.need, room, self.map.sh_degree, self.rng) if room else Gaussians.empty(self.map.sh_degree)
+        primary = self.seeder is not self.scr_seeder and deadline.allows(
+            self.seed_cost.predict(), self.guard_reserve(kf_px) + self.kf_check_reserve())
+        seeder, cost = (self.seeder, self.seed_cost) if primary else (self.scr_seeder, self.scr_seed_cost)
+        new = seeder(kf, an.need, room, self.map.sh_degree, self.rng) if room else Gaussians.empty(self.map.sh_degree)
         new = new.with_sh_degree(self.map.sh_degree).astype(np.float32) if len(new) else Gaussians.empty(self.map.sh_degree)
-        self.seed_cost.record(clock() - t0)
+        cost.record(clock() - t0)
+        rep.seeded_by = "primary" if primary else "scr"
         rep.ms["seed"] = 1000.0 * (clock() - t0)
         active_idx = in_view[seen] if len(sub) else np.zeros(0, np.int64)
         n_old = active_idx.size
@@ -224,7 +269,7 @@ class Refiner:
         target = np.ascontiguousarray(kf.rgb, np.float32)
         measured = 0
         while rep.steps + rep.nonfinite_skipped < cfg.max_steps:
-            if not deadline.allows(self.step_cost.predict(), self.guard_reserve(kf.k.width * kf.k.height)):
+            if not deadline.allows(self.step_cost.predict(), self.guard_reserve(kf_px) + (0.0 if measured else self.kf_check_reserve())):
                 rep.stopped_by_deadline = True
                 break
             ts = clock()
@@ -250,38 +295,45 @@ class Refiner:
             rep.step_ms.append(1000.0 * dt)
             rep.steps += 1
         rep.ms["optimise"] = 1000.0 * (clock() - t0)
-        if measured == 0:
-            # Not even one measurement fitted: nothing is known about the seeded state, so nothing is committed.
-            rep.outcome = "no_time"
-            self.totals["no_time"] += 1
-            rep.ms["total"] = 1000.0 * (clock() - t_start)
-            return rep
-        rep.mse_after = best_mse
 
         # 4. Prune what became transparent in the batch.
         gone = transparent(best, cfg.prune_opacity)
         rep.pruned = int(gone.sum())
+        is_active = np.zeros(len(self.map), bool)
+        is_active[active_idx] = True
+        cand: list[Gaussians] = []
+
+        def candidate() -> Gaussians:
+            """The map as it would be after the commit (built once, only if a check needs it)."""
+            if not cand:
+                cand.append(concat_gaussians([self.map.subset(~is_active), best.subset(~gone)]))
+            return cand[0]
 
         # 5. Guard: the keyframe must gain, the held keyframes must not lose.
         t0 = clock()
-        ok_kf = best_mse < rep.mse_before
+        kf_before, kf_after = rep.mse_before, best_mse
+        if measured == 0:
+            # No step fitted (seeding only): compare the map before and after on the keyframe at guard size.
+            small_rgb, small_k = downsample(kf.rgb, kf.k, cfg.guard_max_side)
+            kf_before = view_mse(self.map, kf.pose, small_k, small_rgb, self.bg)
+            kf_after = view_mse(candidate(), kf.pose, small_k, small_rgb, self.bg)
+            self.kf_check_cost.record(clock() - t0)
+        t_held = clock()
+        rep.mse_after = kf_after
+        ok_kf = kf_after < kf_before
         ok_held = True
         renders = 0
         if ok_kf and len(self.held):
-            is_active = np.zeros(len(self.map), bool)
-            is_active[active_idx] = True
-            rest = self.map.subset(~is_active)
-            candidate = concat_gaussians([rest, best.subset(~gone)])
             for hv in self.held:
                 if hv.version != self.version or hv.mse is None:
                     hv.mse, hv.version = view_mse(self.map, hv.pose, hv.k, hv.target, self.bg), self.version
                     renders += 1
                 rep.held_before.append(hv.mse)
-                rep.held_after.append(view_mse(candidate, hv.pose, hv.k, hv.target, self.bg))
+                rep.held_after.append(view_mse(candidate(), hv.pose, hv.k, hv.target, self.bg))
                 renders += 1
-            ok_held = held_verdict(rep.mse_before, best_mse, rep.held_before, rep.held_after, cfg.held_tolerance)
+            ok_held = held_verdict(kf_before, kf_after, rep.held_before, rep.held_after, cfg.held_tolerance)
         if renders:
-            self.guard_view_cost.record((clock() - t0) / renders)
+            self.guard_view_cost.record((clock() - t_held) / renders)
         rep.ms["guard"] = 1000.0 * (clock() - t0)
         if not (ok_kf and ok_held):
             rep.outcome = "rolled_back_keyframe" if not ok_kf else "rolled_back_held"
@@ -320,6 +372,12 @@ class Refiner:
         self._count(rep)
         rep.ms["total"] = 1000.0 * (clock() - t_start)
         return rep
+
+    def kf_check_reserve(self) -> float:
+        """Time for checking the keyframe at guard size when no optimisation step measured it (two renders)."""
+        if self.kf_check_cost.count:
+            return self.kf_check_cost.predict()
+        return 2 * self.guard_view_cost.predict()
 
     def guard_reserve(self, kf_pixels: int) -> float:
         """Time kept for the guard (one render per held view, two when its cached error is stale) and the commit.

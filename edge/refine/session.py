@@ -103,7 +103,9 @@ class RefineSession:
         self.clock = clock
         self.initial = gaussians.astype(np.float32)
         self.refiner = Refiner(self.initial.copy(), opts.config, seeder=seeder, clock=clock)
-        self.refiner.warm_up()
+        h, w = getattr(localizer, "input_size", (3 * opts.max_side // 4, opts.max_side))
+        self.calibration_ms = self.refiner.warm_up(refine_intrinsics(Intrinsics.from_focal(float(w), int(w), int(h)),
+                                                                     opts.max_side))
         self.saver = SplatSaver(opts.save_path, opts.save_every_s) if opts.save_path else None
         self.worker = RefineWorker(self.refiner, KeyframeSelector(opts.policy), self.saver, clock)
         self.frames = 0
@@ -173,6 +175,7 @@ class RefineSession:
         s: dict = {
             "budget_ms": self.opts.budget_ms,
             "seeder": self.seeder_name,
+            "calibration_ms": self.calibration_ms,
             "refine_size": None,
             "frames": self.frames,
             "candidates": ws.candidates,
