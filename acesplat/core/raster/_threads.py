@@ -1,8 +1,9 @@
 """A small thread pool that runs GIL-free numba kernels over chunks of an index range.
 
-Chosen over ``@njit(parallel=True)`` by measurement: numba's parallel lowering more than doubled
-the first (uncached) compile, and a shared queue of chunks balances uneven tiles dynamically. It
-also keeps numba's OpenMP/TBB runtime out of processes that already run torch's.
+Chosen over ``@njit(parallel=True)`` by measurement: each parallel kernel cost another 3-5 s of
+first (uncached) compile on this machine for its gufunc wrapper, and a shared counter of chunks
+balances uneven tiles dynamically. It also keeps numba's OpenMP/TBB runtime out of processes that
+already run torch's.
 """
 
 from __future__ import annotations
