@@ -34,7 +34,7 @@ from acesplat.core.scene import read_split
 from acesplat.splat.evaluate import evaluate_views
 from acesplat.splat.optimize import OptimizeConfig, optimise_gaussians
 from acesplat.splat.params import gaussians_from_params, params_from_gaussians
-from acesplat.splat.pipeline import MAX_GAUSSIANS, MAX_INITIAL_GAUSSIANS, SplatConfig, scene_extent, spread, splat_scene
+from acesplat.splat.pipeline import MAX_GAUSSIANS, MAX_INITIAL_GAUSSIANS, SplatConfig, scene_extent, splat_scene, spread
 from acesplat.splat.point_init import gaussians_from_points, random_points, triangulated_points
 from acesplat.splat.views import load_views
 
@@ -92,8 +92,15 @@ class Curve:
         g = gaussians_from_params(params)
         tr = evaluate_views(g, self.train_views)
         te = evaluate_views(g, self.test_views) if self.test_views else {"psnr": None}
-        self.points.append({"seconds": round(t, 2), "iteration": iteration, "train_psnr": tr["psnr"],
-                            "test_psnr": te["psnr"], "gaussians": len(g)})
+        self.points.append(
+            {
+                "seconds": round(t, 2),
+                "iteration": iteration,
+                "train_psnr": tr["psnr"],
+                "test_psnr": te["psnr"],
+                "gaussians": len(g),
+            }
+        )
         self.paused += time.monotonic() - t_e
 
 
@@ -108,19 +115,29 @@ def run_method(method: str, scene: Path, map_path: Path, args, eval_train, eval_
     info: dict = {}
     if method == "scr":
         net = m.network(encoder_for_map(m, map_path, args.encoder))
-        res = splat_scene(frames, net, m.short_side, SplatConfig(minutes=args.minutes, seed=args.seed), source=map_path,
-                          eval_fn=curve, eval_every_s=args.eval_every)
+        res = splat_scene(
+            frames,
+            net,
+            m.short_side,
+            SplatConfig(minutes=args.minutes, seed=args.seed),
+            source=map_path,
+            eval_fn=curve,
+            eval_every_s=args.eval_every,
+        )
         params, views, opt = res.params, res.train_views, res.optimize
-        info = {k: res.stats[k] for k in ("gaussians_initial", "stride", "valid_cell_fraction", "prepare_seconds",
-                                          "head_warmup_seconds")}
+        info = {
+            k: res.stats[k]
+            for k in ("gaussians_initial", "stride", "valid_cell_fraction", "prepare_seconds", "head_warmup_seconds")
+        }
     else:
         views = load_views(frames, m.short_side)
         poses = np.stack([v.pose for v in views])
         extent = scene_extent(poses, fallback=1.0)
         rng = np.random.default_rng(args.seed)
         if method == "sift":
-            pts, cols = triangulated_points([v.gray for v in views], [v.rgb for v in views],
-                                            [v.intrinsics for v in views], list(poses))
+            pts, cols = triangulated_points(
+                [v.gray for v in views], [v.rgb for v in views], [v.intrinsics for v in views], list(poses)
+            )
             if len(pts) < 2:
                 raise SystemExit(f"{scene}: SIFT triangulation found {len(pts)} points")
         else:
@@ -134,17 +151,33 @@ def run_method(method: str, scene: Path, map_path: Path, args, eval_train, eval_
     seconds = curve.clock()
     curve(params, opt.seconds, opt.iterations)  # the final point of the curve
     g = gaussians_from_params(params)
-    final_train = views if args.final_train_views <= 0 else [views[i] for i in spread(len(views), args.final_train_views)]
+    final_train = (
+        views if args.final_train_views <= 0 else [views[i] for i in spread(len(views), args.final_train_views)]
+    )
     tr = evaluate_views(g, final_train)
     test_views = load_views(read_split(scene, "test").frames, m.short_side)
     te = evaluate_views(g, test_views)
-    out = {"method": method, "seconds": seconds, "iterations": opt.iterations, "skipped_steps": opt.skipped_steps,
-           "gaussians_final": len(g), "train_psnr": tr["psnr"], "train_ssim": tr["ssim"], "train_views": tr["frames"],
-           "test_psnr": te["psnr"], "test_ssim": te["ssim"], "test_views": te["frames"], "lifecycle": opt.events,
-           "curve": curve.points, **info}
-    log(f"  {method:6s} {out['train_psnr']:6.2f} / {out['test_psnr']:6.2f} dB  SSIM {out['train_ssim']:.3f} / "
+    out = {
+        "method": method,
+        "seconds": seconds,
+        "iterations": opt.iterations,
+        "skipped_steps": opt.skipped_steps,
+        "gaussians_final": len(g),
+        "train_psnr": tr["psnr"],
+        "train_ssim": tr["ssim"],
+        "train_views": tr["frames"],
+        "test_psnr": te["psnr"],
+        "test_ssim": te["ssim"],
+        "test_views": te["frames"],
+        "lifecycle": opt.events,
+        "curve": curve.points,
+        **info,
+    }
+    log(
+        f"  {method:6s} {out['train_psnr']:6.2f} / {out['test_psnr']:6.2f} dB  SSIM {out['train_ssim']:.3f} / "
         f"{out['test_ssim']:.3f}  {out['gaussians_initial']:>7d} -> {len(g):>7d} Gaussians  {opt.iterations} it  "
-        f"{seconds:.0f} s")
+        f"{seconds:.0f} s"
+    )
     return out
 
 
@@ -231,12 +264,26 @@ def main() -> None:
         results[name] = []
         for method in args.methods.split(","):
             results[name].append(run_method(method, scene, map_path, args, eval_train, eval_test, log))
-            write_json(args.out / "bench_splat_init.json", {"machine": machine_line(), "args": {k: str(v) for k, v in vars(args).items()},
-                                                            "results": results, "log": lines})
+            write_json(
+                args.out / "bench_splat_init.json",
+                {
+                    "machine": machine_line(),
+                    "args": {k: str(v) for k, v in vars(args).items()},
+                    "results": results,
+                    "log": lines,
+                },
+            )
     log(f"uptime at end: {uptime()}")
     plot(results, args.out / "bench_splat_init.png", args.minutes)
-    write_json(args.out / "bench_splat_init.json", {"machine": machine_line(), "args": {k: str(v) for k, v in vars(args).items()},
-                                                    "results": results, "log": lines})
+    write_json(
+        args.out / "bench_splat_init.json",
+        {
+            "machine": machine_line(),
+            "args": {k: str(v) for k, v in vars(args).items()},
+            "results": results,
+            "log": lines,
+        },
+    )
     print(f"-> {args.out / 'bench_splat_init.json'}, {args.out / 'bench_splat_init.png'}")
 
 

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from acesplat.core.gaussians import sh_dc_to_rgb
 from acesplat.core.errors import InputError
+from acesplat.core.gaussians import sh_dc_to_rgb
 from acesplat.splat.lpips import LPIPSAlex, load_lpips
 from acesplat.splat.point_init import POINT_OPACITY, gaussians_from_points, random_points
 
@@ -43,7 +43,9 @@ def test_random_points_fill_the_cube_around_the_cameras():
 def _lpips_file(path, seed: int = 0, drop: str | None = None) -> None:
     torch.manual_seed(seed)
     m = LPIPSAlex()
-    sd = {f"features.{k.split('.')[1]}.{k.split('.')[2]}": v for k, v in m.state_dict().items() if k.startswith("convs.")}
+    sd = {
+        f"features.{k.split('.')[1]}.{k.split('.')[2]}": v for k, v in m.state_dict().items() if k.startswith("convs.")
+    }
     for j, lin in enumerate(m.lins):
         sd[f"lin{j}.model.1.weight"] = lin.weight.detach().abs()  # LPIPS's linear weights are non-negative
     sd.pop(drop, None)

@@ -17,11 +17,11 @@ from typer.testing import CliRunner
 
 from acesplat.cli import app
 from acesplat.core.ply import ply_property_names, read_ply
+from acesplat.core.scene import read_split
 from acesplat.scr.encoders import load_encoder
 from acesplat.scr.mapfile import SceneMap, save_map
 from acesplat.scr.mapping import MappingConfig, map_scene
 from acesplat.scr.network import Encoder, EncoderConfig, HeadConfig
-from acesplat.core.scene import read_split
 from acesplat.splat.splatfile import load_initializer, load_manifest
 from acesplat.synth import synthesize
 
@@ -47,9 +47,19 @@ def world(tmp_path_factory):
     enc_path = root / "enc.pt"
     torch.save(Encoder(TINY_ENCODER).state_dict(), enc_path)
     enc, ident = load_encoder(enc_path)
-    res = map_scene(read_split(scene, "train"), enc,
-                    MappingConfig(iterations=150, short_side=SIZE[0], batch_size=512, buffer_size=4096,
-                                  samples_per_image=256, head=HeadConfig(width=32, blocks=0), triangulate=False))
+    res = map_scene(
+        read_split(scene, "train"),
+        enc,
+        MappingConfig(
+            iterations=150,
+            short_side=SIZE[0],
+            batch_size=512,
+            buffer_size=4096,
+            samples_per_image=256,
+            head=HeadConfig(width=32, blocks=0),
+            triangulate=False,
+        ),
+    )
     map_path = root / "map.pt"
     save_map(map_path, SceneMap(res.head, ident, res.mean, SIZE[0], {}))
     yield {"root": root, "scene": scene, "map": map_path, "encoder": enc_path}
@@ -70,12 +80,36 @@ def one_line_error(res, *needles: str) -> None:
 def test_splat_rises_above_the_floor_and_render_scores_it(world):
     root = world["root"]
     start = root / "start"
-    res = run("splat", world["scene"], "--map", world["map"], "-o", start, "--iterations", "0", "--reproj-px", REPROJ,
-              "--json", root / "start.json")
+    res = run(
+        "splat",
+        world["scene"],
+        "--map",
+        world["map"],
+        "-o",
+        start,
+        "--iterations",
+        "0",
+        "--reproj-px",
+        REPROJ,
+        "--json",
+        root / "start.json",
+    )
     assert res.exit_code == 0, res.output
     out = root / "splat"
-    res = run("splat", world["scene"], "--map", world["map"], "-o", out, "--iterations", ITERATIONS,
-              "--reproj-px", REPROJ, "--json", root / "splat.json")
+    res = run(
+        "splat",
+        world["scene"],
+        "--map",
+        world["map"],
+        "-o",
+        out,
+        "--iterations",
+        ITERATIONS,
+        "--reproj-px",
+        REPROJ,
+        "--json",
+        root / "splat.json",
+    )
     assert res.exit_code == 0, res.output
     before = json.loads((root / "start.json").read_text())
     after = json.loads((root / "splat.json").read_text())
@@ -112,8 +146,24 @@ def test_splat_rises_above_the_floor_and_render_scores_it(world):
 
 def test_sparse_protocol_reports_held_out_targets(world):
     out = world["root"] / "sparse"
-    res = run("splat", world["scene"], "--map", world["map"], "-o", out, "--protocol", "sparse", "--views", "2,5",
-              "--iterations", "10", "--reproj-px", REPROJ, "--json", world["root"] / "sparse.json")
+    res = run(
+        "splat",
+        world["scene"],
+        "--map",
+        world["map"],
+        "-o",
+        out,
+        "--protocol",
+        "sparse",
+        "--views",
+        "2,5",
+        "--iterations",
+        "10",
+        "--reproj-px",
+        REPROJ,
+        "--json",
+        world["root"] / "sparse.json",
+    )
     assert res.exit_code == 0, res.output
     rep = json.loads((world["root"] / "sparse.json").read_text())
     assert rep["protocol"] == "sparse" and rep["target_frames"] == 2 and np.isfinite(rep["target_psnr"])
@@ -123,8 +173,18 @@ def test_sparse_protocol_reports_held_out_targets(world):
 
 
 def test_empty_validity_mask_is_one_line(world):
-    res = run("splat", world["scene"], "--map", world["map"], "-o", world["root"] / "x", "--iterations", "1",
-              "--reproj-px", "0.0001")
+    res = run(
+        "splat",
+        world["scene"],
+        "--map",
+        world["map"],
+        "-o",
+        world["root"] / "x",
+        "--iterations",
+        "1",
+        "--reproj-px",
+        "0.0001",
+    )
     one_line_error(res, str(world["map"]), "validity mask is empty")
 
 
@@ -132,8 +192,18 @@ def test_map_with_another_encoder_is_one_line(world):
     other = world["root"] / "other_enc.pt"
     torch.manual_seed(1)
     torch.save(Encoder(TINY_ENCODER).state_dict(), other)
-    res = run("splat", world["scene"], "--map", world["map"], "-o", world["root"] / "x", "--encoder", other,
-              "--iterations", "1")
+    res = run(
+        "splat",
+        world["scene"],
+        "--map",
+        world["map"],
+        "-o",
+        world["root"] / "x",
+        "--encoder",
+        other,
+        "--iterations",
+        "1",
+    )
     one_line_error(res, str(world["map"]), "encoder")
 
 
@@ -152,12 +222,15 @@ def write_ply_with(path: Path, names: list[str], n: int = 3) -> None:
     path.write_bytes(header.encode() + rows.tobytes())
 
 
-@pytest.mark.parametrize(("change", "message"), [("missing", "missing property rot_3"), ("extra", "unexpected property foo")])
+@pytest.mark.parametrize(
+    ("change", "message"), [("missing", "missing property rot_3"), ("extra", "unexpected property foo")]
+)
 def test_ply_with_missing_or_extra_properties_is_one_line(world, tmp_path, change, message):
     splat = tmp_path / "splat"
     splat.mkdir()
-    (splat / "splat.json").write_text(json.dumps({"format": "acesplat-splat", "version": 1, "short_side": SIZE[0],
-                                                  "background": [0.0, 0.0, 0.0]}))
+    (splat / "splat.json").write_text(
+        json.dumps({"format": "acesplat-splat", "version": 1, "short_side": SIZE[0], "background": [0.0, 0.0, 0.0]})
+    )
     names = ply_property_names(0)
     names = [p for p in names if p != "rot_3"] if change == "missing" else names + ["foo"]
     write_ply_with(splat / "gaussians.ply", names)

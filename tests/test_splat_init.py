@@ -68,14 +68,18 @@ def test_fresh_head_gives_the_analytic_start():
     rgb = torch.tensor([[0.2, 0.4, 0.9], [1.0, 0.0, 0.5]])
     centres = torch.tensor([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
     depth = torch.tensor([2.0, 4.0])
-    g = decode_gaussians(torch.zeros(2, 11), rgb, centres, depth, focal_px=100.0, spacing_px=4.0, head_sh_degree=0,
-                         sh_degree=2)
+    g = decode_gaussians(
+        torch.zeros(2, 11), rgb, centres, depth, focal_px=100.0, spacing_px=4.0, head_sh_degree=0, sh_degree=2
+    )
     assert check_tensors(g) == 2 and g["sh"].shape == (2, 9, 3)
-    np.testing.assert_allclose((g["sh"][:, 0] * SH_C0 + 0.5).numpy(), rgb.numpy(), atol=1e-6)  # renders the pixel colour
+    np.testing.assert_allclose(
+        (g["sh"][:, 0] * SH_C0 + 0.5).numpy(), rgb.numpy(), atol=1e-6
+    )  # renders the pixel colour
     assert float(g["sh"][:, 1:].abs().max()) == 0.0
     np.testing.assert_allclose(torch.sigmoid(g["opacity_logits"]).numpy(), OPACITY_PRIOR, rtol=1e-6)
-    np.testing.assert_allclose(g["log_scales"].exp().numpy(), (SCALE_PRIOR * 4.0 * depth / 100.0)[:, None].expand(2, 3).numpy(),
-                               rtol=1e-6)
+    np.testing.assert_allclose(
+        g["log_scales"].exp().numpy(), (SCALE_PRIOR * 4.0 * depth / 100.0)[:, None].expand(2, 3).numpy(), rtol=1e-6
+    )
     assert torch.equal(g["quats"], torch.tensor([[1.0, 0, 0, 0]] * 2)) and torch.equal(g["means"], centres)
 
 

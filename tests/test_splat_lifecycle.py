@@ -86,8 +86,11 @@ def test_clone_split_prune_on_hand_made_statistics():
     assert torch.equal(m[0], torch.tensor([0.0, 0, 5])) and torch.equal(m[1], torch.tensor([3.0, 0, 5]))
     assert torch.equal(m[2], m[0])  # the clone starts on its parent
     children = m[3:]
-    np.testing.assert_allclose(params["log_scales"].detach()[3:].numpy(),
-                               np.log(np.array([[0.5, 0.2, 0.1]] * 2) / SPLIT_SCALE_DIVISOR), rtol=1e-6)
+    np.testing.assert_allclose(
+        params["log_scales"].detach()[3:].numpy(),
+        np.log(np.array([[0.5, 0.2, 0.1]] * 2) / SPLIT_SCALE_DIVISOR),
+        rtol=1e-6,
+    )
     # children are drawn from the parent: rotated by 180 deg about z the x/y offsets flip sign,
     # and |offset| / scale stays a standard normal draw (loosely bounded here)
     off = (children - torch.tensor([1.0, 0, 5])).numpy() / np.array([0.5, 0.2, 0.1])
@@ -122,7 +125,9 @@ def test_non_finite_gaussians_are_pruned():
     opt = optimizer_with_moments(params)
     with torch.no_grad():
         params["means"][3, 0] = float("nan")
-    ev = densify_and_prune(params, opt, stats([0.0] * 4, [1] * 4), LifecycleConfig(scene_extent=EXTENT, max_gaussians=10))
+    ev = densify_and_prune(
+        params, opt, stats([0.0] * 4, [1] * 4), LifecycleConfig(scene_extent=EXTENT, max_gaussians=10)
+    )
     assert ev.pruned == 2 and torch.isfinite(params["means"]).all()
 
 
@@ -139,7 +144,12 @@ def test_opacity_reset_clamps_and_forgets_moments():
 def test_schedule_scales_3dgs_counts_with_floors():
     full = LifecycleSchedule.scaled(REFERENCE_ITERATIONS)
     assert (full.densify_every, full.densify_from, full.densify_until, full.reset_every, full.sh_up_every) == (
-        DENSIFY_EVERY, DENSIFY_FROM, DENSIFY_UNTIL, OPACITY_RESET_EVERY, SH_UP_EVERY)
+        DENSIFY_EVERY,
+        DENSIFY_FROM,
+        DENSIFY_UNTIL,
+        OPACITY_RESET_EVERY,
+        SH_UP_EVERY,
+    )
     short = LifecycleSchedule.scaled(3000)
     assert short.densify_every == max(MIN_DENSIFY_EVERY, 10) and short.densify_from == 50
     assert short.densify_until == 1500 and short.reset_every == max(MIN_RESET_EVERY, 300) and short.sh_up_every == 100
@@ -168,8 +178,14 @@ def test_post_backward_accumulates_ndc_gradient_norms_of_visible_gaussians():
     for grads in ([[1e-5, 0.0], [0.0, 2e-5], [1.0, 1.0]], [[3e-5, 4e-5], [0.0, 0.0], [1.0, 1.0]]):
         m2d = torch.zeros(3, 2, requires_grad=True)
         m2d.grad = torch.tensor(grads)
-        out = RenderOutput(color=torch.zeros(60, 80, 3), alpha=torch.zeros(60, 80), depth=torch.zeros(60, 80),
-                           means2d=m2d, radii=torch.tensor([3, 2, 0]), visible=torch.tensor([True, True, False]))
+        out = RenderOutput(
+            color=torch.zeros(60, 80, 3),
+            alpha=torch.zeros(60, 80),
+            depth=torch.zeros(60, 80),
+            means2d=m2d,
+            radii=torch.tensor([3, 2, 0]),
+            visible=torch.tensor([True, True, False]),
+        )
         life.step_post_backward(state, out, k)
     # NDC norm: pixel gradient times half the image size per axis
     expected0 = math.hypot(1e-5 * 40, 0) + math.hypot(3e-5 * 40, 4e-5 * 30)

@@ -85,8 +85,9 @@ def test_ssim_map_matches_brute_force_with_zero_padding():
 
 def test_ssim_interior_matches_skimage():
     x, y = _pair(1, 40, 48)
-    ref = structural_similarity(x, y, gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1.0,
-                                channel_axis=2)
+    ref = structural_similarity(
+        x, y, gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1.0, channel_axis=2
+    )
     m = ssim_map(torch.from_numpy(x), torch.from_numpy(y))[0].numpy()
     assert float(m[:, 5:-5, 5:-5].mean()) == pytest.approx(ref, abs=1e-8)
 

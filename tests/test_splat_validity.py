@@ -122,7 +122,7 @@ def test_fusion_keeps_only_unseen_surface():
     assert not masks[1].any()  # the same view adds nothing
     cols = np.nonzero(masks[2].any(axis=0))[0]
     assert 31 <= cols.min() <= 34 and cols.max() == 63  # only the part beyond the first view's edge is new
-    assert masks[2][:, cols.min():].all()
+    assert masks[2][:, cols.min() :].all()
     # the far side of the plane seen from z = 10: same surface points, same footprint, so covered where they overlap
     assert masks[3].sum() < masks[3].size
 

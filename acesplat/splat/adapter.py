@@ -31,7 +31,9 @@ class AdapterConfig:
 
     def __post_init__(self) -> None:
         if len(self.widths) != UPSAMPLE_STAGES + 1 or min(self.widths) < 1 or self.in_channels < 1:
-            raise ValueError(f"AdapterConfig needs in_channels >= 1 and {UPSAMPLE_STAGES + 1} positive widths, got {self}")
+            raise ValueError(
+                f"AdapterConfig needs in_channels >= 1 and {UPSAMPLE_STAGES + 1} positive widths, got {self}"
+            )
 
     @property
     def out_channels(self) -> int:
@@ -60,7 +62,9 @@ class FeatureAdapter(nn.Module):
         self.cfg = cfg
         w = cfg.widths
         self.reduce = nn.Conv2d(cfg.in_channels, w[0], 1)
-        self.convs = nn.ModuleList(nn.Conv2d(w[i], w[i + 1], 3, padding=1, padding_mode="replicate") for i in range(UPSAMPLE_STAGES))
+        self.convs = nn.ModuleList(
+            nn.Conv2d(w[i], w[i + 1], 3, padding=1, padding_mode="replicate") for i in range(UPSAMPLE_STAGES)
+        )
         for m in self.modules():
             if isinstance(m, nn.Conv2d):
                 nn.init.kaiming_normal_(m.weight, nonlinearity="relu")

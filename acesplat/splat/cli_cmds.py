@@ -42,21 +42,33 @@ def _check_map_fits(map_path: Path, short_side: int, frames) -> None:
 @one_line_errors
 def splat_command(
     scene: Path = typer.Argument(..., help="Scene folder in the ACE layout."),
-    map_path: Path = typer.Option(..., "--map", help="Map file from `acesplat map` (its SCR network seeds the Gaussians)."),
-    out: Path = typer.Option(..., "-o", "--out", help="Splat folder to write (gaussians.ply, adapter.pt, init_head.pt, splat.json)."),
+    map_path: Path = typer.Option(
+        ..., "--map", help="Map file from `acesplat map` (its SCR network seeds the Gaussians)."
+    ),
+    out: Path = typer.Option(
+        ..., "-o", "--out", help="Splat folder to write (gaussians.ply, adapter.pt, init_head.pt, splat.json)."
+    ),
     minutes: float = typer.Option(10.0, help="Wall-clock budget of Stage 2."),
-    protocol: str = typer.Option("static", help="static (reconstruct the captured views) or sparse (two views in, held-out targets)."),
-    views: Optional[str] = typer.Option(None, "--views", help="Sparse protocol: the two training frame indices, e.g. 10,14."),
+    protocol: str = typer.Option(
+        "static", help="static (reconstruct the captured views) or sparse (two views in, held-out targets)."
+    ),
+    views: Optional[str] = typer.Option(
+        None, "--views", help="Sparse protocol: the two training frame indices, e.g. 10,14."
+    ),
     encoder: Optional[Path] = typer.Option(None, help="Encoder weights if not where the map says."),
     max_gaussians: int = typer.Option(200_000, help="Cap on the number of Gaussians."),
     reproj_px: float = typer.Option(8.0, help="Validity: SCR coordinates must reproject within this many pixels."),
     fill: bool = typer.Option(True, help="Also seed untrusted pixels, at the depth of the nearest trusted cell."),
     iterations: Optional[int] = typer.Option(
-        None, help="Fixed optimisation iterations (and 1/5 as many head warm-up steps) instead of the budget: reproducible runs."),
+        None,
+        help="Fixed optimisation iterations (and 1/5 as many head warm-up steps) instead of the budget: reproducible runs.",
+    ),
     device: str = typer.Option("auto", help="auto, cpu or cuda (networks only: the rasterizer runs on the CPU)."),
     threads: int = typer.Option(
-        1, help="Torch threads. The rasterizer has its own numba threads; measured on 2 busy cores, one torch thread "
-                "ran this loop's many small tensor ops several times faster than two."),
+        1,
+        help="Torch threads. The rasterizer has its own numba threads; measured on 2 busy cores, one torch thread "
+        "ran this loop's many small tensor ops several times faster than two.",
+    ),
     seed: int = typer.Option(0),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the numbers here."),
 ) -> None:
@@ -69,7 +81,7 @@ def splat_command(
 
     from .evaluate import evaluate_views
     from .params import gaussians_from_params
-    from .pipeline import SplatConfig, spread, splat_scene
+    from .pipeline import SplatConfig, splat_scene, spread
     from .splatfile import save_splat
     from .validity import ValidityConfig
     from .views import load_views
@@ -83,9 +95,17 @@ def splat_command(
         raise InputError(None, f"--iterations must be >= 0, got {iterations}")
     if reproj_px <= 0:
         raise InputError(None, f"--reproj-px must be positive, got {reproj_px}")
-    cfg = SplatConfig(minutes=minutes, protocol=protocol, sparse_views=_parse_pair(views), max_gaussians=max_gaussians,
-                      iterations=iterations, head_iterations=None if iterations is None else iterations // 5,
-                      validity=ValidityConfig(reproj_max_px=reproj_px), fill=fill, seed=seed)
+    cfg = SplatConfig(
+        minutes=minutes,
+        protocol=protocol,
+        sparse_views=_parse_pair(views),
+        max_gaussians=max_gaussians,
+        iterations=iterations,
+        head_iterations=None if iterations is None else iterations // 5,
+        validity=ValidityConfig(reproj_max_px=reproj_px),
+        fill=fill,
+        seed=seed,
+    )
     dev = resolve_device(device)
     m = load_map(map_path)
     enc = encoder_for_map(m, map_path, encoder)
@@ -113,8 +133,11 @@ def splat_command(
         "train_psnr": ev["psnr"],
         "train_ssim": ev["ssim"],
         "train_psnr_views": ev["frames"],
-        **({"target_psnr": targets["psnr"], "target_ssim": targets["ssim"], "target_frames": targets["frames"]}
-           if targets else {}),
+        **(
+            {"target_psnr": targets["psnr"], "target_ssim": targets["ssim"], "target_frames": targets["frames"]}
+            if targets
+            else {}
+        ),
         "eval_seconds": eval_s,
         "device": dev,
         "torch_threads": torch.get_num_threads(),
@@ -148,9 +171,11 @@ def render_command(
     split: str = typer.Option("test", help="train or test."),
     out: Optional[Path] = typer.Option(None, "--out", help="Write render-beside-truth PNGs here."),
     lpips_weights: Optional[list[Path]] = typer.Option(
-        None, "--lpips-weights",
+        None,
+        "--lpips-weights",
         help="Report LPIPS: give torchvision's AlexNet weights and LPIPS v0.1 alex.pth (repeat the option, or one merged file). "
-             "Nothing is downloaded."),
+        "Nothing is downloaded.",
+    ),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the numbers here."),
 ) -> None:
     """Render a split of a scene from a splat and score it against the images."""
@@ -173,13 +198,16 @@ def render_command(
     t0 = time.monotonic()
     with PhaseProgress("render ") as bar:
         views = load_views(data.frames, int(manifest["short_side"]))
-        ev = evaluate_views(g, views, manifest["background"], out, lpips_fn,
-                            progress=lambda d, n: bar("render", d / n, {"frames": d}))
+        ev = evaluate_views(
+            g, views, manifest["background"], out, lpips_fn, progress=lambda d, n: bar("render", d / n, {"frames": d})
+        )
     ev["gaussians"] = len(g)
     ev["split"] = split
     ev["image_size"] = list(views[0].size)
     ev["seconds"] = time.monotonic() - t0
     lp = f", LPIPS {ev['lpips']:.4f}" if "lpips" in ev else ""
-    console.print(f"{split}: {ev['frames']} frames, PSNR {ev['psnr']:.2f} dB, SSIM {ev['ssim']:.4f}{lp}, "
-                  f"{len(g)} Gaussians" + (f" -> {out}" if out else ""))
+    console.print(
+        f"{split}: {ev['frames']} frames, PSNR {ev['psnr']:.2f} dB, SSIM {ev['ssim']:.4f}{lp}, "
+        f"{len(g)} Gaussians" + (f" -> {out}" if out else "")
+    )
     report_json(json_out, ev)

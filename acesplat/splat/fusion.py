@@ -87,7 +87,17 @@ def novel_masks(
             for j in np.argsort(d, kind="stable")[:neighbours]:
                 if not mask.any():
                     break
-                mask &= ~covered_by(centres[i], depths[i], mask, intrinsics[i], depths[j], valids[j], poses[j],
-                                    intrinsics[j], depth_tol, finer_ratio)
+                mask &= ~covered_by(
+                    centres[i],
+                    depths[i],
+                    mask,
+                    intrinsics[i],
+                    depths[j],
+                    valids[j],
+                    poses[j],
+                    intrinsics[j],
+                    depth_tol,
+                    finer_ratio,
+                )
         out.append(mask)
     return out

@@ -82,6 +82,15 @@ class HeadTrainer:
         nb = self.neighbours[i]
         j = i if nb.size == 0 or rng.random() < 1.0 / (nb.size + 1) else int(nb[rng.integers(nb.size)])
         t = self.views[j]
-        out = render(g["means"], g["log_scales"], g["quats"], g["opacity_logits"], g["sh"], t.pose, t.intrinsics,
-                     self.background, sh_degree=min(self.sh_degree, self.init.head.cfg.sh_degree))
+        out = render(
+            g["means"],
+            g["log_scales"],
+            g["quats"],
+            g["opacity_logits"],
+            g["sh"],
+            t.pose,
+            t.intrinsics,
+            self.background,
+            sh_degree=min(self.sh_degree, self.init.head.cfg.sh_degree),
+        )
         return rendering_loss(out.color, self.targets[j].to(out.color.device))

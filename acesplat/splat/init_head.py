@@ -93,9 +93,13 @@ class InitHead(nn.Module):
 
     def forward(self, feats: torch.Tensor, prior: torch.Tensor) -> torch.Tensor:
         if feats.ndim != 4 or feats.shape[1] != self.cfg.feature_channels:
-            raise ValueError(f"features must have shape (B, {self.cfg.feature_channels}, H, W), got {tuple(feats.shape)}")
+            raise ValueError(
+                f"features must have shape (B, {self.cfg.feature_channels}, H, W), got {tuple(feats.shape)}"
+            )
         if prior.shape[0] != feats.shape[0] or prior.shape[1] != PRIOR_CHANNELS or prior.shape[2:] != feats.shape[2:]:
-            raise ValueError(f"prior must have shape {(feats.shape[0], PRIOR_CHANNELS, *feats.shape[2:])}, got {tuple(prior.shape)}")
+            raise ValueError(
+                f"prior must have shape {(feats.shape[0], PRIOR_CHANNELS, *feats.shape[2:])}, got {tuple(prior.shape)}"
+            )
         x = torch.relu(self.conv1(torch.cat([feats, prior], dim=1)))
         x = torch.relu(self.conv2(x))
         return self.out(x)

@@ -60,8 +60,9 @@ def view_pixels(
     """
     if view.coords is None or view.validity is None:
         raise ValueError(f"view {view.name} has no SCR coordinates; run views.run_scr first")
-    centres, depth, trusted = pixel_coordinates(view.coords, view.validity.valid, view.pose, view.intrinsics,
-                                                max_depth_ratio)
+    centres, depth, trusted = pixel_coordinates(
+        view.coords, view.validity.valid, view.pose, view.intrinsics, max_depth_ratio
+    )
     valid = trusted
     if fill and view.validity.valid.any():
         c_fill, d_fill = filled_depths(view.coords, view.validity.valid, view.pose, view.intrinsics)
@@ -115,7 +116,9 @@ class GaussianInitializer(nn.Module):
     def __init__(self, adapter_cfg: AdapterConfig, head_cfg: InitHeadConfig) -> None:
         super().__init__()
         if adapter_cfg.out_channels != head_cfg.feature_channels:
-            raise ValueError(f"adapter gives {adapter_cfg.out_channels} channels, head expects {head_cfg.feature_channels}")
+            raise ValueError(
+                f"adapter gives {adapter_cfg.out_channels} channels, head expects {head_cfg.feature_channels}"
+            )
         self.adapter = FeatureAdapter(adapter_cfg)
         self.head = InitHead(head_cfg)
 
@@ -140,8 +143,14 @@ class GaussianInitializer(nn.Module):
         focal = 0.5 * (view.intrinsics.fx + view.intrinsics.fy)
         rgb = torch.from_numpy(block_colours(view.rgb, spacing_px).reshape(-1, 3)).to(dev)[idx]
         return decode_gaussians(
-            r, rgb, pix.centres.to(dev)[idx], pix.depth.to(dev)[idx],
-            focal, spacing_px, self.head.cfg.sh_degree, sh_degree,
+            r,
+            rgb,
+            pix.centres.to(dev)[idx],
+            pix.depth.to(dev)[idx],
+            focal,
+            spacing_px,
+            self.head.cfg.sh_degree,
+            sh_degree,
         )
 
 
@@ -165,8 +174,13 @@ def merge_views(
     """One scene set from every view's novel pixels (all valid pixels without ``fuse``) on a lattice
     whose stride keeps the set near ``max_gaussians``."""
     if fuse:
-        masks = novel_masks([v.pose for v in views], [v.intrinsics for v in views], [p.centre_map() for p in pixels],
-                            [p.depth_map() for p in pixels], [p.valid for p in pixels])
+        masks = novel_masks(
+            [v.pose for v in views],
+            [v.intrinsics for v in views],
+            [p.centre_map() for p in pixels],
+            [p.depth_map() for p in pixels],
+            [p.valid for p in pixels],
+        )
     else:
         masks = [p.valid for p in pixels]
     novel = int(sum(int(m.sum()) for m in masks))

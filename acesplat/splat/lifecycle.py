@@ -40,8 +40,9 @@ SPLIT_SCALE_DIVISOR = 0.8 * SPLIT_COUNT
 RESET_OPACITY = 0.01
 MIN_DENSIFY_EVERY = 20
 """Never densify on statistics from fewer iterations than this (a Gaussian must be seen from several views)."""
-MIN_RESET_EVERY = 300
-"""Never reset opacities more often than this: recovering from a reset takes a few hundred steps."""
+MIN_RESET_EVERY = 1000
+"""Never reset opacities more often than this: recovering from a reset takes a few hundred steps (measured on
+the built-in scene: a reset at step 300 of 592 dropped PSNR from 29.7 to 12 dB and it took 260 steps to return)."""
 
 
 @dataclass(frozen=True)
@@ -210,7 +211,10 @@ def densify_and_prune(
     state.grad_sum = torch.zeros(total, dtype=torch.float64)
     state.seen = torch.zeros(total, dtype=torch.int64)
     return LifecycleEvents(
-        cloned=int(clone_idx.numel()), split=int(split_idx.numel()), pruned=int(prune.sum()), capped=capped,
+        cloned=int(clone_idx.numel()),
+        split=int(split_idx.numel()),
+        pruned=int(prune.sum()),
+        capped=capped,
         counts={"before": n, "after": total},
     )
 
@@ -232,7 +236,9 @@ def _clone_values(params: GaussianParams, idx: torch.Tensor) -> dict[str, torch.
     return {name: params[name].detach()[idx.to(params[name].device)].clone() for name in PARAM_NAMES}
 
 
-def _split_values(params: GaussianParams, idx: torch.Tensor, generator: torch.Generator | None) -> dict[str, torch.Tensor]:
+def _split_values(
+    params: GaussianParams, idx: torch.Tensor, generator: torch.Generator | None
+) -> dict[str, torch.Tensor]:
     """SPLIT_COUNT children per Gaussian, centred at samples of the parent, each SPLIT_SCALE_DIVISOR smaller."""
     dev = params["means"].device
     idx = idx.to(dev)
@@ -260,7 +266,9 @@ def _normalised(q: torch.Tensor) -> torch.Tensor:
     return torch.where(n > 0, q / n.clamp(min=1e-12), ident)
 
 
-def _replace_param(params: GaussianParams, optimizer: torch.optim.Optimizer, name: str, new: torch.Tensor, state_fn) -> None:
+def _replace_param(
+    params: GaussianParams, optimizer: torch.optim.Optimizer, name: str, new: torch.Tensor, state_fn
+) -> None:
     """Swap ``params[name]`` for a new Parameter holding ``new``, carrying its optimiser state through ``state_fn``."""
     old = params[name]
     fresh = torch.nn.Parameter(new.detach().contiguous())
@@ -270,7 +278,9 @@ def _replace_param(params: GaussianParams, optimizer: torch.optim.Optimizer, nam
                 group["params"][i] = fresh
     st = optimizer.state.pop(old, None)
     if st:
-        optimizer.state[fresh] = {k: (state_fn(v) if isinstance(v, torch.Tensor) and v.shape == old.shape else v) for k, v in st.items()}
+        optimizer.state[fresh] = {
+            k: (state_fn(v) if isinstance(v, torch.Tensor) and v.shape == old.shape else v) for k, v in st.items()
+        }
     params[name] = fresh
 
 
@@ -288,6 +298,9 @@ def _append_rows(params: GaussianParams, optimizer: torch.optim.Optimizer, rows:
     for name in PARAM_NAMES:
         extra = rows[name].to(params[name])
         _replace_param(
-            params, optimizer, name, torch.cat([params[name].detach(), extra], 0),
+            params,
+            optimizer,
+            name,
+            torch.cat([params[name].detach(), extra], 0),
             lambda v, e=extra: torch.cat([v, torch.zeros_like(e)], 0),
         )

@@ -21,7 +21,9 @@ DSSIM_WEIGHT = 0.2
 """lambda of the rendering loss (3DGS and the paper)."""
 
 
-def gaussian_window(size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+def gaussian_window(
+    size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA, dtype: torch.dtype = torch.float32
+) -> torch.Tensor:
     """Normalised 1D Gaussian weights (size,); the 2D window is its outer product."""
     if size < 1 or size % 2 == 0:
         raise ValueError(f"window size must be odd and positive, got {size}")

@@ -20,7 +20,13 @@ from acesplat.core.errors import InputError
 SHIFT = (-0.030, -0.088, -0.188)
 SCALE = (0.458, 0.448, 0.450)
 """LPIPS's input scaling of [-1, 1] images."""
-ALEX_CONVS = {0: (3, 64, 11, 4, 2), 3: (64, 192, 5, 1, 2), 6: (192, 384, 3, 1, 1), 8: (384, 256, 3, 1, 1), 10: (256, 256, 3, 1, 1)}
+ALEX_CONVS = {
+    0: (3, 64, 11, 4, 2),
+    3: (64, 192, 5, 1, 2),
+    6: (192, 384, 3, 1, 1),
+    8: (384, 256, 3, 1, 1),
+    10: (256, 256, 3, 1, 1),
+}
 """torchvision AlexNet ``features`` index -> (in, out, kernel, stride, padding)."""
 TAP_CHANNELS = (64, 192, 384, 256, 256)
 
@@ -28,7 +34,9 @@ TAP_CHANNELS = (64, 192, 384, 256, 256)
 class LPIPSAlex(nn.Module):
     def __init__(self) -> None:
         super().__init__()
-        self.convs = nn.ModuleDict({str(i): nn.Conv2d(c_in, c_out, k, s, p) for i, (c_in, c_out, k, s, p) in ALEX_CONVS.items()})
+        self.convs = nn.ModuleDict(
+            {str(i): nn.Conv2d(c_in, c_out, k, s, p) for i, (c_in, c_out, k, s, p) in ALEX_CONVS.items()}
+        )
         self.lins = nn.ModuleList(nn.Conv2d(c, 1, 1, bias=False) for c in TAP_CHANNELS)
         self.register_buffer("shift", torch.tensor(SHIFT).view(1, 3, 1, 1))
         self.register_buffer("scale", torch.tensor(SCALE).view(1, 3, 1, 1))

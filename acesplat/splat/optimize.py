@@ -75,21 +75,39 @@ ProgressFn = Callable[[str, float, dict], None]
 
 def make_optimizer(params: GaussianParams, scene_extent: float, nets: torch.nn.Module | None) -> torch.optim.AdamW:
     peaks = {
-        "means": LR_MEANS * scene_extent, "log_scales": LR_SCALES, "quats": LR_QUATS,
-        "opacity_logits": LR_OPACITY, "sh_dc": LR_SH_DC, "sh_rest": LR_SH_REST,
+        "means": LR_MEANS * scene_extent,
+        "log_scales": LR_SCALES,
+        "quats": LR_QUATS,
+        "opacity_logits": LR_OPACITY,
+        "sh_dc": LR_SH_DC,
+        "sh_rest": LR_SH_REST,
     }
-    groups = [{"params": [params[n]], "name": n, "peak_lr": lr, "lr": lr, "weight_decay": 0.0, "eps": ADAM_EPS}
-              for n, lr in peaks.items()]
+    groups = [
+        {"params": [params[n]], "name": n, "peak_lr": lr, "lr": lr, "weight_decay": 0.0, "eps": ADAM_EPS}
+        for n, lr in peaks.items()
+    ]
     if nets is not None:
-        groups.append({"params": list(nets.parameters()), "name": "nets", "peak_lr": NET_LR_MAX, "lr": NET_LR_MAX,
-                       "weight_decay": NET_WEIGHT_DECAY, "eps": 1e-8})
+        groups.append(
+            {
+                "params": list(nets.parameters()),
+                "name": "nets",
+                "peak_lr": NET_LR_MAX,
+                "lr": NET_LR_MAX,
+                "weight_decay": NET_WEIGHT_DECAY,
+                "eps": 1e-8,
+            }
+        )
     return torch.optim.AdamW(groups, fused=True)
 
 
 def set_learning_rates(optimizer: torch.optim.Optimizer, progress: float) -> None:
     """Networks follow the one-cycle; Gaussian attributes its warm-up, then 3DGS's schedule."""
     for g in optimizer.param_groups:
-        f = one_cycle_factor(progress) if g["name"] == "nets" or GAUSSIAN_ONE_CYCLE else gaussian_factor(g["name"], progress)
+        f = (
+            one_cycle_factor(progress)
+            if g["name"] == "nets" or GAUSSIAN_ONE_CYCLE
+            else gaussian_factor(g["name"], progress)
+        )
         g["lr"] = g["peak_lr"] * f
 
 
@@ -124,9 +142,13 @@ def optimise_gaussians(
     rng = np.random.default_rng(cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)
     optimizer = make_optimizer(params, cfg.scene_extent, head.init if head is not None else None)
-    lifecycle_cfg = LifecycleConfig(scene_extent=cfg.scene_extent, max_gaussians=cfg.max_gaussians,
-                                    max_sh_degree=cfg.sh_degree, opacity_reset=cfg.opacity_reset,
-                                    densify=cfg.densify)
+    lifecycle_cfg = LifecycleConfig(
+        scene_extent=cfg.scene_extent,
+        max_gaussians=cfg.max_gaussians,
+        max_sh_degree=cfg.sh_degree,
+        opacity_reset=cfg.opacity_reset,
+        densify=cfg.densify,
+    )
     fixed = cfg.iterations is not None
     schedule = LifecycleSchedule.scaled(max(1, cfg.iterations)) if cfg.iterations is not None else None
     lifecycle = GaussianLifecycle(lifecycle_cfg, schedule) if schedule else None
@@ -199,12 +221,30 @@ def optimise_gaussians(
             mse = float(torch.mean((out.color.detach() - targets[vi]) ** 2))
         psnr_run = psnr_from_mse(mse) if np.isnan(psnr_run) else 0.9 * psnr_run + 0.1 * psnr_from_mse(mse)
         if it % HISTORY_EVERY == 0 or it == 1:
-            history.append({"iteration": it, "seconds": round(elapsed(), 3), "progress": round(p, 4),
-                            "loss": float(loss.detach()), "psnr_running": round(psnr_run, 3),
-                            "gaussians": int(params["means"].shape[0]), "sh_degree": deg,
-                            "head_loss": None if head_loss is None else float(head_loss.detach())})
+            history.append(
+                {
+                    "iteration": it,
+                    "seconds": round(elapsed(), 3),
+                    "progress": round(p, 4),
+                    "loss": float(loss.detach()),
+                    "psnr_running": round(psnr_run, 3),
+                    "gaussians": int(params["means"].shape[0]),
+                    "sh_degree": deg,
+                    "head_loss": None if head_loss is None else float(head_loss.detach()),
+                }
+            )
         if progress:
-            progress("optimise", p, {"it": it, "psnr": psnr_run, "gaussians": int(params["means"].shape[0]),
-                                     "skipped": skipped})
-    return OptimizeResult(iterations=it, head_steps=head_steps, skipped_steps=skipped, seconds=elapsed(),
-                          schedule=schedule, events=events, history=history)
+            progress(
+                "optimise",
+                p,
+                {"it": it, "psnr": psnr_run, "gaussians": int(params["means"].shape[0]), "skipped": skipped},
+            )
+    return OptimizeResult(
+        iterations=it,
+        head_steps=head_steps,
+        skipped_steps=skipped,
+        seconds=elapsed(),
+        schedule=schedule,
+        events=events,
+        history=history,
+    )

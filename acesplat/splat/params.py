@@ -32,8 +32,11 @@ def split_sh(tensors: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
 def render_tensors(params: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     """The five tensors the rasterizer takes (``sh`` rejoined, differentiable in both halves)."""
     return {
-        "means": params["means"], "log_scales": params["log_scales"], "quats": params["quats"],
-        "opacity_logits": params["opacity_logits"], "sh": torch.cat([params["sh_dc"], params["sh_rest"]], dim=1),
+        "means": params["means"],
+        "log_scales": params["log_scales"],
+        "quats": params["quats"],
+        "opacity_logits": params["opacity_logits"],
+        "sh": torch.cat([params["sh_dc"], params["sh_rest"]], dim=1),
     }
 
 
@@ -56,7 +59,9 @@ def gaussians_from_params(params: Mapping[str, torch.Tensor]) -> Gaussians:
     """A numpy float32 copy of the parameters (what gets written to PLY)."""
     t = render_tensors(params)
     check_tensors(t)
-    return Gaussians(*(t[n].detach().cpu().float().numpy().copy() for n in ("means", "log_scales", "quats", "opacity_logits", "sh")))
+    return Gaussians(
+        *(t[n].detach().cpu().float().numpy().copy() for n in ("means", "log_scales", "quats", "opacity_logits", "sh"))
+    )
 
 
 TENSOR_NAMES = ("means", "log_scales", "quats", "opacity_logits", "sh")

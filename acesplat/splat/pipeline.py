@@ -143,8 +143,13 @@ def splat_scene(
     train_idx, target_idx = protocol_split(len(frames), cfg.protocol, cfg.sparse_views)
     views = load_views([frames[i] for i in train_idx], short_side)
     init_views = [views[i] for i in spread(len(views), cfg.init_views)]
-    run_scr(init_views, network, cfg.validity, keep_features=True,
-            progress=(lambda d, n: progress("scr", d / n, {"views": d})) if progress else None)
+    run_scr(
+        init_views,
+        network,
+        cfg.validity,
+        keep_features=True,
+        progress=(lambda d, n: progress("scr", d / n, {"views": d})) if progress else None,
+    )
     fractions = [v.validity.fraction for v in init_views]  # type: ignore[union-attr]
     overall = float(np.mean(fractions))
     usable = [v for v, f in zip(init_views, fractions) if f > 0]
@@ -176,11 +181,26 @@ def splat_scene(
     params = params_from_tensors(tensors)
     n_initial = int(params["means"].shape[0])
     remaining = max(budget - (time.monotonic() - t0), 1.0)
-    ocfg = OptimizeConfig(scene_extent=extent, max_gaussians=max(cfg.max_gaussians, n_initial), sh_degree=cfg.sh_degree,
-                          iterations=cfg.iterations, opacity_reset=cfg.opacity_reset, densify=cfg.densify,
-                          head_every=HEAD_EVERY if cfg.joint_head else 0, seed=cfg.seed)
-    opt = optimise_gaussians(params, views, ocfg, remaining, head=head if cfg.joint_head else None,
-                             progress=progress, eval_fn=eval_fn, eval_every_s=eval_every_s)
+    ocfg = OptimizeConfig(
+        scene_extent=extent,
+        max_gaussians=max(cfg.max_gaussians, n_initial),
+        sh_degree=cfg.sh_degree,
+        iterations=cfg.iterations,
+        opacity_reset=cfg.opacity_reset,
+        densify=cfg.densify,
+        head_every=HEAD_EVERY if cfg.joint_head else 0,
+        seed=cfg.seed,
+    )
+    opt = optimise_gaussians(
+        params,
+        views,
+        ocfg,
+        remaining,
+        head=head if cfg.joint_head else None,
+        progress=progress,
+        eval_fn=eval_fn,
+        eval_every_s=eval_every_s,
+    )
     stats = {
         "protocol": cfg.protocol,
         "seconds": time.monotonic() - t0,

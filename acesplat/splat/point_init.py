@@ -37,8 +37,11 @@ def gaussians_from_points(points: np.ndarray, colours: np.ndarray, sh_degree: in
     quats = np.zeros((n, 4))
     quats[:, 0] = 1.0
     return Gaussians(
-        pts.astype(np.float32), np.log(np.repeat(scale[:, None], 3, axis=1)).astype(np.float32), quats.astype(np.float32),
-        np.full(n, logit(np.array(POINT_OPACITY)), np.float32), sh.astype(np.float32),
+        pts.astype(np.float32),
+        np.log(np.repeat(scale[:, None], 3, axis=1)).astype(np.float32),
+        quats.astype(np.float32),
+        np.full(n, logit(np.array(POINT_OPACITY)), np.float32),
+        sh.astype(np.float32),
     )
 
 

@@ -37,14 +37,22 @@ def save_splat(out_dir: str | Path, g: Gaussians, init: GaussianInitializer, man
         raise InputError(out, "output exists and is not a folder")
     out.mkdir(parents=True, exist_ok=True)
     write_ply(out / PLY_NAME, g)
-    for name, module, cfg in ((ADAPTER_NAME, init.adapter, init.adapter.cfg.as_dict()),
-                              (HEAD_NAME, init.head, init.head.cfg.as_dict())):
-        payload = {"format": SPLAT_FORMAT, "version": SPLAT_VERSION, "config": cfg,
-                   "state_dict": {k: v.detach().cpu().clone() for k, v in module.state_dict().items()}}
+    for name, module, cfg in (
+        (ADAPTER_NAME, init.adapter, init.adapter.cfg.as_dict()),
+        (HEAD_NAME, init.head, init.head.cfg.as_dict()),
+    ):
+        payload = {
+            "format": SPLAT_FORMAT,
+            "version": SPLAT_VERSION,
+            "config": cfg,
+            "state_dict": {k: v.detach().cpu().clone() for k, v in module.state_dict().items()},
+        }
         with atomic_path(out / name) as tmp:
             torch.save(payload, tmp)
-    write_json(out / MANIFEST_NAME, {"format": SPLAT_FORMAT, "version": SPLAT_VERSION,
-                                     "created_by": f"acesplat-edge {__version__}", **manifest})
+    write_json(
+        out / MANIFEST_NAME,
+        {"format": SPLAT_FORMAT, "version": SPLAT_VERSION, "created_by": f"acesplat-edge {__version__}", **manifest},
+    )
 
 
 def load_manifest(splat_dir: str | Path) -> dict:
