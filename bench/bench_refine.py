@@ -191,7 +191,7 @@ def main() -> None:
     ap.add_argument("--splat-minutes", type=float, default=2.0)
     ap.add_argument("--max-gaussians", type=int, default=30_000)
     ap.add_argument("--budget-ms", type=float, default=100.0)
-    ap.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
+    ap.add_argument("--threads", type=int, default=1, help="onnxruntime threads (1: measured faster than 2 on the shared 2 cores)")
     ap.add_argument("--repeats", type=int, default=1, help="replays per setting (latency statistics pool them)")
     ap.add_argument("--fresh", action="store_true", help="rebuild the scene, map, splat and bundle")
     ap.add_argument("--json", type=Path, default=None)

@@ -79,7 +79,10 @@ def test_deadline_and_cost_estimate_with_a_fake_clock() -> None:
     assert est.predict() == 0.2 and d.allows(0.2, 0.3) and not d.allows(0.2, 0.31)
     est.record(0.1)
     assert est.predict() == pytest.approx(0.12)
-    est.record(0.3)  # a slow step: the prediction follows the larger of last and mean at once
+    est.record(0.3)
+    assert est.predict() == pytest.approx(1.2 * 0.2)  # median of the recent measurements
+    est.record(0.3)
+    est.record(5.0)  # one outlier does not take over the prediction
     assert est.predict() == pytest.approx(1.2 * 0.3)
     clock.t = 10.4
     assert d.remaining() == pytest.approx(0.1) and not d.expired()

@@ -16,7 +16,6 @@ from acesplat.core.gaussians import Gaussians, concat_gaussians
 from acesplat.core.ply import read_ply, write_ply
 from acesplat.core.scene import read_split
 from edge.cli import app
-from edge.refine.deadline import Deadline
 from edge.refine.keyframes import KeyframePolicy, KeyframeSelector
 from edge.refine.refiner import BatchReport
 from edge.refine.worker import Candidate, RefineWorker
@@ -90,20 +89,26 @@ def test_refine_refuses_a_tampered_gaussians_file(bundle_with_gaussians, tiny, t
     assert "gaussians.ply" in r.output and "sha256" in r.output
 
 
-class _SlowRefiner:
-    """Stands in for Refiner: each batch runs until its deadline (or a preemption)."""
+class _StepRefiner:
+    """Stands in for Refiner: a batch asks for one 1 ms step after another until told no."""
 
     def __init__(self) -> None:
         self.map = Gaussians.zeros(0, 0)
         self.started = threading.Event()
         self.names: list[str] = []
+        self.totals = {"no_time": 0}
 
-    def refine(self, kf, deadline: Deadline) -> BatchReport:
+    def batch(self, kf, rep: BatchReport):
         self.names.append(kf.name)
         self.started.set()
-        while not deadline.expired():
+        while (yield ("step", 0.001, 0.0)):
             time.sleep(0.001)
-        return BatchReport(name=kf.name, outcome="committed")
+        rep.outcome = "committed"
+
+    def abandon(self, gen, rep: BatchReport) -> BatchReport:
+        gen.close()
+        rep.outcome = "no_time"
+        return rep
 
 
 def _candidate(name: str, seconds: float, moved: float) -> Candidate:
@@ -112,29 +117,42 @@ def _candidate(name: str, seconds: float, moved: float) -> Candidate:
     return Candidate(pose, 500, True, time.perf_counter() + seconds, lambda: type("K", (), {"name": name})(), None, name)
 
 
-def test_worker_keeps_the_latest_frame_and_stops_when_preempted() -> None:
-    ref = _SlowRefiner()
-    w = RefineWorker(ref, KeyframeSelector(KeyframePolicy(min_inliers=0, min_translation_m=0.0)))
+def _run_preempted(max_windows: int) -> tuple[_StepRefiner, RefineWorker]:
+    """Keyframe 'a' runs; 'b', 'c', 'd' arrive meanwhile (only 'd' survives); then two preemptions."""
+    ref = _StepRefiner()
+    w = RefineWorker(ref, KeyframeSelector(KeyframePolicy(min_inliers=0, min_translation_m=0.0)), max_windows=max_windows)
     try:
         w.submit(_candidate("a", 30.0, 0.0))
         assert ref.started.wait(5.0)
-        for i, name in enumerate(("b", "c", "d")):  # arrive while "a" runs: only the newest survives
+        for i, name in enumerate(("b", "c", "d")):
             w.submit(_candidate(name, 30.0, 1.0 + i))
-        t0 = time.perf_counter()
-        w.preempt()  # the next frame's localization starts: "a" stops at once
-        ref.started.clear()
-        assert ref.started.wait(5.0)
-        assert time.perf_counter() - t0 < 2.0
-        w.preempt()
-        assert w.wait_idle(5.0)
+        for _ in range(2):  # the next frames' localizations start: the running batch stops at its next step
+            time.sleep(0.05)
+            w.preempt()
+        time.sleep(0.05)
+        w.wait_idle(0.5)
     finally:
         w.close()
-    assert ref.names == ["a", "d"] and w.dropped == 2
-    assert w.stats.candidates == 4 and len(w.stats.reports) == 2
+    assert w.dropped == 2 and w.stats.candidates == 4
+    return ref, w
+
+
+def test_worker_latest_wins_and_a_preempted_batch_ends_in_one_window() -> None:
+    ref, w = _run_preempted(max_windows=1)
+    assert ref.names == ["a", "d"]  # 'a' stopped stepping at the preemption; 'd' was the newest frame
+    assert [r.outcome for r in w.stats.reports][:1] == ["committed"]
+
+
+def test_worker_carries_a_preempted_batch_into_the_next_frame_window() -> None:
+    ref, w = _run_preempted(max_windows=4)
+    assert ref.names == ["a"]  # 'd' lent 'a' its time window instead of becoming a keyframe
+    assert w.stats.absorbed == 1
+    # Steps wait for at most two windows: at the second preemption the batch ends its optimisation and completes.
+    assert [(r.outcome, r.windows) for r in w.stats.reports] == [("committed", 2)]
 
 
 def test_worker_skips_a_frame_whose_deadline_passed() -> None:
-    ref = _SlowRefiner()
+    ref = _StepRefiner()
     w = RefineWorker(ref, KeyframeSelector(KeyframePolicy(min_inliers=0)))
     try:
         w.submit(_candidate("late", -0.01, 0.0))

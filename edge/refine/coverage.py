@@ -58,20 +58,25 @@ def frustum_mask(
     means: np.ndarray, log_scales: np.ndarray, pose_c2w: np.ndarray, k: Intrinsics, near: float = 0.01, sigmas: float = 3.0
 ) -> np.ndarray:
     """Gaussians (N,) that can touch the image: in front of the camera and within ``sigmas`` of their
-    largest scale of the image rectangle (a conservative test, so rendering only these changes nothing)."""
-    X = camera_points(means, pose_c2w)
+    largest scale of the image rectangle (a conservative test, so rendering only these changes nothing).
+
+    float32 arithmetic with one temporary per quantity: it runs on the whole map several times per
+    keyframe (measured 10 ms on 45k Gaussians in float64, the cost of a render at 80x60)."""
+    w2c = invert_pose(np.asarray(pose_c2w, np.float64)).astype(np.float32)
+    X = np.asarray(means, np.float32) @ w2c[:3, :3].T
+    X += w2c[:3, 3]
     z = X[:, 2]
+    r = np.exp(np.max(np.asarray(log_scales, np.float32), axis=1)) * np.float32(sigmas)
     front = z > near
-    zs = np.where(front, z, 1.0)
-    r = sigmas * np.exp(np.max(np.asarray(log_scales, np.float64), axis=1))
-    u = k.fx * X[:, 0] / zs + k.cx
-    v = k.fy * X[:, 1] / zs + k.cy
-    mx = k.fx * r / zs + 1.0
-    my = k.fy * r / zs + 1.0
-    inside = (u > -mx - 0.5) & (u < k.width - 0.5 + mx) & (v > -my - 0.5) & (v < k.height - 0.5 + my)
+    inv = np.float32(1.0) / np.where(front, z, np.float32(1.0))
+    ru = (k.fx * r) * inv + 1.0
+    u = (k.fx * X[:, 0]) * inv + k.cx
+    inside = np.abs(u - (k.width - 1) / 2.0) < (k.width / 2.0 + ru)
+    rv = (k.fy * r) * inv + 1.0
+    v = (k.fy * X[:, 1]) * inv + k.cy
+    inside &= np.abs(v - (k.height - 1) / 2.0) < (k.height / 2.0 + rv)
     # A Gaussian straddling the camera plane is kept: its projection is unbounded.
-    straddles = (~front) & (z + r > near)
-    return (front & inside) | straddles
+    return (front & inside) | ((~front) & (z + r > near))
 
 
 def projected_coverage(

@@ -1,14 +1,18 @@
 """Deadlines and step-cost estimates: refinement never starts work it cannot finish in time.
 
-The clock is injectable so tests drive it by hand. A step's cost is predicted from the steps before
-it (the larger of the last one and a running mean, times a safety margin: costs on a shared CPU
-jump up more often than down); before any measurement the caller's prior is used.
+The clock is injectable so tests drive it by hand. A piece of work's cost is predicted from the
+last few measurements (their median times a safety margin: robust to one slow outlier, which on a
+shared CPU would otherwise block every later piece whose estimate it inflated); before any
+measurement the caller's prior is used.
 """
 
 from __future__ import annotations
 
 import time
+from collections import deque
 from typing import Callable
+
+import numpy as np
 
 Clock = Callable[[], float]
 
@@ -43,25 +47,24 @@ class Deadline:
 class CostEstimate:
     """Predicted duration (seconds) of a recurring piece of work."""
 
-    def __init__(self, prior_s: float, safety: float = SAFETY, smoothing: float = 0.3) -> None:
+    def __init__(self, prior_s: float, safety: float = SAFETY, window: int = 5) -> None:
         if prior_s < 0:
             raise ValueError(f"prior must be non-negative, got {prior_s}")
         self.prior_s = prior_s
         self.safety = safety
-        self.smoothing = smoothing
-        self.mean_s: float | None = None
+        self.recent: deque[float] = deque(maxlen=window)
         self.last_s: float | None = None
         self.count = 0
 
     def record(self, seconds: float) -> None:
         self.count += 1
         self.last_s = seconds
-        self.mean_s = seconds if self.mean_s is None else (1 - self.smoothing) * self.mean_s + self.smoothing * seconds
+        self.recent.append(seconds)
 
     def predict(self) -> float:
-        if self.mean_s is None or self.last_s is None:
+        if not self.recent:
             return self.prior_s
-        return self.safety * max(self.mean_s, self.last_s)
+        return self.safety * float(np.median(self.recent))
 
 
 def timed(clock: Clock, fn: Callable[[], object], estimate: CostEstimate | None = None) -> tuple[object, float]:

@@ -51,6 +51,20 @@ class OnnxSeeder:
         self.spacing = spacing
         self.channels = 1 + 3 * sh_coeff_count(self.head_degree) + 7
 
+    def time_once(self, estimate=None) -> float:
+        """Run the graph once on a blank input (loads it) and again timed; records the seconds in ``estimate``."""
+        import time
+
+        gray = np.zeros(self.size, np.float32)
+        prior = np.zeros((PRIOR_CHANNELS, *self.size), np.float32)
+        self.residuals(gray, prior)
+        t0 = time.perf_counter()
+        self.residuals(gray, prior)
+        dt = time.perf_counter() - t0
+        if estimate is not None:
+            estimate.record(dt)
+        return dt
+
     def residuals(self, gray: np.ndarray, prior: np.ndarray) -> np.ndarray:
         """(H, W, C) head residuals for a grayscale (H, W) image and a prior (PRIOR_CHANNELS, H, W)."""
         out = self.sess.run(None, {"gray": gray.astype(np.float32)[None, None], "prior": prior[None].astype(np.float32)})[0]

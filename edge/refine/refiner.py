@@ -5,9 +5,9 @@ map itself changes only at the commit, all at once, and rolling back is simply n
 copy's best state is the one with the lowest measured error on the keyframe (each forward pass
 measures the state left by the previous step), so a step that made the keyframe worse is undone too.
 
-Time: before each piece of work the deadline is asked whether its predicted cost (from earlier
-measurements) fits, keeping a reserve for the guard renders that must follow; work that would
-overrun is not started.
+Time: the batch is a generator that announces each piece of work with its predicted cost (from
+earlier measurements) before doing it; the driver (``refine`` for one deadline, the worker across
+several frames' windows) answers whether it may run, so work that would overrun is never started.
 """
 
 from __future__ import annotations
@@ -27,8 +27,9 @@ from .adam import LearningRates, RowAdam
 from .coverage import ALPHA_MIN, ERROR_MAX, analyse_render, frustum_mask
 from .deadline import Clock, CostEstimate, Deadline
 from .guard import HELD_TOLERANCE, HeldView, HeldViews, all_finite, downsample, held_verdict, view_mse
-from .prune import PRUNE_OPACITY, cap_keep, transparent
+from .prune import PRUNE_OPACITY, transparent
 from .seeding import seed_from_scr
+from .store import GaussianStore
 
 DIVERGE = 1.5
 """A step whose measured error exceeds the batch's best by this factor ends the batch (keeping the best)."""
@@ -36,6 +37,8 @@ POSE_CHECK_FACTOR = 2.5
 """A keyframe whose error on the pixels the map already covers exceeds this multiple of the median of recent
 committed keyframes' is taken for a wrong pose and not used. Measured on the synthetic room: correct poses
 spread 3x (0.0025..0.0071 MSE); poses 10 cm / 3 deg off raised it 1.8x..5x, 30 cm / 10 deg off 3.5x..8x."""
+STEP_PER_RENDER = 2.5
+"""A step (render + backward + Adam) costs about this many keyframe renders until measured."""
 POSE_CHECK_MIN_COVERAGE = 0.3
 POSE_CHECK_HISTORY = 8
 POSE_CHECK_MIN_HISTORY = 3
@@ -54,7 +57,7 @@ class RefineConfig:
     view overfit it: measured on the synthetic room, 30 steps raised other views' error by up to 3x."""
     held: int = 2
     """Earlier keyframes the photometric guard checks."""
-    guard_max_side: int = 64
+    guard_max_side: int = 48
     held_tolerance: float = HELD_TOLERANCE
     alpha_min: float = ALPHA_MIN
     error_max: float = ERROR_MAX
@@ -125,6 +128,8 @@ class BatchReport:
     ms: dict[str, float] = field(default_factory=dict)
     step_ms: list[float] = field(default_factory=list)
     stopped_by_deadline: bool = False
+    windows: int = 1
+    """Frames' time windows the batch ran in (the worker carries a batch over several frames)."""
 
     @property
     def committed(self) -> bool:
@@ -136,7 +141,7 @@ class Refiner:
 
     def __init__(self, gaussians: Gaussians, cfg: RefineConfig = RefineConfig(), seeder: Callable | None = None,
                  clock: Clock = time.perf_counter) -> None:
-        self.map = gaussians.astype(np.float32)
+        self.store = GaussianStore(gaussians.astype(np.float32), cfg.cap)
         self.cfg = cfg
         self.clock = clock
         self.scr_seeder = lambda kf, need, n, deg, rng: scr_seeder(kf, need, n, deg, rng, cfg.seed_spacing)
@@ -149,6 +154,11 @@ class Refiner:
         """Bumped at every commit: held views' cached errors are valid for one version."""
         self.step_cost = CostEstimate(cfg.step_prior_s)
         self.render_cost = CostEstimate(cfg.render_prior_s)
+        self.step_per_render = STEP_PER_RENDER
+        """Step cost / keyframe render cost, measured at warm-up. Renders happen on every keyframe, steps only
+        when they fit: a step estimate left from slower times would never be corrected, so after a batch
+        without steps each render adds this multiple of its own cost as a step sample."""
+        self.stepless_batches = 0
         self.commit_cost = CostEstimate(0.0)
         self.seed_cost = CostEstimate(0.0)
         self.scr_seed_cost = CostEstimate(0.0)
@@ -164,8 +174,8 @@ class Refiner:
 
         Without measurements every piece would wait for a prior guess to fit the deadline, and a pessimistic
         guess would never let the first piece run (so nothing would ever be measured). The measurement renders
-        the map at ``k``'s size from its median centre towards its widest direction, as a camera inside the
-        scene looking at a wall would; returns the measured milliseconds.
+        the map at ``k``'s size from its median centre along its two widest directions (both ways), as cameras
+        inside the scene looking at walls would, and keeps the median; returns the measured milliseconds.
         """
         g = Gaussians.zeros(2, self.map.sh_degree, np.float32)
         g.means[:, 2] = 2.0
@@ -179,19 +189,18 @@ class Refiner:
 
         m = self.map.means.astype(np.float64)
         c = np.median(m, axis=0)
-        axis = np.linalg.svd(m - c, full_matrices=False)[2][0]
-        up = np.array([0.0, 0.0, 1.0]) if abs(axis[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-        pose = look_at(c, c + axis, up)
+        axes = np.linalg.svd(m - c, full_matrices=False)[2]
         target = np.full((k.height, k.width, 3), 0.5, np.float32)
         held_rgb, held_k = downsample(target, k, self.cfg.guard_max_side)
-        out = {}
-        for _ in range(2):  # the second round is the measurement (the first touches caches)
+        rows = []
+        for d in (axes[0], -axes[0], axes[1], -axes[1]):  # four views around the scene's centre; the median counts
+            up = np.array([0.0, 0.0, 1.0]) if abs(d[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+            pose = look_at(c, c + d, up)
             t0 = self.clock()
-            in_view = frustum_mask(self.map.means, self.map.log_scales, pose, k)
-            sub = self.map.subset(in_view)
+            sub = self.map.subset(frustum_mask(self.map.means, self.map.log_scales, pose, k))
             t1 = self.clock()
             if not len(sub):
-                return {}
+                continue
             r = rasterize(sub, pose, k, self.bg)
             t2 = self.clock()
             grads = rasterize_backward(r, (2.0 / target.size) * (r.color - target))
@@ -199,24 +208,61 @@ class Refiner:
             t3 = self.clock()
             view_mse(self.map, pose, held_k, held_rgb, self.bg)
             t4 = self.clock()
-            out = {"render_ms": 1000 * (t2 - t0), "step_ms": 1000 * (t3 - t1), "guard_view_ms": 1000 * (t4 - t3)}
-        self.render_cost.record(out["render_ms"] / 1000)
-        self.step_cost.record(out["step_ms"] / 1000)
-        self.guard_view_cost.record(out["guard_view_ms"] / 1000)
-        return out
+            rows.append((t2 - t0, t3 - t1, t4 - t3))
+        if not rows:
+            return {}
+        render_s, step_s, guard_s = (float(v) for v in np.median(np.array(rows), axis=0))
+        self.render_cost.record(render_s)
+        self.step_cost.record(step_s)
+        self.step_per_render = step_s / max(render_s, 1e-6)
+        self.guard_view_cost.record(guard_s)
+        return {"render_ms": 1000 * render_s, "step_ms": 1000 * step_s, "guard_view_ms": 1000 * guard_s}
 
     def refine(self, kf: Keyframe, deadline: Deadline) -> BatchReport:
-        """Run one batch for ``kf`` before ``deadline``; the map changes only if the batch is committed."""
+        """Run one batch for ``kf`` within one deadline; the map changes only if the batch is committed.
+
+        Optional work (a step, the ONNX seeder) is skipped when it would not end before the deadline with the
+        guard's reserve kept; required work (the first render, the guard and commit) that would not fit
+        abandons the batch ('no_time'). :class:`edge.refine.worker.RefineWorker` drives the same batch over
+        several frames' windows instead.
+        """
+        rep = BatchReport(name=kf.name, outcome="no_time")
+        gen = self.batch(kf, rep)
+        try:
+            kind, cost, reserve = next(gen)
+            while True:
+                ok = deadline.allows(cost, reserve)
+                if not ok and kind == "must":
+                    return self.abandon(gen, rep)
+                if not ok and kind == "step":
+                    rep.stopped_by_deadline = True
+                kind, cost, reserve = gen.send(ok)
+        except StopIteration:
+            return rep
+
+    def abandon(self, gen, rep: BatchReport) -> BatchReport:
+        """Close a batch that ran out of time before its required work; the map is unchanged."""
+        gen.close()
+        rep.outcome = "no_time"
+        self.totals["no_time"] += 1
+        self._count(rep)
+        return rep
+
+    def batch(self, kf: Keyframe, rep: BatchReport):
+        """One keyframe's batch as a generator of work requests.
+
+        Yields (kind, predicted seconds, seconds to keep after it) before each piece of work and receives
+        whether to do it: kind 'must' (the batch cannot go on without it), 'step' (one optimisation step;
+        False ends the optimisation), 'option' (the ONNX seeder; False seeds from SCR coordinates). Fills
+        ``rep``; the map changes only in the last piece, the commit.
+        """
         _check_keyframe(kf)
         clock, cfg = self.clock, self.cfg
-        rep = BatchReport(name=kf.name, outcome="no_time")
         self.totals["keyframes"] += 1
         t_start = clock()
         kf_px = kf.k.width * kf.k.height
-        if not deadline.allows(self.render_cost.predict() + self.scr_seed_cost.predict(),
-                               self.guard_reserve(kf_px) + self.kf_check_reserve()):
-            self.totals["no_time"] += 1
-            return rep
+        yield ("must", self.render_cost.predict() + self.scr_seed_cost.predict(),
+               self.guard_reserve(kf_px) + self.kf_check_reserve())
 
         # 1. What the map shows from the keyframe, and where it falls short.
         t0 = clock()
@@ -231,6 +277,9 @@ class Refiner:
         an = analyse_render(color, alpha, kf.rgb, cfg.alpha_min, cfg.error_max)
         rep.mse_before, rep.coverage = an.mse, an.coverage
         rep.ms["render"] = 1000.0 * self.render_cost_record(clock() - t0)
+        if self.stepless_batches:
+            # No step ran lately, so the step estimate is stale; what this render cost implies stands in for a step.
+            self.step_cost.record(self.step_per_render * rep.ms["render"] / 1000.0)
         covered = alpha >= cfg.alpha_min
         if covered.mean() >= POSE_CHECK_MIN_COVERAGE:
             d = np.asarray(color, np.float32)[covered] - kf.rgb[covered]
@@ -244,10 +293,10 @@ class Refiner:
 
         # 2. New Gaussians where the map is missing or wrong.
         # The primary seeder (the ONNX initializer runs an encoder) only when it fits; else the SCR seeder.
-        t0 = clock()
         room = max(0, min(cfg.max_new, cfg.cap))
-        primary = self.seeder is not self.scr_seeder and deadline.allows(
-            self.seed_cost.predict(), self.guard_reserve(kf_px) + self.kf_check_reserve())
+        primary = self.seeder is not self.scr_seeder and (
+            yield ("option", self.seed_cost.predict(), self.guard_reserve(kf_px) + self.kf_check_reserve()))
+        t0 = clock()
         seeder, cost = (self.seeder, self.seed_cost) if primary else (self.scr_seeder, self.scr_seed_cost)
         new = seeder(kf, an.need, room, self.map.sh_degree, self.rng) if room else Gaussians.empty(self.map.sh_degree)
         new = new.with_sh_degree(self.map.sh_degree).astype(np.float32) if len(new) else Gaussians.empty(self.map.sh_degree)
@@ -269,8 +318,8 @@ class Refiner:
         target = np.ascontiguousarray(kf.rgb, np.float32)
         measured = 0
         while rep.steps + rep.nonfinite_skipped < cfg.max_steps:
-            if not deadline.allows(self.step_cost.predict(), self.guard_reserve(kf_px) + (0.0 if measured else self.kf_check_reserve())):
-                rep.stopped_by_deadline = True
+            reserve = self.guard_reserve(kf_px) + (0.0 if measured else self.kf_check_reserve())
+            if not (yield ("step", self.step_cost.predict(), reserve)):
                 break
             ts = clock()
             r = rasterize(active, kf.pose, kf.k, self.bg)
@@ -295,46 +344,62 @@ class Refiner:
             rep.step_ms.append(1000.0 * dt)
             rep.steps += 1
         rep.ms["optimise"] = 1000.0 * (clock() - t0)
+        self.stepless_batches = 0 if rep.steps else self.stepless_batches + 1
 
         # 4. Prune what became transparent in the batch.
         gone = transparent(best, cfg.prune_opacity)
         rep.pruned = int(gone.sum())
         is_active = np.zeros(len(self.map), bool)
         is_active[active_idx] = True
-        cand: list[Gaussians] = []
+        kept = best.subset(~gone)
 
-        def candidate() -> Gaussians:
-            """The map as it would be after the commit (built once, only if a check needs it)."""
-            if not cand:
-                cand.append(concat_gaussians([self.map.subset(~is_active), best.subset(~gone)]))
-            return cand[0]
+        def held_after(hv: HeldView) -> float:
+            """Error of the map-after-commit on a held view, rendering only what that view can see."""
+            rest = self.map.subset(frustum_mask(self.map.means, self.map.log_scales, hv.pose, hv.k) & ~is_active)
+            mine = kept.subset(frustum_mask(kept.means, kept.log_scales, hv.pose, hv.k)) if len(kept) else kept
+            g = concat_gaussians([rest, mine])
+            return view_mse(g, hv.pose, hv.k, hv.target, self.bg)
 
-        # 5. Guard: the keyframe must gain, the held keyframes must not lose.
-        t0 = clock()
+        # 5. Guard: the keyframe must gain, the held keyframes must not lose. Each check is its own piece of
+        # work, so a batch can spread them over several frames' windows.
+        guard_s = 0.0
         kf_before, kf_after = rep.mse_before, best_mse
         if measured == 0:
-            # No step fitted (seeding only): compare the map before and after on the keyframe at guard size.
+            # No step fitted (seeding only): the keyframe before and after at guard size. Only the Gaussians in
+            # its view can change its image, so the two renders need just those (old ones, and the batch's).
+            yield ("must", self.kf_check_reserve(), 0.0)
+            t0 = clock()
             small_rgb, small_k = downsample(kf.rgb, kf.k, cfg.guard_max_side)
-            kf_before = view_mse(self.map, kf.pose, small_k, small_rgb, self.bg)
-            kf_after = view_mse(candidate(), kf.pose, small_k, small_rgb, self.bg)
+            kf_before = view_mse(sub, kf.pose, small_k, small_rgb, self.bg)
+            kf_after = view_mse(concat_gaussians([sub.subset(~seen), kept]) if len(sub) else kept,
+                                kf.pose, small_k, small_rgb, self.bg)
             self.kf_check_cost.record(clock() - t0)
-        t_held = clock()
+            guard_s += clock() - t0
         rep.mse_after = kf_after
         ok_kf = kf_after < kf_before
         ok_held = True
-        renders = 0
-        if ok_kf and len(self.held):
+        if ok_kf:
+            per_view = self.guard_view_cost.predict() if self.guard_view_cost.count else self.render_cost.predict()
             for hv in self.held:
-                if hv.version != self.version or hv.mse is None:
+                if hv.version != self.version or hv.mse is None:  # its error under the current map: one render
+                    yield ("must", per_view, 0.0)
+                    t0 = clock()
                     hv.mse, hv.version = view_mse(self.map, hv.pose, hv.k, hv.target, self.bg), self.version
-                    renders += 1
+                    self.guard_view_cost.record(clock() - t0)
+                    guard_s += clock() - t0
                 rep.held_before.append(hv.mse)
-                rep.held_after.append(view_mse(candidate(), hv.pose, hv.k, hv.target, self.bg))
-                renders += 1
+                if frustum_mask(best.means, best.log_scales, hv.pose, hv.k).any():
+                    yield ("must", per_view, 0.0)
+                    t0 = clock()
+                    rep.held_after.append(held_after(hv))
+                    self.guard_view_cost.record(clock() - t0)
+                    guard_s += clock() - t0
+                else:  # nothing the batch changed can reach this view
+                    rep.held_after.append(hv.mse)
+                if not held_verdict(0.0, -1.0, rep.held_before[-1:], rep.held_after[-1:], cfg.held_tolerance):
+                    break  # one held view got too much worse: no need to look at the others
             ok_held = held_verdict(kf_before, kf_after, rep.held_before, rep.held_after, cfg.held_tolerance)
-        if renders:
-            self.guard_view_cost.record((clock() - t_held) / renders)
-        rep.ms["guard"] = 1000.0 * (clock() - t0)
+        rep.ms["guard"] = 1000.0 * guard_s
         if not (ok_kf and ok_held):
             rep.outcome = "rolled_back_keyframe" if not ok_kf else "rolled_back_held"
             self.totals["rolled_back"] += 1
@@ -342,17 +407,14 @@ class Refiner:
             rep.ms["total"] = 1000.0 * (clock() - t_start)
             return rep
 
+        yield ("must", self.commit_cost.predict(), 0.0)
         # 6. Commit: the batch's rows replace theirs, new ones join, pruned ones leave, the cap holds.
         t0 = clock()
-        keep_old = np.ones(len(self.map), bool)
-        keep_old[active_idx[gone[:n_old]]] = False
-        for p in ("means", "log_scales", "quats", "opacity_logits", "sh"):
-            getattr(self.map, p)[active_idx] = getattr(best, p)[:n_old]
+        self.store.write_rows(active_idx, best.subset(np.arange(n_old)))
+        self.store.hide(active_idx[gone[:n_old]])
         added = best.subset(np.flatnonzero(~gone[n_old:]) + n_old)
-        merged = concat_gaussians([self.map.subset(keep_old), added])
-        keep = cap_keep(merged, cfg.cap)
-        rep.capped = int((~keep).sum())
-        self.map = merged if keep.all() else merged.subset(keep)
+        self.store.append(added)
+        rep.capped = self.store.enforce()
         rep.added = len(added)
         self.version += 1
         if rep.capped == 0:  # the guard rendered exactly this map: its 'after' errors are current
@@ -373,11 +435,25 @@ class Refiner:
         rep.ms["total"] = 1000.0 * (clock() - t_start)
         return rep
 
+    @property
+    def map(self) -> Gaussians:
+        """The map's rows as views (no copy); rows removed since the last compaction render as nothing."""
+        return self.store.view
+
+    def count(self) -> int:
+        """Gaussians in the map (removed rows awaiting compaction not counted)."""
+        return self.store.live_count()
+
+    def snapshot(self) -> Gaussians:
+        """A compact copy of the map (for saving and scoring)."""
+        return self.store.live()
+
     def kf_check_reserve(self) -> float:
-        """Time for checking the keyframe at guard size when no optimisation step measured it (two renders)."""
+        """Time for checking the keyframe at guard size when no optimisation step measured it: two renders of
+        the keyframe's own Gaussians at a quarter of the pixels or fewer (half a keyframe render until measured)."""
         if self.kf_check_cost.count:
             return self.kf_check_cost.predict()
-        return 2 * self.guard_view_cost.predict()
+        return 0.5 * self.render_cost.predict()
 
     def guard_reserve(self, kf_pixels: int) -> float:
         """Time kept for the guard (one render per held view, two when its cached error is stale) and the commit.

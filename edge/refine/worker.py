@@ -53,13 +53,24 @@ class WorkerStats:
     busy_ms: list[float] = field(default_factory=list)
     """Wall time the worker spent on each candidate it took (selection + batch)."""
     errors: list[str] = field(default_factory=list)
+    absorbed: int = 0
+    """Frames that arrived while a batch was open and lent it their time window instead of being considered."""
     overrun_ms: list[float] = field(default_factory=list)
     """For each keyframe batch: how long after its deadline it finished (0 when on time)."""
 
 
+MAX_WINDOWS = 8
+"""A batch may continue over this many frames' windows; then optional work stops and required work gives up."""
+STEP_WINDOWS = 2
+"""Optimisation steps wait for at most this many windows: newer keyframes (new surfaces to seed) wait meanwhile."""
+
+
 class RefineWorker:
     def __init__(self, refiner: Refiner, selector: KeyframeSelector, saver: SplatSaver | None = None,
-                 clock: Clock = time.perf_counter, keep_reports: int = 10_000) -> None:
+                 clock: Clock = time.perf_counter, keep_reports: int = 10_000, max_windows: int = MAX_WINDOWS) -> None:
+        if max_windows < 1:
+            raise ValueError(f"max_windows must be >= 1, got {max_windows}")
+        self.max_windows = max_windows
         self.refiner = refiner
         self.selector = selector
         self.saver = saver
@@ -105,7 +116,7 @@ class RefineWorker:
             self._cond.notify_all()
         self._thread.join(timeout)
         if self.saver is not None and self.saver.dirty:
-            self.saver.save(self.refiner.map)
+            self.saver.save(self.refiner.snapshot())
 
     # -- the worker thread -----------------------------------------------------------------------
     def _run(self) -> None:
@@ -134,7 +145,7 @@ class RefineWorker:
             self.stats.late += 1
             return
         coverage = None
-        if c.cell_depth is not None and self.selector.last_pose is not None and len(self.refiner.map):
+        if c.cell_depth is not None and self.selector.last_pose is not None and self.refiner.count():
             depth, k_input = c.cell_depth()
             coverage = projected_coverage(self.refiner.map.means, c.pose, k_input, depth)
         if not self.selector.consider(c.pose, c.inliers, c.tracking, coverage, c.inlier_ratio):
@@ -144,15 +155,64 @@ class RefineWorker:
             if self._stop:
                 deadline.preempt()
         try:
-            rep = self.refiner.refine(c.make_keyframe(), deadline)
+            rep = self._drive(c.make_keyframe(), deadline)
         finally:
             with self._cond:
                 self._deadline = None
-        self.stats.overrun_ms.append(max(0.0, 1000.0 * (self.clock() - c.deadline_at)))
+        self.stats.overrun_ms.append(max(0.0, 1000.0 * (self.clock() - self._window_end)))
         if len(self.stats.reports) < self.keep_reports:
             self.stats.reports.append(rep)
         if rep.committed:
             self.selector.accept(c.pose)
             if self.saver is not None:
                 self.saver.mark_dirty()
-                self.saver.maybe_save(self.refiner.map)
+                self.saver.maybe_save(self.refiner.snapshot())
+
+    def _drive(self, kf: Keyframe, deadline: Deadline) -> BatchReport:
+        """Run the refiner's batch for ``kf``, carrying it into later frames' windows when a piece does not fit."""
+        rep = BatchReport(name=kf.name, outcome="no_time")
+        gen = self.refiner.batch(kf, rep)
+        self._window_end = deadline.at
+        window_s = deadline.remaining()
+        try:
+            kind, cost, reserve = next(gen)
+            while True:
+                ok = deadline.allows(cost, reserve if kind != "must" or rep.windows >= self.max_windows else 0.0)
+                if not ok and kind != "option":
+                    # Wait for the next frame's window only for work that would fit in a whole window: a step that
+                    # never fits ends the optimisation now (the batch goes on to its guard); required work larger
+                    # than every window seen so far abandons the batch.
+                    last = rep.windows >= self.max_windows
+                    if kind == "step" and (last or rep.windows >= STEP_WINDOWS or cost + reserve > window_s):
+                        rep.stopped_by_deadline = True
+                        kind, cost, reserve = gen.send(False)
+                        continue
+                    if kind == "must" and (last or (rep.windows > 1 and cost > window_s)):
+                        return self.refiner.abandon(gen, rep)
+                    nxt = self._next_window()
+                    if nxt is None:
+                        return self.refiner.abandon(gen, rep)
+                    deadline = nxt
+                    window_s = max(window_s, deadline.remaining())
+                    rep.windows += 1
+                    continue
+                kind, cost, reserve = gen.send(ok)
+        except StopIteration:
+            return rep
+
+    def _next_window(self) -> Deadline | None:
+        """The deadline of the next frame (waiting for it); None when the worker is stopping."""
+        while True:
+            with self._cond:
+                while self._item is None and not self._stop:
+                    self._cond.wait(0.1)
+                if self._stop:
+                    return None
+                c, self._item = self._item, None
+                self.stats.absorbed += 1
+                d = Deadline(c.deadline_at, self.clock)
+                if d.expired():
+                    continue
+                self._deadline = d
+                self._window_end = d.at
+                return d
