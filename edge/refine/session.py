@@ -50,6 +50,8 @@ class RefineOptions:
     pace: bool = True
     evaluate: bool = False
     """Keep each frame with a ground-truth pose to report PSNR before/after (replay)."""
+    raster_threads: int | None = 1
+    """Rasterizer threads (None: all cores). One keeps all refinement work on the worker's low-priority thread."""
     use_initializer: bool = True
     """Seed through the bundle's ONNX initializer when it has one (else from SCR coordinates alone)."""
     config: RefineConfig = field(default_factory=RefineConfig)
@@ -103,6 +105,10 @@ class RefineSession:
         self.opts = opts
         self.clock = clock
         self.initial = gaussians.astype(np.float32)
+        if opts.raster_threads is not None:
+            from acesplat.core.raster import set_num_threads
+
+            set_num_threads(opts.raster_threads)
         self.refiner = Refiner(self.initial.copy(), opts.config, seeder=seeder, clock=clock)
         h, w = getattr(localizer, "input_size", (3 * opts.max_side // 4, opts.max_side))
         self.calibration_ms = self.refiner.warm_up(refine_intrinsics(Intrinsics.from_focal(float(w), int(w), int(h)),
@@ -208,7 +214,10 @@ class RefineSession:
                 "guard": timing_stats([r.ms["guard"] for r in reps if "guard" in r.ms]),
                 "wait": timing_stats(self.wait_ms),
                 "overrun": timing_stats(ws.overrun_ms),
+                "piece_spill": timing_stats(ws.piece_spill_ms),
             },
+            "pieces": len(ws.piece_spill_ms),
+            "pieces_past_deadline": int(sum(v > 0 for v in ws.piece_spill_ms)),
             "batches_over_deadline": int(sum(v > 0 for v in ws.overrun_ms)),
             "gaussians_over_time": [list(p) for p in self.counts_over_time],
             "errors": ws.errors[:20],

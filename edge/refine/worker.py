@@ -9,11 +9,13 @@ the next frame's localization begins.
 The rasterizer's kernels are compiled with ``nogil=True`` (projection, compositing and their
 backward), so they run beside onnxruntime and OpenCV (which release the GIL too). The tile binning
 kernel and the numpy/Python glue between kernels hold the GIL; bench/bench_refine.py measures what
-that costs localization.
+that costs localization. The thread lowers its own priority (nice 10) and the session renders with
+one rasterizer thread (this one), so on a shared CPU the scheduler serves localization first.
 """
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from dataclasses import dataclass, field
@@ -56,7 +58,23 @@ class WorkerStats:
     absorbed: int = 0
     """Frames that arrived while a batch was open and lent it their time window instead of being considered."""
     overrun_ms: list[float] = field(default_factory=list)
+    piece_spill_ms: list[float] = field(default_factory=list)
+    """For each piece of work run: how far past its window's deadline it ended (0 when inside it; a piece
+    that ends late overlaps the next frame's localization)."""
     """For each keyframe batch: how long after its deadline it finished (0 when on time)."""
+
+
+NICE = 10
+"""Refinement's thread runs at this nice value (Linux): on a shared CPU the scheduler then prefers localization."""
+
+
+def lower_priority(nice: int = NICE) -> bool:
+    """Lower the calling thread's scheduling priority (Linux threads are tasks with their own nice value)."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
+        return True
+    except (AttributeError, OSError):  # not Linux, or not permitted
+        return False
 
 
 MAX_WINDOWS = 8
@@ -120,6 +138,7 @@ class RefineWorker:
 
     # -- the worker thread -----------------------------------------------------------------------
     def _run(self) -> None:
+        lower_priority()
         while True:
             with self._cond:
                 while self._item is None and not self._stop:
@@ -196,7 +215,11 @@ class RefineWorker:
                     window_s = max(window_s, deadline.remaining())
                     rep.windows += 1
                     continue
-                kind, cost, reserve = gen.send(ok)
+                try:
+                    kind, cost, reserve = gen.send(ok)
+                finally:
+                    if ok:
+                        self.stats.piece_spill_ms.append(max(0.0, 1000.0 * (self.clock() - deadline.at)))
         except StopIteration:
             return rep
 
