@@ -105,9 +105,11 @@ class RefineSession:
         self.opts = opts
         self.clock = clock
         self.initial = gaussians.astype(np.float32)
+        self._raster_threads_before: int | None = None
         if opts.raster_threads is not None:
-            from acesplat.core.raster import set_num_threads
+            from acesplat.core.raster import get_num_threads, set_num_threads
 
+            self._raster_threads_before = get_num_threads()
             set_num_threads(opts.raster_threads)
         self.refiner = Refiner(self.initial.copy(), opts.config, seeder=seeder, clock=clock)
         h, w = getattr(localizer, "input_size", (3 * opts.max_side // 4, opts.max_side))
@@ -178,6 +180,10 @@ class RefineSession:
             return self.summary or {}
         self._closed = True
         self.worker.close()
+        if self._raster_threads_before is not None:
+            from acesplat.core.raster import set_num_threads
+
+            set_num_threads(self._raster_threads_before)
         ws = self.worker.stats
         reps = ws.reports
         steps_ms = [ms for r in reps for ms in r.step_ms]
