@@ -3,9 +3,10 @@
 One concept per module: ``keyframes`` (which frames), ``coverage`` (where the map falls short),
 ``seeding`` (new Gaussians from SCR coordinates), ``adam`` (row-masked Adam), ``deadline`` (never
 start work that would overrun), ``guard`` (non-finite gradients, photometric rollback), ``prune``
-(transparency and the cap), ``persist`` (atomic periodic PLY), ``refiner`` (one keyframe's batch),
-``worker`` (the refinement thread), ``session`` (attached to the edge localizer), ``bundle_models``
-(what a bundle carries for refinement).
+(transparency and the cap), ``store`` (the map's arrays with spare capacity), ``persist`` (atomic
+periodic PLY), ``refiner`` (one keyframe's batch, as a generator of timed work pieces), ``worker``
+(the refinement thread, carrying a batch over frames' time windows), ``session`` (attached to the
+edge localizer), ``bundle_models`` and ``onnx_seeder`` (what a bundle carries for refinement).
 """
 
 from .deadline import CostEstimate, Deadline

@@ -396,8 +396,8 @@ class Refiner:
                     guard_s += clock() - t0
                 else:  # nothing the batch changed can reach this view
                     rep.held_after.append(hv.mse)
-                if not held_verdict(0.0, -1.0, rep.held_before[-1:], rep.held_after[-1:], cfg.held_tolerance):
-                    break  # one held view got too much worse: no need to look at the others
+                if rep.held_after[-1] > rep.held_before[-1] * (1.0 + cfg.held_tolerance):
+                    break  # this held view got too much worse: no need to look at the others
             ok_held = held_verdict(kf_before, kf_after, rep.held_before, rep.held_after, cfg.held_tolerance)
         rep.ms["guard"] = 1000.0 * guard_s
         if not (ok_kf and ok_held):
