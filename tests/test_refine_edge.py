@@ -220,3 +220,18 @@ def test_onnx_seeder_places_gaussians_on_scr_rays(splat_bundle, tiny) -> None:
     assert np.allclose(z.sh[0, 0] * 0.28209479177387814 + 0.5, [0.2, 0.4, 0.6], atol=1e-6)
     assert np.allclose(z.opacities(), 0.8, atol=1e-6) and np.allclose(z.quats, [[1, 0, 0, 0]])
     assert np.allclose(np.exp(z.log_scales), 0.7 * 2.0 * 2.0 / 100.0)
+
+
+def test_bad_refine_inputs_give_one_line_errors(bundle_with_gaussians, tiny, tmp_path) -> None:
+    r = CliRunner().invoke(app, ["replay", str(bundle_with_gaussians), str(tiny["scene"]), "--refine", "--budget-ms", "0"])
+    assert r.exit_code == 2 and "--budget-ms must be positive" in r.output
+    from acesplat.core.errors import InputError
+    from export.splat_export import add_gaussians, export_splat
+
+    b = tmp_path / "b"
+    shutil.copytree(tiny["bundle"], b)
+    with pytest.raises(InputError, match="splat folder does not exist"):
+        export_splat(b, tmp_path / "no_such_splat", tiny["map"])
+    (tmp_path / "bad.ply").write_bytes(b"ply\nformat ascii 1.0\nend_header\n")
+    with pytest.raises(InputError, match="bad.ply"):
+        add_gaussians(b, tmp_path / "bad.ply")
