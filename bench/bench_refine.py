@@ -268,7 +268,7 @@ def main() -> None:
           f"beside refinement p95 {gil['refining_ms']['p95']:.2f} max {gil['refining_ms']['max']:.2f} ms")
     r = paced
     print(f"refinement (paced): {r['keyframes']} keyframes, {r['keyframes_committed']} committed, {r['steps']} steps, "
-          f"step p50 {r['timing_ms']['step']['p50']:.1f} ms, refine per frame p95 {r['timing_ms']['frame']['p95']:.1f} ms, "
+          f"step p50 {r['timing_ms']['step']['p50']:.1f} ms, refinement work per frame window p95 {r['timing_ms']['window']['p95']:.1f} ms, "
           f"Gaussians {r['gaussians_initial']} -> {r['gaussians_final']} (cap {r['gaussian_cap']})")
     counts = r["gaussians_over_time"]
     step = max(1, len(counts) // 8)

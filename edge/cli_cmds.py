@@ -21,6 +21,7 @@ from acesplat.core.pose import TrackingState
 from .calibration import read_calibration_file
 from .inference import default_threads
 from .loop import LoopEvent, run_loop
+from .refine.cli_hooks import refine_line, refine_session
 from .runtime import STAGES, EdgeLocalizer, FrameOutcome, PnPSettings
 from .sources import SourceOptions, open_source
 
@@ -51,17 +52,8 @@ def _pnp(method: Optional[str], min_inliers: Optional[int]) -> PnPSettings:
     return s
 
 
-def _refine_session(enabled: bool, loc: EdgeLocalizer, b: Bundle, budget_ms: float, save_splat: Optional[Path],
-                    pace: bool, evaluate: bool = False):
-    """Refinement beside localization (edge/refine), or None when off or the bundle has no Gaussians."""
-    if not enabled:
-        return None
-    from .refine.session import RefineOptions, start_refinement
-
-    if budget_ms <= 0:
-        raise InputError(None, f"--budget-ms must be positive, got {budget_ms}")
-    opts = RefineOptions(budget_ms=budget_ms, save_path=save_splat, pace=pace, evaluate=evaluate)
-    return start_refinement(loc, b, opts, lambda msg: console.print(f"[yellow]{msg}[/yellow]"))
+def _warn(msg: str) -> None:
+    console.print(f"[yellow]{msg}[/yellow]")
 
 
 def stage_table(title: str, stages_by_run: dict[str, dict], fps: dict[str, float]) -> Table:
@@ -119,7 +111,7 @@ def localize_command(
     calib = read_calibration_file(intrinsics) if intrinsics else None
     loc = EdgeLocalizer(b, precision, threads, _pnp(pnp, min_inliers))
     src = open_source(source, SourceOptions(calibration=calib, input_size=b.input_size, realtime=realtime))
-    refiner = _refine_session(refine, loc, b, budget_ms, save_splat, pace=not src.live)
+    refiner = refine_session(refine, loc, b, budget_ms, save_splat, not src.live, _warn)
     sink = None
     if serial is not None:
         from firmware_bridge.sink import open_sink
@@ -184,16 +176,6 @@ def localize_command(
     report_json(json_out, summary)
 
 
-def refine_line(r: dict) -> str:
-    """One summary line of a refinement run (edge/refine/session.py's report)."""
-    t = r["timing_ms"]
-    psnr = f"PSNR {r['psnr_before']:.2f} -> {r['psnr_after']:.2f} dB over {r['psnr_views']} views; " if "psnr_before" in r else ""
-    return (f"refine: {psnr}{r['keyframes']} keyframes ({r['keyframes_committed']} committed, {r['keyframes_rolled_back']} "
-            f"rolled back), {r['steps']} steps (p50 {t['step']['p50']:.1f} ms), {r['gaussians_initial']} -> "
-            f"{r['gaussians_final']} Gaussians (+{r['gaussians_added']}), {r['dropped']} dropped; refine ms per frame "
-            f"p50 {t['frame']['p50']:.1f} p95 {t['frame']['p95']:.1f}")
-
-
 def _bridge_step(sink, out: FrameOutcome, paused: threading.Event) -> None:
     """Forward one pose; honour PAUSE/RESUME from the microcontroller (SET_RATE the sink applies itself)."""
     from firmware_bridge.protocol import CommandCode, RuntimeState
@@ -231,7 +213,7 @@ def replay_command(
     precision = "int8" if int8 else "fp32"
     b = open_bundle(bundle, [precision])
     loc = EdgeLocalizer(b, precision, threads, _pnp(pnp, None))
-    refiner = _refine_session(refine, loc, b, budget_ms, save_splat, pace=True, evaluate=True)
+    refiner = refine_session(refine, loc, b, budget_ms, save_splat, True, _warn, evaluate=True)
     with PhaseProgress("replay ") as bar:
         try:
             s = replay_split(loc, scene, split, lambda i, n: bar("localize", i / n, {"frame": i}))
@@ -240,7 +222,7 @@ def replay_command(
                 refiner.close()
     if refiner is not None:
         s["refine"] = refiner.summary
-        s["timing_ms"]["refine"] = refiner.summary["timing_ms"]["frame"]
+        s["timing_ms"]["refine"] = refiner.summary["timing_ms"]["window"]
     t = Table(title=f"{Path(scene).name} / {split} ({precision}, {b.input_size[0]}x{b.input_size[1]})")
     keys = ("frames", "localized", "median_translation_m", "median_rotation_deg", "recall_5cm_5deg",
             "recall_10cm_5deg", "recall_25cm_2deg", "mean_ms")
@@ -288,7 +270,7 @@ def profile_command(
     src = open_source(source, SourceOptions(calibration=calib, input_size=b.input_size))
     nthreads = threads or default_threads()
     def attach(loc: EdgeLocalizer):
-        session = _refine_session(refine, loc, b, budget_ms, None, pace=True)
+        session = refine_session(refine, loc, b, budget_ms, None, True, _warn)
         return session.close if session is not None else None
 
     with PhaseProgress() as bar:

@@ -57,7 +57,7 @@ def test_replay_refine_reports_psnr_gain_and_saves_the_map(tiny, bundle_with_gau
     ref = s["refine"]
     for k in ("psnr_before", "psnr_after", "keyframes", "gaussians_added", "gaussians_final", "steps", "timing_ms"):
         assert k in ref
-    for k in ("frame", "batch", "step", "render", "guard"):
+    for k in ("window", "candidate_wall", "batch", "step", "render", "guard"):
         assert set(ref["timing_ms"][k]) == {"mean", "p50", "p90", "p95", "p99", "max"}
     assert "refine" in s["timing_ms"]  # beside the localization stages
     assert ref["keyframes"] >= 3 and ref["keyframes_committed"] >= 2 and ref["steps"] >= 1

@@ -213,7 +213,8 @@ class RefineSession:
             "nonfinite_skipped": t["nonfinite_skipped"],
             "steps_stopped_by_deadline": int(sum(r.stopped_by_deadline for r in reps)),
             "timing_ms": {
-                "frame": timing_stats(ws.busy_ms),
+                "window": timing_stats(ws.window_work_ms),
+                "candidate_wall": timing_stats(ws.busy_ms),
                 "batch": timing_stats([r.ms.get("total", 0.0) for r in reps]),
                 "step": timing_stats(steps_ms),
                 "render": timing_stats([r.ms["render"] for r in reps if "render" in r.ms]),

@@ -58,6 +58,8 @@ class WorkerStats:
     absorbed: int = 0
     """Frames that arrived while a batch was open and lent it their time window instead of being considered."""
     overrun_ms: list[float] = field(default_factory=list)
+    window_work_ms: list[float] = field(default_factory=list)
+    """Refinement work (pieces run) in each frame's window a batch used: the per-frame cost beside localization."""
     piece_spill_ms: list[float] = field(default_factory=list)
     """For each piece of work run: how far past its window's deadline it ended (0 when inside it; a piece
     that ends late overlaps the next frame's localization)."""
@@ -195,6 +197,7 @@ class RefineWorker:
         gen = self.refiner.batch(kf, rep)
         self._window_end = deadline.at
         window_s = deadline.remaining()
+        self.stats.window_work_ms.append(0.0)
         try:
             kind, cost, reserve = next(gen)
             while True:
@@ -216,12 +219,16 @@ class RefineWorker:
                     deadline = nxt
                     window_s = max(window_s, deadline.remaining())
                     rep.windows += 1
+                    self.stats.window_work_ms.append(0.0)
                     continue
+                t_piece = self.clock()
                 try:
                     kind, cost, reserve = gen.send(ok)
                 finally:
                     if ok:
-                        self.stats.piece_spill_ms.append(max(0.0, 1000.0 * (self.clock() - deadline.at)))
+                        now = self.clock()
+                        self.stats.piece_spill_ms.append(max(0.0, 1000.0 * (now - deadline.at)))
+                        self.stats.window_work_ms[-1] += 1000.0 * (now - t_piece)
         except StopIteration:
             return rep
 
