@@ -365,14 +365,12 @@ class Refiner:
         guard_s = 0.0
         kf_before, kf_after = rep.mse_before, best_mse
         if measured == 0:
-            # No step fitted (seeding only): the keyframe before and after at guard size. Only the Gaussians in
-            # its view can change its image, so the two renders need just those (old ones, and the batch's).
+            # No step fitted (seeding only): render the keyframe once more, after (its 'before' is the first
+            # render). Only the Gaussians in its view can change its image, so the render needs just those.
             yield ("must", self.kf_check_reserve(), 0.0)
             t0 = clock()
-            small_rgb, small_k = downsample(kf.rgb, kf.k, cfg.guard_max_side)
-            kf_before = view_mse(sub, kf.pose, small_k, small_rgb, self.bg)
             kf_after = view_mse(concat_gaussians([sub.subset(~seen), kept]) if len(sub) else kept,
-                                kf.pose, small_k, small_rgb, self.bg)
+                                kf.pose, kf.k, kf.rgb, self.bg)
             self.kf_check_cost.record(clock() - t0)
             guard_s += clock() - t0
         rep.mse_after = kf_after
@@ -449,11 +447,11 @@ class Refiner:
         return self.store.live()
 
     def kf_check_reserve(self) -> float:
-        """Time for checking the keyframe at guard size when no optimisation step measured it: two renders of
-        the keyframe's own Gaussians at a quarter of the pixels or fewer (half a keyframe render until measured)."""
+        """Time for checking the keyframe when no optimisation step measured it: one render of its Gaussians
+        (a keyframe render until measured)."""
         if self.kf_check_cost.count:
             return self.kf_check_cost.predict()
-        return 0.5 * self.render_cost.predict()
+        return self.render_cost.predict()
 
     def guard_reserve(self, kf_pixels: int) -> float:
         """Time kept for the guard (one render per held view, two when its cached error is stale) and the commit.
