@@ -9,7 +9,13 @@ from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import look_at, make_pose
 from acesplat.splat.fusion import covered_by, novel_masks
 from acesplat.splat.pixel_coords import filled_depths, pixel_coordinates, pixel_rays
-from acesplat.splat.validity import ValidityConfig, cell_pixels, cell_validity
+from acesplat.splat.validity import (
+    ValidityConfig,
+    cell_pixels,
+    cell_validity,
+    confirm_across_views,
+    cross_view_agreement,
+)
 
 K = Intrinsics(50.0, 50.0, 31.5, 23.5, 64, 48)
 POSE = look_at(np.array([0.3, -0.2, 1.0]), np.array([0.5, 3.0, 1.2]))
@@ -136,3 +142,22 @@ def test_a_coarser_view_does_not_cover_a_finer_one():
     assert cov[20:28, 28:36].all() and not cov[0, 0]
     # depth disagreement beyond the tolerance: not the same surface
     assert not covered_by(cf * 1.1, df * 1.1, vf, K, dn, vn, near, K).any()  # 10% further along the rays
+
+
+def test_depth_errors_along_the_ray_are_caught_by_a_neighbouring_view():
+    a = make_pose(np.eye(3), [0.0, 0.0, 0.0])  # both look along +z at the plane z = 4
+    b = make_pose(np.eye(3), [0.4, 0.0, 0.0])
+    ca, cb = plane_coords(np.full((6, 8), 4.0), a), plane_coords(np.full((6, 8), 4.0), b)
+    ca[2, 3] = ca[2, 3] * 0.7  # 30% closer along its own ray: still reprojects perfectly in view a
+    assert cell_validity(ca, a, K).valid.all()
+    ok = np.ones((6, 8), bool)
+    seen, agrees = cross_view_agreement(ca, K, cb, ok, b, K)
+    assert not agrees[2, 3] and seen[2, 3]
+    others = np.ones((6, 8), bool)
+    others[2, 3] = False
+    assert np.array_equal(agrees[others], seen[others])  # every other cell agrees wherever view b sees it
+    assert not seen[:, 0].any() and seen[:, 1:].all()  # b, 0.4 m to the right, misses a's left column
+    confirmed = confirm_across_views([ca, cb], [ok, ok], [a, b], [K, K])
+    assert not confirmed[0][2, 3] and confirmed[0][:, 0].all()  # unseen cells keep their own verdict
+    # b cannot tell which of the two is wrong: its cell landing on the corrupted one is not confirmed either
+    assert confirmed[0].sum() == 47 and confirmed[1].sum() == 47 and not confirmed[1][2, 2]

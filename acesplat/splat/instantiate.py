@@ -19,7 +19,7 @@ import torch
 import torch.nn as nn
 
 from .adapter import AdapterConfig, FeatureAdapter
-from .fusion import novel_masks
+from .fusion import DEPTH_TOLERANCE, novel_masks
 from .init_head import InitHead, InitHeadConfig, SceneNorm, coordinate_prior, decode_gaussians
 from .params import cat_tensors
 from .pixel_coords import filled_depths, pixel_coordinates
@@ -170,6 +170,7 @@ def merge_views(
     sh_degree: int,
     rng: np.random.Generator,
     fuse: bool = True,
+    depth_tol: float = DEPTH_TOLERANCE,
 ) -> tuple[dict[str, torch.Tensor], MergeReport]:
     """One scene set from every view's novel pixels (all valid pixels without ``fuse``) on a lattice
     whose stride keeps the set near ``max_gaussians``."""
@@ -180,6 +181,7 @@ def merge_views(
             [p.centre_map() for p in pixels],
             [p.depth_map() for p in pixels],
             [p.valid for p in pixels],
+            depth_tol=depth_tol,
         )
     else:
         masks = [p.valid for p in pixels]

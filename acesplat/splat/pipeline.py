@@ -11,6 +11,7 @@ views only and holds out the training frames between them as targets.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,13 +24,14 @@ from acesplat.core.errors import InputError
 from acesplat.core.scene import Frame
 
 from .adapter import AdapterConfig
+from .fusion import DEPTH_TOLERANCE
 from .head_training import HeadTrainer
 from .init_head import InitHeadConfig, SceneNorm
 from .instantiate import GaussianInitializer, merge_views
 from .optimize import HEAD_EVERY, EvalFn, OptimizeConfig, OptimizeResult, optimise_gaussians
 from .params import GaussianParams, params_from_tensors
 from .schedule import NET_LR_MAX, NET_LR_MIN, one_cycle
-from .validity import ValidityConfig
+from .validity import CROSS_VIEW_NEIGHBOURS, CROSS_VIEW_TOLERANCE, ValidityConfig, confirm_across_views
 from .views import SplatView, load_views, run_scr
 
 PROTOCOLS = ("static", "sparse")
@@ -65,7 +67,12 @@ class SplatConfig:
     head_warmup: float = HEAD_WARMUP
     joint_head: bool = True
     fuse: bool = True
+    fusion_tolerance: float = DEPTH_TOLERANCE
+    """Relative depth difference under which views see the same surface (SCR depth noise needs more than exact depth)."""
     fill: bool = True
+    cross_view: int = CROSS_VIEW_NEIGHBOURS
+    """Confirm trusted cells against this many nearest views (0: own-view reprojection only)."""
+    cross_view_tol: float = CROSS_VIEW_TOLERANCE
     """Seed untrusted pixels of views with some trusted cells at their nearest trusted depth (see instantiate.view_pixels)."""
     sparse_views: tuple[int, int] | None = None
     validity: ValidityConfig = field(default_factory=ValidityConfig)
@@ -161,6 +168,24 @@ def splat_scene(
             f"reproject within {vc.reproj_max_px:g} px at depths {vc.depth_min:g}..{vc.depth_max:g} m in this scene's "
             "training views (a map of another scene, other images or another encoder?)",
         )
+    own_valid = int(sum(int(v.validity.valid.sum()) for v in usable))  # type: ignore[union-attr]
+    if cfg.cross_view > 0 and len(usable) > 1:
+        confirmed = confirm_across_views(
+            [v.coords for v in usable],
+            [v.validity.valid for v in usable],  # type: ignore[union-attr]
+            [v.pose for v in usable],
+            [v.intrinsics for v in usable],
+            cfg.cross_view,
+            cfg.cross_view_tol,
+        )
+        for v, c in zip(usable, confirmed):
+            v.validity = dataclasses.replace(v.validity, valid=c)  # type: ignore[arg-type]
+        usable = [v for v in usable if v.validity.valid.any()]  # type: ignore[union-attr]
+        if not usable:
+            raise InputError(
+                source, "validity mask is empty: no view's scene coordinates agree with its neighbours' depths"
+            )
+    confirmed_cells = int(sum(int(v.validity.valid.sum()) for v in usable))  # type: ignore[union-attr]
     depths = np.concatenate([_valid_depths(v) for v in usable])
     norm = SceneNorm.from_views(np.stack([v.pose[:3, 3] for v in views]), depths)
     extent = scene_extent(np.stack([v.pose for v in views]), fallback=0.1 * norm.scale)
@@ -175,7 +200,9 @@ def splat_scene(
     pixels = [head.pixels(i) for i in range(len(usable))]
     valid_px = int(sum(int(p.valid.sum()) for p in pixels))
     trusted_px = int(sum(int(p.trusted.sum()) for p in pixels))
-    tensors, merge = merge_views(usable, pixels, initializer, cfg.max_initial, cfg.sh_degree, rng, fuse=cfg.fuse)
+    tensors, merge = merge_views(
+        usable, pixels, initializer, cfg.max_initial, cfg.sh_degree, rng, fuse=cfg.fuse, depth_tol=cfg.fusion_tolerance
+    )
     if not tensors:
         raise InputError(source, "validity mask is empty at pixel resolution in every view (no Gaussian to start from)")
     params = params_from_tensors(tensors)
@@ -211,6 +238,8 @@ def splat_scene(
         "init_views": len(init_views),
         "init_views_used": len(usable),
         "valid_cell_fraction": overall,
+        "valid_cells": own_valid,
+        "confirmed_cells": confirmed_cells,
         "trusted_pixels": trusted_px,
         "seeding_pixels": valid_px,
         "novel_pixels": merge.novel_pixels,

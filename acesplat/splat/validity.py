@@ -1,9 +1,11 @@
 """Which SCR predictions to trust as Gaussian centres, torch-free.
 
 A cell's scene coordinate is kept when it is finite, lies within a plausible depth range in front of
-the camera, and reprojects (with the known pose) close to the pixel it was predicted for. The last
-test is the map agreeing with the images: on training views a good map passes almost everywhere,
-a map of another scene (or one built from differently sized images) almost nowhere.
+the camera, and reprojects (with the known pose) close to the pixel it was predicted for. That test
+is the map agreeing with the images: on training views a good map passes almost everywhere, a map of
+another scene (or one built from differently sized images) almost nowhere. It cannot see an error
+along the viewing ray, so a second test asks the nearest other views: a cell that lands on another
+view's valid cell must agree with that cell's depth in at least one of them.
 """
 
 from __future__ import annotations
@@ -80,3 +82,69 @@ def cell_validity(
     err = np.linalg.norm(uv - cell_pixels(h, w), axis=-1)
     reprojects = in_range & (err <= cfg.reproj_max_px)
     return CellValidity(finite=finite, in_depth_range=in_range, reprojects=reprojects, valid=reprojects.copy())
+
+
+CROSS_VIEW_TOLERANCE = 0.1
+"""Relative depth agreement with a neighbouring view's prediction that confirms a cell."""
+CROSS_VIEW_NEIGHBOURS = 4
+
+
+def cross_view_agreement(
+    coords: np.ndarray,
+    intrinsics: Intrinsics,
+    other_coords: np.ndarray,
+    other_valid: np.ndarray,
+    other_pose: np.ndarray,
+    other_intrinsics: Intrinsics,
+    tol: float = CROSS_VIEW_TOLERANCE,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(seen, agrees), each (h, w): whether a cell's coordinate lands on a valid cell of the other view, and
+    whether that cell's own prediction has about the same depth there.
+
+    The own-view reprojection test cannot see an error along the viewing ray (the map was trained to
+    reproject well in exactly these views); another view sees that error as a depth disagreement.
+    """
+    h, w = coords.shape[:2]
+    w2c = invert_pose(other_pose)
+    X = np.asarray(coords, np.float64).reshape(-1, 3)
+    Xc = X @ w2c[:3, :3].T + w2c[:3, 3]
+    z = Xc[:, 2]
+    k = other_intrinsics
+    front = z > 1e-6
+    zs = np.where(front, z, 1.0)
+    u = k.fx * Xc[:, 0] / zs + k.cx
+    v = k.fy * Xc[:, 1] / zs + k.cy
+    oh, ow = other_coords.shape[:2]
+    j = np.floor(u / STRIDE).astype(np.int64)
+    i = np.floor(v / STRIDE).astype(np.int64)
+    inside = front & np.isfinite(u) & np.isfinite(v) & (i >= 0) & (i < oh) & (j >= 0) & (j < ow)
+    ii, jj = np.where(inside, i, 0), np.where(inside, j, 0)
+    seen = inside & np.asarray(other_valid, bool)[ii, jj]
+    z_other = np.asarray(other_coords, np.float64)[ii, jj] @ w2c[2, :3] + w2c[2, 3]
+    agrees = seen & (np.abs(z_other - z) <= tol * z)
+    return seen.reshape(h, w), agrees.reshape(h, w)
+
+
+def confirm_across_views(
+    coords: list[np.ndarray],
+    valid: list[np.ndarray],
+    poses: list[np.ndarray],
+    intrinsics: list[Intrinsics],
+    neighbours: int = CROSS_VIEW_NEIGHBOURS,
+    tol: float = CROSS_VIEW_TOLERANCE,
+) -> list[np.ndarray]:
+    """Per view, its valid cells that are confirmed by at least one of its nearest views, or that none
+    of them sees (unverifiable cells keep their own verdict)."""
+    cams = np.stack([np.asarray(p)[:3, 3] for p in poses])
+    out = []
+    for a in range(len(coords)):
+        d = np.linalg.norm(cams - cams[a], axis=1)
+        d[a] = np.inf
+        seen_any = np.zeros(valid[a].shape, bool)
+        agree_any = np.zeros(valid[a].shape, bool)
+        for b in np.argsort(d, kind="stable")[: min(neighbours, len(coords) - 1)]:
+            s, g = cross_view_agreement(coords[a], intrinsics[a], coords[b], valid[b], poses[b], intrinsics[b], tol)
+            seen_any |= s
+            agree_any |= g
+        out.append(valid[a] & (agree_any | ~seen_any))
+    return out
