@@ -4,6 +4,7 @@ Runs `acesplat map` and `acesplat eval` through their library functions with def
 process, one scene after the other, and prints one table plus the machine it ran on.
 
     python bench/bench_stage1.py [--herz-minutes 10] [--synth-minutes 4] [--out runs/bench_stage1]
+    python bench/bench_stage1.py --skip-herz --iterations 1000 --buffer 300000 --threads 1   # fixed work, not time
 """
 
 from __future__ import annotations
@@ -27,12 +28,15 @@ ROOT = Path(__file__).resolve().parents[1]
 HERZ = ROOT.parent / "shared" / "data" / "herzjesu25"
 
 
-def run(scene: Path, minutes: float, triangulate: bool, encoder_path: Path | None) -> dict:
+def run(scene: Path, minutes: float, triangulate: bool, encoder_path: Path | None,
+        iterations: int | None = None, buffer_size: int | None = None) -> dict:
     enc, ident = load_encoder(encoder_path)
     train, test = read_split(scene, "train"), read_split(scene, "test")
     f0 = train.frames[0].intrinsics
     side = min(IMAGE_SHORT_SIDE, f0.width, f0.height)
-    cfg = MappingConfig(minutes=minutes, short_side=side, triangulate=triangulate)
+    cfg = MappingConfig(minutes=minutes, short_side=side, triangulate=triangulate, iterations=iterations)
+    if buffer_size:
+        cfg.buffer_size = buffer_size
     res = map_scene(train, enc, cfg)
     from acesplat.scr.network import SCRNetwork
 
@@ -55,8 +59,12 @@ def main() -> None:
     ap.add_argument("--ablate-triangulation", action="store_true", help="Also map without triangulated targets.")
     ap.add_argument("--skip-synth", action="store_true")
     ap.add_argument("--skip-herz", action="store_true")
+    ap.add_argument("--iterations", type=int, default=None, help="Fixed head iterations instead of the time budget.")
+    ap.add_argument("--buffer", type=int, default=None, help="Buffer size (features).")
+    ap.add_argument("--threads", type=int, default=0, help="Torch threads (0 = all cores).")
     args = ap.parse_args()
-    torch.set_num_threads(torch.get_num_threads())
+    if args.threads:
+        torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     scenes = []
@@ -70,7 +78,7 @@ def main() -> None:
     for scene, minutes in scenes:
         for tri in ([True, False] if args.ablate_triangulation else [True]):
             t0 = time.monotonic()
-            r = run(scene, minutes, tri, args.encoder)
+            r = run(scene, minutes, tri, args.encoder, args.iterations, args.buffer)
             r["wall_seconds"] = time.monotonic() - t0
             rows.append(r)
             print(json.dumps({k: v for k, v in r.items() if k not in ("test", "train")}))
