@@ -16,7 +16,6 @@ import platform
 import select
 import threading
 import time
-from pathlib import Path
 from statistics import median
 
 import numpy as np
@@ -28,6 +27,7 @@ from firmware_bridge.mavlink import MavlinkConfig, MavlinkEncoder
 from firmware_bridge.protocol import MsgType, Pose, RuntimeState, Status, encode_frame, wire_size
 from firmware_bridge.sink import FrameEncoder, PoseSink
 from firmware_bridge.transport import serial_opener
+from acesplat.core.machine import cpu_model
 
 TARGET_US = 50.0
 BAUD = 115200
@@ -35,14 +35,7 @@ BYTES_PER_S = BAUD / 10  # 8N1: start + 8 data + stop bits per byte
 
 
 def machine() -> dict:
-    model = platform.processor() or "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    model = cpu_model()
     return {"cpu": model, "cores": os.cpu_count(), "python": platform.python_version(), "load_avg_1_5_15": os.getloadavg()}
 
 

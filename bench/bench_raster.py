@@ -38,6 +38,7 @@ from acesplat.core.camera import Intrinsics  # noqa: E402
 from acesplat.core.gaussians import Gaussians  # noqa: E402
 from acesplat.core.raster import get_num_threads, rasterize, rasterize_backward, set_num_threads  # noqa: E402
 from acesplat.core.raster import rasterizer as _rasterizer  # noqa: E402
+from acesplat.core.machine import cpu_model
 
 BASE_W, BASE_H = 320, 240
 
@@ -227,14 +228,7 @@ def compare_cpp(g: Gaussians, k: Intrinsics, repeats: int) -> dict[str, float] |
 
 
 def machine() -> dict[str, object]:
-    model = platform.processor() or "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    model = cpu_model()
     return {
         "cpu": model,
         "cores_available": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
