@@ -16,6 +16,7 @@ import platform
 import select
 import threading
 import time
+from pathlib import Path
 from statistics import median
 
 import numpy as np
