@@ -12,7 +12,8 @@ Scenes: the built-in synthetic room (synthesized into --out if absent) and ../sh
 
 Quality is sampled every --eval-every seconds of training time on a few training and test views
 (the evaluation time is not charged to the budget); at the end every training and test view is
-scored. Output: a table, <out>/bench_splat_init.json and <out>/bench_splat_init.png.
+scored. Output: a table, <out>/bench_splat_init.json and <out>/bench_splat_init.png. Results already in
+that JSON for starts not run again are kept (so one start can be re-run alone).
 
     python bench/bench_splat_init.py --minutes 10 --out runs/bench_splat
 """
@@ -20,6 +21,7 @@ scored. Output: a table, <out>/bench_splat_init.json and <out>/bench_splat_init.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import subprocess
 import time
@@ -239,6 +241,9 @@ def main() -> None:
     log(f"uptime at start: {uptime()}")
     log(f"budget {args.minutes:g} min per start; torch threads {args.threads}")
     results: dict = {}
+    previous = args.out / "bench_splat_init.json"
+    if previous.is_file():  # keep earlier runs' results for the (scene, start) pairs not run again
+        results = json.loads(previous.read_text()).get("results", {})
     for name in args.scenes.split(","):
         if name == "builtin":
             scene = args.out / "builtin"
@@ -261,9 +266,11 @@ def main() -> None:
         eval_test = load_views([te_frames[i] for i in spread(len(te_frames), args.eval_views)], side)
         log(f"{name}: {scene} ({len(tr_frames)} train / {len(te_frames)} test, short side {side}), map {map_path}")
         log("  start  train / test PSNR     SSIM train / test   Gaussians start -> end   iterations   seconds")
-        results[name] = []
-        for method in args.methods.split(","):
+        methods = args.methods.split(",")
+        results[name] = [r for r in results.get(name, []) if r["method"] not in methods]
+        for method in methods:
             results[name].append(run_method(method, scene, map_path, args, eval_train, eval_test, log))
+            results[name].sort(key=lambda r: METHODS.index(r["method"]))
             write_json(
                 args.out / "bench_splat_init.json",
                 {
