@@ -1,4 +1,5 @@
-"""The SCR model in an onnxruntime session: grayscale uint8 (H, W) in, scene coordinates (h, w, 3) out."""
+"""The SCR model in an onnxruntime session: grayscale uint8 (H, W) in, scene coordinates (h, w, 3) out,
+and (bundle format 2) the encoder's features (C, h, w) for the splat initializer on request."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
+from acesplat.core.bundle import SCR_COORDS_OUTPUT, SCR_FEATURES_OUTPUT
 from acesplat.core.errors import InputError
 
 
@@ -32,7 +34,10 @@ def session_options(threads: int | None = None, spinning: bool = True) -> ort.Se
 
 
 class ScrSession:
-    """One SCR model; checks the model's input shape against the bundle's input size."""
+    """One SCR model; checks the model's input shape against the bundle's input size.
+
+    Outputs are found by name (a format 1 graph has only its coordinates, whatever their name: the first output).
+    """
 
     def __init__(self, model_path: str | Path, input_size: tuple[int, int], threads: int | None = None) -> None:
         self.path = Path(model_path)
@@ -45,16 +50,32 @@ class ScrSession:
             raise InputError(self.path, f"onnxruntime cannot load the model ({str(e).splitlines()[0][:200]})") from None
         inp = self._sess.get_inputs()[0]
         self._input = inp.name
-        self._output = self._sess.get_outputs()[0].name
+        outputs = [o.name for o in self._sess.get_outputs()]
+        self._output = SCR_COORDS_OUTPUT if SCR_COORDS_OUTPUT in outputs else outputs[0]
+        self._features = SCR_FEATURES_OUTPUT if SCR_FEATURES_OUTPUT in outputs else None
         self.input_size = (int(input_size[0]), int(input_size[1]))
         shape = list(inp.shape)
         if len(shape) != 4 or [shape[2], shape[3]] != list(self.input_size):
             raise InputError(self.path, f"model input shape {shape} does not match the bundle input size {self.input_size}")
 
-    def run(self, gray: np.ndarray) -> np.ndarray:
-        """Scene coordinates (h, w, 3) float32 for a grayscale image (H, W) at the model's input size."""
+    @property
+    def has_features(self) -> bool:
+        """Whether the graph also outputs the encoder's features (bundle format 2)."""
+        return self._features is not None
+
+    def _feed(self, gray: np.ndarray) -> dict[str, np.ndarray]:
         if gray.shape != self.input_size:
             raise ValueError(f"image must be {self.input_size} (H, W) grayscale, got {gray.shape}")
-        x = np.ascontiguousarray(gray, dtype=np.float32)[None, None]
-        out = self._sess.run([self._output], {self._input: x})[0]
+        return {self._input: np.ascontiguousarray(gray, dtype=np.float32)[None, None]}
+
+    def run(self, gray: np.ndarray) -> np.ndarray:
+        """Scene coordinates (h, w, 3) float32 for a grayscale image (H, W) at the model's input size."""
+        out = self._sess.run([self._output], self._feed(gray))[0]
         return np.ascontiguousarray(np.moveaxis(out[0], 0, -1))
+
+    def run_with_features(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """Coordinates (h, w, 3) and the encoder features (C, h, w) of one run (features None for a format 1 graph)."""
+        if self._features is None:
+            return self.run(gray), None
+        coords, feats = self._sess.run([self._output, self._features], self._feed(gray))
+        return np.ascontiguousarray(np.moveaxis(coords[0], 0, -1)), feats[0]

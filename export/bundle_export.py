@@ -29,7 +29,7 @@ from acesplat.scr.mapfile import encoder_for_map, load_map
 from acesplat.scr.network import GRAY_MEAN, GRAY_STD
 
 from .checks import CheckFrame, fp32_parity, localization_accuracy, prepare_frames
-from .onnx_graph import INPUT_NAME, OPSET, OUTPUT_NAME, export_scr_onnx
+from .onnx_graph import FEATURES_NAME, INPUT_NAME, OPSET, OUTPUT_NAME, export_scr_onnx
 from .quantize import quantize_int8
 
 FP32_FILE = "scr.onnx"
@@ -196,6 +196,9 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
                           "content": "grayscale intensities in [0, 255] (uint8 values as float)"},
                 "output": {"name": OUTPUT_NAME, "shape": [1, 3, size[0] // OUTPUT_STRIDE, size[1] // OUTPUT_STRIDE],
                            "content": "scene coordinates (x, y, z) in scene units per cell; cell (i, j) is pixel (8j+4, 8i+4)"},
+                "features": {"name": FEATURES_NAME,
+                             "shape": [1, net.encoder.cfg.out, size[0] // OUTPUT_STRIDE, size[1] // OUTPUT_STRIDE],
+                             "content": "the encoder's features per cell (the head's input; the splat initializer's input)"},
                 "normalization": {"formula": "(x / 255 - mean) / std", "mean": GRAY_MEAN, "std": GRAY_STD,
                                   "inside_graph": True},
                 "mean_offset": [float(v) for v in np.asarray(m.mean).reshape(3)],
@@ -203,7 +206,8 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
                 "head": m.head.cfg.as_dict(),
                 "opset": OPSET,
                 "precisions": ["fp32"] + (["int8"] if opts.int8 else []),
-                "int8_scheme": "onnxruntime static QDQ, per-channel weights, U8S8, last conv and head tail in float" if opts.int8 else None,
+                "int8_scheme": ("onnxruntime static QDQ, per-channel weights, U8S8, last conv and head tail in float; "
+                                "features output dequantized from uint8") if opts.int8 else None,
             },
             "checks": checks,
         }

@@ -15,13 +15,14 @@ import numpy as np
 import onnxruntime as ort
 import torch
 
+from acesplat.core.bundle import SCR_COORDS_OUTPUT, SCR_FEATURES_OUTPUT
 from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import pose_error
 from acesplat.core.metrics import FrameResult, accuracy_summary
 from acesplat.core.pnp import solve_from_grid
 from acesplat.core.preprocess import to_gray_input
 from acesplat.core.scene import Frame
-from acesplat.scr.network import SCRNetwork
+from acesplat.scr.network import SCRNetwork, normalize_gray
 
 PNP_SEED = 0
 """OpenCV's RANSAC draws from a global RNG; reseeding before each solve makes two models' poses comparable."""
@@ -53,16 +54,31 @@ def onnx_session(path: str | Path) -> ort.InferenceSession:
     return ort.InferenceSession(str(path), sess_options=so, providers=["CPUExecutionProvider"])
 
 
+def onnx_outputs(sess: ort.InferenceSession, gray: np.ndarray, features: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+    """(h, w, 3) coordinates and, if asked and the graph has them, the (C, h, w) features for a grayscale (H, W) image."""
+    name = sess.get_inputs()[0].name
+    outs = [o.name for o in sess.get_outputs()]
+    want = [SCR_COORDS_OUTPUT if SCR_COORDS_OUTPUT in outs else outs[0]]
+    if features and SCR_FEATURES_OUTPUT in outs:
+        want.append(SCR_FEATURES_OUTPUT)
+    got = sess.run(want, {name: gray.astype(np.float32)[None, None]})
+    return np.moveaxis(got[0][0], 0, -1), (got[1][0] if len(got) > 1 else None)
+
+
 def onnx_coords(sess: ort.InferenceSession, gray: np.ndarray) -> np.ndarray:
     """(h, w, 3) coordinates from an ONNX session for a grayscale (H, W) image."""
-    name = sess.get_inputs()[0].name
-    out = sess.run(None, {name: gray.astype(np.float32)[None, None]})[0]
-    return np.moveaxis(out[0], 0, -1)
+    return onnx_outputs(sess, gray)[0]
 
 
 @torch.no_grad()
 def torch_coords(net: SCRNetwork, gray: np.ndarray) -> np.ndarray:
     return net(torch.from_numpy(gray).float()[None, None])[0].permute(1, 2, 0).numpy()
+
+
+@torch.no_grad()
+def torch_features(net: SCRNetwork, gray: np.ndarray) -> np.ndarray:
+    """The encoder's (C, h, w) features for a grayscale (H, W) image."""
+    return net.encoder(normalize_gray(torch.from_numpy(gray).float()[None, None]))[0].numpy()
 
 
 def seeded_pose(coords: np.ndarray, intr: Intrinsics):
@@ -81,16 +97,23 @@ def coordinate_extent(coords: Sequence[np.ndarray]) -> float:
 
 
 def fp32_parity(net: SCRNetwork, fp32_path: Path, frames: Sequence[CheckFrame], progress: ProgressFn | None = None) -> dict:
-    """Max |ONNX - torch| over the frames' coordinates, as metres and as a fraction of the scene extent; pose differences."""
+    """Max |ONNX - torch| over the frames' coordinates, as metres and as a fraction of the scene extent; pose
+    differences; and the same for the encoder features output (relative to their largest magnitude)."""
     sess = onnx_session(fp32_path)
     max_diff = 0.0
+    feat_diff, feat_scale, has_features = 0.0, 0.0, False
     refs = []
     dt, dr = [], []
     for i, f in enumerate(frames):
         a = torch_coords(net, f.gray)
-        b = onnx_coords(sess, f.gray)
+        b, feats = onnx_outputs(sess, f.gray, features=True)
         refs.append(a)
         max_diff = max(max_diff, float(np.abs(a - b).max()))
+        if feats is not None:
+            ref_feats = torch_features(net, f.gray)
+            has_features = True
+            feat_diff = max(feat_diff, float(np.abs(feats - ref_feats).max()))
+            feat_scale = max(feat_scale, float(np.abs(ref_feats).max()))
         pa, pb = seeded_pose(a, f.intrinsics), seeded_pose(b, f.intrinsics)
         if pa.T_c2w is not None and pb.T_c2w is not None:
             t, r = pose_error(pb.T_c2w, pa.T_c2w)
@@ -107,6 +130,8 @@ def fp32_parity(net: SCRNetwork, fp32_path: Path, frames: Sequence[CheckFrame], 
         "pose_frames_compared": len(dt),
         "pose_max_translation_diff_m": max(dt) if dt else None,
         "pose_max_rotation_diff_deg": max(dr) if dr else None,
+        "features_max_abs_diff": feat_diff if has_features else None,
+        "features_max_abs": feat_scale if has_features else None,
     }
 
 

@@ -34,6 +34,9 @@ def checks_table(manifest: dict) -> Table:
     t.add_row("  scene extent (m)", _fmt(par["scene_extent_m"]))
     t.add_row("  max pose difference (m / deg)",
               f"{_fmt(par['pose_max_translation_diff_m'])} / {_fmt(par['pose_max_rotation_diff_deg'])}")
+    if par.get("features_max_abs_diff") is not None:
+        t.add_row("FP32 ONNX vs torch: encoder features max |diff| / max |feature|",
+                  f"{_fmt(par['features_max_abs_diff'])} / {_fmt(par['features_max_abs'])}")
     acc = checks.get("test_split")
     if acc:
         for prec in ("fp32", "int8"):
@@ -45,6 +48,15 @@ def checks_table(manifest: dict) -> Table:
                       f"{a['recall_5cm_5deg']:.1f}, {a['recall_10cm_5deg']:.1f}, {a['recall_25cm_2deg']:.1f}")
     elif checks.get("test_split_note"):
         t.add_row("INT8 accuracy", checks["test_split_note"])
+    if "splat_init_fp32_vs_torch" in checks:
+        par = checks["splat_init_fp32_vs_torch"]
+        t.add_row("splat initializer ONNX vs torch: max |diff| / max |output|",
+                  f"{_fmt(par['max_abs_diff'])} / {_fmt(par['max_abs_output'])}")
+        for prec in ("fp32", "int8"):
+            via = checks.get(f"splat_init_via_scr_{prec}_vs_torch")
+            if via:
+                t.add_row(f"  fed the {prec.upper()} SCR graph's features: max / mean |diff|",
+                          f"{_fmt(via['max_abs_diff'])} / {_fmt(via['mean_abs_diff'])}")
     return t
 
 

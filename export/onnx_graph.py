@@ -1,6 +1,9 @@
-"""SCR network -> one static-shape ONNX graph: grayscale image (1, 1, H, W) in [0, 255], coordinates (1, 3, H/8, W/8) out.
+"""SCR network -> one static-shape ONNX graph: grayscale image (1, 1, H, W) in [0, 255] in; coordinates
+(1, 3, H/8, W/8) and the encoder's features (1, C, H/8, W/8) out.
 
-Normalisation and the mean offset live inside the network, so the graph needs nothing but pixels.
+Normalisation and the mean offset live inside the network, so the graph needs nothing but pixels. The
+features are the head's input, a second output at no extra compute: the edge's splat initializer takes
+them instead of running the encoder again (export/splat_export.py).
 """
 
 from __future__ import annotations
@@ -12,12 +15,26 @@ from pathlib import Path
 import torch
 
 from acesplat.core.atomic import atomic_path
-from acesplat.scr.network import SCRNetwork
+from acesplat.core.bundle import SCR_COORDS_OUTPUT, SCR_FEATURES_OUTPUT
+from acesplat.scr.network import SCRNetwork, normalize_gray
 
 INPUT_NAME = "gray"
-OUTPUT_NAME = "coords"
+OUTPUT_NAME = SCR_COORDS_OUTPUT
+FEATURES_NAME = SCR_FEATURES_OUTPUT
 OPSET = 18
 """Opset 18: supported by onnxruntime >= 1.14 and by the dynamo exporter without down-conversion."""
+
+
+class ScrWithFeatures(torch.nn.Module):
+    """``net`` returning (coordinates, encoder features): the graph the bundle ships."""
+
+    def __init__(self, net: SCRNetwork) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, gray: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        feats = self.net.encoder(normalize_gray(gray))
+        return self.net.head(feats), feats
 
 
 def export_scr_onnx(net: SCRNetwork, size_hw: tuple[int, int], out_path: str | Path) -> Path:
@@ -25,7 +42,7 @@ def export_scr_onnx(net: SCRNetwork, size_hw: tuple[int, int], out_path: str | P
     h, w = size_hw
     if h % 8 or w % 8:
         raise ValueError(f"input size must be a multiple of 8 in both sides, got {h}x{w}")
-    model = net.eval()
+    model = ScrWithFeatures(net).eval()
     example = torch.full((1, 1, h, w), 128.0)
     out_path = Path(out_path)
     with atomic_path(out_path) as tmp, warnings.catch_warnings():
@@ -33,6 +50,6 @@ def export_scr_onnx(net: SCRNetwork, size_hw: tuple[int, int], out_path: str | P
         logging.getLogger("torch.onnx").setLevel(logging.ERROR)
         torch.onnx.export(
             model, (example,), str(tmp), dynamo=True, external_data=False, opset_version=OPSET,
-            input_names=[INPUT_NAME], output_names=[OUTPUT_NAME], verbose=False,
+            input_names=[INPUT_NAME], output_names=[OUTPUT_NAME, FEATURES_NAME], verbose=False,
         )
     return out_path

@@ -84,6 +84,17 @@ def test_newer_format_version_is_a_clear_error(tmp_path: Path) -> None:
         load_bundle(root)
 
 
+def test_format_1_bundles_still_load_and_keep_their_version(tmp_path: Path) -> None:
+    root = _bundle(tmp_path)
+    _edit_manifest(root, lambda m: m.update(format_version=1))
+    b = load_bundle(root)
+    assert b.format_version == 1 and BUNDLE_VERSION == 2 and b.scr_model("fp32") == root / "scr.onnx"
+    write_manifest(root, b.manifest, list(b.files.values()), version=b.format_version)
+    assert load_bundle(root).format_version == 1  # a file added to an old bundle does not relabel it
+    with pytest.raises(ValueError, match="1..2"):
+        write_manifest(root, b.manifest, list(b.files.values()), version=BUNDLE_VERSION + 1)
+
+
 @pytest.mark.parametrize(
     "edit, message",
     [

@@ -29,6 +29,8 @@ def test_manifest_describes_the_bundle(tiny) -> None:
     assert len(m["scr"]["mean_offset"]) == 3
     assert m["scr"]["encoder"]["sha256"] == json.loads(json.dumps(m))["scr"]["encoder"]["sha256"]
     assert {f.role for f in b.files.values()} == {"scr_fp32", "scr_int8"}
+    assert m["format_version"] == 2
+    assert m["scr"]["features"]["name"] == "features" and m["scr"]["features"]["shape"] == [1, 32, 8, 10]
     assert m["created_by"].startswith("acesplat-edge") and m["scene"]["name"] == "room"
 
 
@@ -52,6 +54,15 @@ def test_fp32_graph_matches_torch(tiny) -> None:
     with torch.no_grad():
         ref = net(torch.from_numpy(gray).float()[None, None])[0].permute(1, 2, 0).numpy()
     assert np.abs(sess.run(gray) - ref).max() < 1e-4
+    # The encoder features output (what the splat initializer takes), from the same run as the coordinates.
+    assert par["features_max_abs_diff"] < 1e-5 * max(1.0, par["features_max_abs"])
+    coords, feats = sess.run_with_features(gray)
+    with torch.no_grad():
+        from acesplat.scr.network import normalize_gray
+
+        ref_feats = net.encoder(normalize_gray(torch.from_numpy(gray).float()[None, None]))[0].numpy()
+    assert sess.has_features and np.array_equal(coords, sess.run(gray))
+    assert feats.shape == (32, 8, 10) and np.abs(feats - ref_feats).max() < 1e-4 * max(1.0, np.abs(ref_feats).max())
 
 
 def test_int8_self_check_keeps_most_frames_localized(tiny) -> None:
@@ -70,6 +81,7 @@ def test_int8_graph_is_quantized(tiny) -> None:
     g = onnx.load(str(Path(tiny["bundle"]) / "scr.int8.onnx")).graph
     ops = [n.op_type for n in g.node]
     assert ops.count("QuantizeLinear") > 5 and "DequantizeLinear" in ops
+    assert [o.name for o in g.output] == ["coords", "features"]  # the quantizer keeps both outputs
     # weights are int8 per channel, activations uint8 (U8S8)
     inits = {i.name: i for i in g.initializer}
     q_types = {inits[n.input[2]].data_type for n in g.node if n.op_type == "QuantizeLinear" and len(n.input) > 2 and n.input[2] in inits}

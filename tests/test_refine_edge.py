@@ -188,8 +188,16 @@ def test_export_splat_lists_models_checked_against_torch(splat_bundle) -> None:
     assert (ROLE_GAUSSIANS, ROLE_SPLAT_INIT) == (EXPORT_GAUSSIANS, EXPORT_INIT)
     b = load_bundle(splat_bundle)  # verifies every listed file's size and sha256
     assert b.has(ROLE_GAUSSIANS) and b.has(ROLE_SPLAT_INIT) and b.has("scr_fp32")
-    parity = b.manifest["checks"]["splat_init_fp32_vs_torch"]
+    checks = b.manifest["checks"]
+    parity = checks["splat_init_fp32_vs_torch"]
     assert parity["max_abs_diff"] < 1e-4 * max(1.0, parity["max_abs_output"])
+    # What the edge runs: the SCR graph's features output into the initializer, against torch end to end.
+    via = checks["splat_init_via_scr_fp32_vs_torch"]
+    assert via["max_abs_diff"] < 1e-4 * max(1.0, via["max_abs_output"])
+    int8 = checks["splat_init_via_scr_int8_vs_torch"]  # INT8 features: close, not equal
+    assert 0.0 < int8["max_abs_diff"] < 0.1 * max(1e-3, int8["max_abs_output"])
+    assert b.format_version == 2
+    assert b.manifest["splat"]["init"]["inputs"]["features"] == b.scr["features"]["shape"] == [1, 32, 8, 10]
     assert len(bundle_gaussians(b)) == b.manifest["splat"]["gaussians"]
 
 
@@ -202,11 +210,15 @@ def test_onnx_seeder_places_gaussians_on_scr_rays(splat_bundle, tiny) -> None:
 
     from .refine_scene import true_cells
 
+    from edge.inference import ScrSession
+
     b = load_bundle(splat_bundle)
     seeder = onnx_seeder_for(b)
     f = read_split(tiny["scene"], "train").frames[3]
     gray, k_in = to_gray_input(f.load_rgb(), f.intrinsics, b.input_size)
-    kf = Keyframe(f.pose, f.load_rgb().astype(np.float32) / 255, f.intrinsics, true_cells(f), k_in, f.name, gray)
+    _, feats = ScrSession(b.scr_model("fp32"), b.input_size, threads=1).run_with_features(gray)
+    assert feats.shape == seeder.features_shape == (32, 8, 10)
+    kf = Keyframe(f.pose, f.load_rgb().astype(np.float32) / 255, f.intrinsics, true_cells(f), k_in, f.name, feats)
     g = seeder(kf, np.ones((f.intrinsics.height, f.intrinsics.width), bool), 300, 3, np.random.default_rng(0))
     assert 0 < len(g) <= 300 and g.sh_degree == 3
     for p in ("means", "log_scales", "quats", "opacity_logits", "sh"):
@@ -235,3 +247,54 @@ def test_bad_refine_inputs_give_one_line_errors(bundle_with_gaussians, tiny, tmp
     (tmp_path / "bad.ply").write_bytes(b"ply\nformat ascii 1.0\nend_header\n")
     with pytest.raises(InputError, match="bad.ply"):
         add_gaussians(b, tmp_path / "bad.ply")
+
+
+def test_replay_refine_seeds_through_the_initializer_with_the_localizer_features(splat_bundle, tiny, tmp_path) -> None:
+    out = tmp_path / "r.json"
+    r = CliRunner().invoke(app, ["replay", str(splat_bundle), str(tiny["scene"]), "--split", "test", "--refine",
+                                 "--budget-ms", "2000", "--threads", "1", "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    ref = json.loads(out.read_text())["refine"]
+    assert ref["seeder"] == "onnx_initializer" and ref["calibration_ms"]["initializer_ms"] > 0
+    assert ref["seeded_by"]["primary"] >= 1  # a generous budget: the initializer fits
+    assert ref["errors"] == []
+
+
+def test_format_1_initializer_is_not_used_and_export_refuses_a_format_1_bundle(splat_bundle, tiny, tmp_path) -> None:
+    """A format 1 bundle (SCR graph without features, initializer with its own encoder) still localizes; refinement
+    says in one line that it seeds from SCR coordinates; export --splat onto it is a one-line error."""
+    from acesplat.core.bundle import MANIFEST_NAME, load_bundle
+    from acesplat.core.errors import InputError
+    from edge.refine.bundle_models import splat_section
+    from edge.refine.onnx_seeder import OnnxSeeder, onnx_seeder_for
+    from export.splat_export import export_splat
+
+    old = tmp_path / "old"
+    shutil.copytree(splat_bundle, old)
+    m = json.loads((old / MANIFEST_NAME).read_text())
+    m["format_version"] = 1
+    del m["scr"]["features"]
+    (old / MANIFEST_NAME).write_text(json.dumps(m))
+    b = load_bundle(old)
+    said: list[str] = []
+    assert onnx_seeder_for(b, warn=said.append) is None
+    assert len(said) == 1 and "format 1" in said[0] and "SCR coordinates" in said[0]
+    with pytest.raises(InputError, match="takes \\['gray'\\]") as e:  # an image-input graph is refused by name
+        OnnxSeeder(b.scr_model("fp32"), splat_section(b))
+    assert "\n" not in str(e.value)
+    with pytest.raises(InputError, match="format 1.*no features output.*re-export"):
+        export_splat(old, splat_bundle.parent / "splat", tiny["map"])
+
+
+def test_export_splat_refuses_a_splat_of_another_encoder(splat_bundle, tiny, tmp_path) -> None:
+    from acesplat.core.bundle import MANIFEST_NAME
+    from acesplat.core.errors import InputError
+    from export.splat_export import export_splat
+
+    other = tmp_path / "other"
+    shutil.copytree(splat_bundle, other)
+    m = json.loads((other / MANIFEST_NAME).read_text())
+    m["scr"]["encoder"]["sha256"] = "0" * 64
+    (other / MANIFEST_NAME).write_text(json.dumps(m))
+    with pytest.raises(InputError, match="trained on features of encoder"):
+        export_splat(other, splat_bundle.parent / "splat", tiny["map"])

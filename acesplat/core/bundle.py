@@ -20,8 +20,17 @@ from .atomic import write_json
 from .errors import InputError
 
 BUNDLE_FORMAT = "acesplat-bundle"
-BUNDLE_VERSION = 1
+BUNDLE_VERSION = 2
+"""1: the SCR graphs output coordinates only; a splat initializer (if any) takes the image and runs its own encoder.
+2: the SCR graphs (FP32 and INT8) also output the encoder's features, and the initializer takes those features.
+Version 1 bundles still load: localization reads the coordinates output of either; refinement seeds from SCR
+coordinates when the initializer is a version 1 graph."""
 MANIFEST_NAME = "manifest.json"
+
+SCR_COORDS_OUTPUT = "coords"
+SCR_FEATURES_OUTPUT = "features"
+"""Output names of the SCR graphs: coordinates (1, 3, H/8, W/8) and, from version 2, the encoder's features
+(1, C, H/8, W/8) that the splat initializer takes, so refinement reuses what localization computed."""
 
 ROLE_SCR_FP32 = "scr_fp32"
 ROLE_SCR_INT8 = "scr_int8"
@@ -80,6 +89,10 @@ class Bundle:
         return self.manifest.get("scene", {}).get("path")
 
     @property
+    def format_version(self) -> int:
+        return int(self.manifest.get("format_version", 1))
+
+    @property
     def scr(self) -> dict[str, Any]:
         return self.manifest["scr"]
 
@@ -107,12 +120,18 @@ class Bundle:
         return self.root / self.files[role].path
 
 
-def write_manifest(root: str | Path, manifest: dict[str, Any], files: list[BundleFile]) -> dict[str, Any]:
-    """Write ``manifest.json`` with the format header and the file list (atomically); returns what was written."""
+def write_manifest(root: str | Path, manifest: dict[str, Any], files: list[BundleFile],
+                   version: int = BUNDLE_VERSION) -> dict[str, Any]:
+    """Write ``manifest.json`` with the format header and the file list (atomically); returns what was written.
+
+    ``version``: an older bundle given a file that does not depend on the newer contract keeps its version.
+    """
     roles = [f.role for f in files]
     if len(set(roles)) != len(roles):
         raise ValueError(f"duplicate roles in bundle file list: {roles}")
-    body = {"format": BUNDLE_FORMAT, "format_version": BUNDLE_VERSION}
+    if not 1 <= version <= BUNDLE_VERSION:
+        raise ValueError(f"bundle format version must be in 1..{BUNDLE_VERSION}, got {version}")
+    body = {"format": BUNDLE_FORMAT, "format_version": version}
     body.update({k: v for k, v in manifest.items() if k not in ("format", "format_version", "files")})
     body["files"] = [f.as_dict() for f in files]
     write_json(Path(root) / MANIFEST_NAME, body)

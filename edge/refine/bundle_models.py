@@ -1,7 +1,7 @@
 """The refinement models a bundle may carry (written by export/splat_export.py), torch-free.
 
 Roles in the manifest's file list: ``gaussians`` (the scene's 3DGS PLY) and ``splat_init_fp32``
-(the Gaussian initializer: SCR encoder + feature adapter + init head in one ONNX graph). The
+(the Gaussian initializer: feature adapter + init head in one ONNX graph, fed the SCR graph's features). The
 manifest's ``splat`` section says how to use them.
 """
 

@@ -1,14 +1,20 @@
-"""Seeding through the bundle's initializer (SCR encoder + feature adapter + init head, one ONNX graph).
+"""Seeding through the bundle's initializer (feature adapter + init head, one ONNX graph).
 
-The graph predicts residuals around the same analytic start the SCR seeder uses (colour from the
-pixel, isotropic scale covering the seeding gap, identity rotation, a prior opacity); it runs at the
-network input resolution and its residuals are resampled to the refinement resolution. Centres
-stay the SCR depths along pixel rays. Decoding mirrors acesplat/splat/init_head.decode_gaussians.
+The graph takes the encoder features the localizer's SCR graph output for the keyframe (bundle
+format 2), so seeding costs the adapter and head only, not a second encoder run. It predicts
+residuals around the same analytic start the SCR seeder uses (colour from the pixel, isotropic scale
+covering the seeding gap, identity rotation, a prior opacity); it runs at the network input
+resolution and its residuals are resampled to the refinement resolution. Centres stay the SCR depths
+along pixel rays. Decoding mirrors acesplat/splat/init_head.decode_gaussians.
+
+A format 1 bundle's initializer takes the image and runs its own encoder: it is not used (one line
+says so) and refinement seeds from SCR coordinates.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -22,10 +28,15 @@ from .bundle_models import ROLE_SPLAT_INIT, splat_section
 from .seeding import block_colours, pixel_depths, seed_pixels
 
 PRIOR_CHANNELS = 7
+INPUTS = ("features", "prior")
+"""The initializer's inputs (export/splat_export.py INIT_INPUTS)."""
 
 
 class OnnxSeeder:
-    """Callable with the refiner's seeder signature; needs keyframes with ``gray`` and ``coords``."""
+    """Callable with the refiner's seeder signature; needs keyframes with ``features`` and ``coords``."""
+
+    needs_features = True
+    """The refinement session asks the SCR graph for its features output when its seeder says this."""
 
     def __init__(self, model_path: str | Path, splat: dict, threads: int = 1, spacing: int = 2) -> None:
         self.path = Path(model_path)
@@ -48,6 +59,10 @@ class OnnxSeeder:
             self.sess = ort.InferenceSession(str(self.path), sess_options=so, providers=["CPUExecutionProvider"])
         except Exception as e:  # onnxruntime raises its own types
             raise InputError(self.path, f"onnxruntime cannot load the initializer ({str(e).splitlines()[0][:200]})") from None
+        names = [i.name for i in self.sess.get_inputs()]
+        if tuple(names) != INPUTS:
+            raise InputError(self.path, f"initializer takes {names}, expected {list(INPUTS)} (a bundle format 1 graph?)")
+        self.features_shape = tuple(int(d) for d in self.sess.get_inputs()[0].shape[1:])
         self.spacing = spacing
         self.channels = 1 + 3 * sh_coeff_count(self.head_degree) + 7
 
@@ -55,25 +70,29 @@ class OnnxSeeder:
         """Run the graph once on a blank input (loads it) and again timed; records the seconds in ``estimate``."""
         import time
 
-        gray = np.zeros(self.size, np.float32)
+        feats = np.zeros(self.features_shape, np.float32)
         prior = np.zeros((PRIOR_CHANNELS, *self.size), np.float32)
-        self.residuals(gray, prior)
+        self.residuals(feats, prior)
         t0 = time.perf_counter()
-        self.residuals(gray, prior)
+        self.residuals(feats, prior)
         dt = time.perf_counter() - t0
         if estimate is not None:
             estimate.record(dt)
         return dt
 
-    def residuals(self, gray: np.ndarray, prior: np.ndarray) -> np.ndarray:
-        """(H, W, C) head residuals for a grayscale (H, W) image and a prior (PRIOR_CHANNELS, H, W)."""
-        out = self.sess.run(None, {"gray": gray.astype(np.float32)[None, None], "prior": prior[None].astype(np.float32)})[0]
+    def residuals(self, features: np.ndarray, prior: np.ndarray) -> np.ndarray:
+        """(H, W, K) head residuals for SCR features (C, h, w) and a prior (PRIOR_CHANNELS, H, W)."""
+        if features.shape != self.features_shape:
+            raise ValueError(f"features must have shape {self.features_shape}, got {features.shape}")
+        feed = {INPUTS[0]: np.ascontiguousarray(features, dtype=np.float32)[None],
+                INPUTS[1]: np.ascontiguousarray(prior, dtype=np.float32)[None]}
+        out = self.sess.run(None, feed)[0]
         if out.shape != (1, self.channels, *self.size):
             raise InputError(self.path, f"initializer output {out.shape} is not (1, {self.channels}, {self.size[0]}, {self.size[1]})")
         return np.ascontiguousarray(np.moveaxis(out[0], 0, -1))
 
     def __call__(self, kf, need: np.ndarray, max_new: int, sh_degree: int, rng: np.random.Generator) -> Gaussians:
-        if kf.coords is None or kf.k_input is None or getattr(kf, "gray", None) is None:
+        if kf.coords is None or kf.k_input is None or getattr(kf, "features", None) is None:
             return Gaussians.empty(sh_degree)
         if sh_degree < self.head_degree:
             raise ValueError(f"map SH degree {sh_degree} is below the initializer's {self.head_degree}")
@@ -83,7 +102,7 @@ class OnnxSeeder:
         prior = np.concatenate([rgb_in - 0.5, (pix_in.centres - self.centre) / self.scale,
                                 np.log(np.maximum(pix_in.depth, 1e-6) / self.scale)[..., None]], axis=-1)
         prior = np.nan_to_num(prior).transpose(2, 0, 1)
-        raw_in = self.residuals(kf.gray, prior)
+        raw_in = self.residuals(kf.features, prior)
         raw = np.stack([cv2.resize(raw_in[..., c], (kf.k.width, kf.k.height), interpolation=cv2.INTER_AREA)
                         for c in range(raw_in.shape[2])], axis=-1)
         pix = pixel_depths(kf.coords, kf.pose, k_in, kf.k)
@@ -110,9 +129,16 @@ class OnnxSeeder:
         return g
 
 
-def onnx_seeder_for(bundle: Bundle, threads: int = 1, spacing: int = 2) -> OnnxSeeder | None:
-    """The bundle's initializer as a seeder, or None when the bundle has none (the SCR seeder is used)."""
+def onnx_seeder_for(bundle: Bundle, threads: int = 1, spacing: int = 2,
+                    warn: Callable[[str], None] | None = None) -> OnnxSeeder | None:
+    """The bundle's initializer as a seeder, or None when the bundle has none or only a format 1 one (which runs
+    its own encoder; ``warn`` gets one line): the SCR seeder is used then."""
     if not bundle.has(ROLE_SPLAT_INIT):
+        return None
+    if bundle.format_version < 2:
+        if warn is not None:
+            warn(f"{bundle.root}: bundle format {bundle.format_version}: its initializer runs its own encoder; seeding "
+                 "from SCR coordinates instead (re-export with `acesplat export MAP --splat SPLAT` to use it)")
         return None
     f = bundle.files[ROLE_SPLAT_INIT]
     verify_file(bundle.root, f)

@@ -88,8 +88,8 @@ class Keyframe:
     coords: np.ndarray | None = None
     k_input: Intrinsics | None = None
     name: str = ""
-    gray: np.ndarray | None = None
-    """The network's grayscale input (k_input's size), for the ONNX initializer."""
+    features: np.ndarray | None = None
+    """The SCR graph's encoder features (C, h, w) for the frame, for the ONNX initializer."""
 
 
 class Seeder(Protocol):
@@ -292,7 +292,7 @@ class Refiner:
                 return rep
 
         # 2. New Gaussians where the map is missing or wrong.
-        # The primary seeder (the ONNX initializer runs an encoder) only when it fits; else the SCR seeder.
+        # The primary seeder (the ONNX initializer: adapter + head) only when it fits; else the SCR seeder.
         room = max(0, min(cfg.max_new, cfg.cap))
         primary = self.seeder is not self.scr_seeder and (
             yield ("option", self.seed_cost.predict(), self.guard_reserve(kf_px) + self.kf_check_reserve()))

@@ -83,14 +83,21 @@ def colour_at(image: np.ndarray, intr: Intrinsics, dist: np.ndarray | None, k_in
 
 
 class _SessionTap:
-    def __init__(self, inner: Any, session: "RefineSession") -> None:
+    """Stands in for the localizer's SCR session: keeps each frame's coordinates (and, for the ONNX initializer,
+    the encoder features the same run output) for the keyframe."""
+
+    def __init__(self, inner: Any, session: "RefineSession", features: bool) -> None:
         self._inner = inner
         self._session = session
+        self._features = features
 
     def run(self, gray: np.ndarray) -> np.ndarray:
-        coords = self._inner.run(gray)
+        if self._features:
+            coords, feats = self._inner.run_with_features(gray)
+        else:
+            coords, feats = self._inner.run(gray), None
         self._session._last_coords = coords
-        self._session._last_gray = gray
+        self._session._last_features = feats
         return coords
 
     def __getattr__(self, name: str) -> Any:
@@ -116,7 +123,7 @@ class RefineSession:
         self.calibration_ms = self.refiner.warm_up(refine_intrinsics(Intrinsics.from_focal(float(w), int(w), int(h)),
                                                                      opts.max_side))
         timing = getattr(seeder, "time_once", None)
-        if timing is not None:  # the ONNX initializer runs an encoder: measure it before it competes for a deadline
+        if timing is not None:  # measure the ONNX initializer (adapter + head) before it competes for a deadline
             self.calibration_ms["initializer_ms"] = 1000.0 * timing(self.refiner.seed_cost)
         self.saver = SplatSaver(opts.save_path, opts.save_every_s) if opts.save_path else None
         self.worker = RefineWorker(self.refiner, KeyframeSelector(opts.policy), self.saver, clock)
@@ -125,16 +132,17 @@ class RefineSession:
         self.counts_over_time: list[tuple[int, int]] = [(0, len(self.initial))]
         self._eval: list[tuple[np.ndarray, Intrinsics, np.ndarray]] = []
         self._last_coords: np.ndarray | None = None
-        self._last_gray: np.ndarray | None = None
+        self._last_features: np.ndarray | None = None
         self._closed = False
         self.summary: dict | None = None
         self.seeder_name = "scr" if seeder is None else "custom"
-        localizer.session = _SessionTap(localizer.session, self)
+        wants_features = bool(getattr(seeder, "needs_features", False))
+        localizer.session = _SessionTap(localizer.session, self, wants_features)
         inner = localizer.localize
 
         def localize(frame, *args, **kwargs):
             self.worker.preempt()
-            self._last_coords = None
+            self._last_coords = self._last_features = None
             out = inner(frame, *args, **kwargs)
             if not self._closed:
                 self.on_outcome(frame, out)
@@ -145,7 +153,7 @@ class RefineSession:
     def on_outcome(self, frame: Any, out: Any) -> None:
         """Offer a localized frame to the worker; with pacing, wait for the worker or the frame's deadline."""
         self.frames += 1
-        coords, gray = self._last_coords, self._last_gray
+        coords, feats = self._last_coords, self._last_features
         image, intr, dist, k_input = frame.image, frame.intrinsics, frame.distortion, out.intrinsics
         if k_input is None:
             return
@@ -161,7 +169,7 @@ class RefineSession:
             name = out.name or str(rec.frame_id)
 
             def make_keyframe() -> Keyframe:
-                return Keyframe(pose, colour_at(image, intr, dist, k_input, k_ref), k_ref, coords, k_input, name, gray)
+                return Keyframe(pose, colour_at(image, intr, dist, k_input, k_ref), k_ref, coords, k_input, name, feats)
 
             def cell_depth() -> tuple[np.ndarray, Intrinsics]:
                 return cell_trust(coords, pose, k_input)[0], k_input
@@ -254,7 +262,11 @@ def start_refinement(localizer: Any, bundle: Any, opts: RefineOptions, warn: Cal
         return None
     from .onnx_seeder import onnx_seeder_for
 
-    seeder = onnx_seeder_for(bundle, threads=1, spacing=opts.config.seed_spacing) if opts.use_initializer else None
+    seeder = onnx_seeder_for(bundle, threads=1, spacing=opts.config.seed_spacing, warn=warn) if opts.use_initializer else None
+    session_out = getattr(localizer.session, "has_features", True)
+    if seeder is not None and not session_out:
+        warn(f"{bundle.root}: the SCR model has no features output for the initializer; seeding from SCR coordinates")
+        seeder = None
     session = RefineSession(localizer, g, opts, seeder=seeder)
     session.seeder_name = "onnx_initializer" if seeder is not None else "scr"
     return session
