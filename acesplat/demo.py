@@ -1,6 +1,8 @@
 """`acesplat demo`: the whole pipeline on the built-in synthetic scene, end to end, with a results table.
 
-Each stage calls the same library functions as its own command, so the demo cannot drift from them.
+synth -> map (Stage 1) -> eval -> splat (a short Stage 2) -> export (FP32 + INT8 SCR graphs, the Gaussians and
+their initializer) -> edge replay with each precision -> edge replay with refinement (PSNR before/after on the
+test views). Each stage calls the same library functions as its own command, so the demo cannot drift from them.
 """
 
 from __future__ import annotations
@@ -13,17 +15,31 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from acesplat.core.cli_support import PhaseProgress, one_line_errors, report_json
+from acesplat.core.cli_support import PhaseProgress, one_line_errors, parse_size, report_json
+from acesplat.core.errors import InputError
 
 console = Console()
 
 
-def _stage_synth(work: Path, summary: dict) -> Path:
+DEFAULT_SPLAT_MINUTES = 1.5
+"""Stage 2 budget of the demo: enough to see the Gaussians form (the full recipe is `acesplat splat --minutes 10`)."""
+DEFAULT_REFINE_BUDGET_MS = 100.0
+"""Per-frame budget of the refinement replay (issue 6's setting: localization plus refinement in 100 ms)."""
+REFINE_PRECISION = "int8"
+"""The refinement replay runs the INT8 SCR graph, the edge's fast path: more of the budget is left for refinement."""
+
+
+def _stage_synth(work: Path, summary: dict, size: tuple[int, int] | None, frames: tuple[int, int] | None) -> Path:
     from acesplat.synth import synthesize
 
     scene = work / "scene"
+    extra: dict = {}
+    if size is not None:
+        extra["size"] = size
+    if frames is not None:
+        extra["train_frames"], extra["test_frames"] = frames
     with PhaseProgress("demo ") as bar:
-        s = synthesize(scene, seed=0, overwrite=True, progress=lambda d, n: bar("synth", d / n, {"frames": d}))
+        s = synthesize(scene, seed=0, overwrite=True, progress=lambda d, n: bar("synth", d / n, {"frames": d}), **extra)
     summary["synth"] = {k: s[k] for k in ("train_frames", "test_frames", "size", "seconds")}
     return scene
 
@@ -60,17 +76,43 @@ def _stage_map(scene: Path, work: Path, minutes: float, summary: dict) -> Path:
     return map_path
 
 
-def _stage_edge(map_path: Path, scene: Path, work: Path, summary: dict) -> Path:
-    """Export FP32 + INT8 ONNX and replay the test split on the torch-free edge runtime with both."""
+def _stage_splat(scene: Path, map_path: Path, work: Path, minutes: float, iterations: int | None, summary: dict) -> Path:
+    """A short Stage 2 through `acesplat splat`'s library function, with the command's default of one torch thread."""
+    import torch
+
+    from acesplat.splat.cli_cmds import run_splat
+    from acesplat.splat.pipeline import SplatConfig
+
+    cfg = SplatConfig(minutes=minutes, iterations=iterations,
+                      head_iterations=None if iterations is None else iterations // 5)
+    splat_dir = work / "splat"
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with PhaseProgress("demo splat ") as bar:
+            rep = run_splat(scene, map_path, splat_dir, cfg, progress=bar)
+    finally:
+        torch.set_num_threads(threads)
+    summary["splat"] = {k: rep[k] for k in ("seconds", "iterations", "gaussians_initial", "gaussians_final",
+                                            "train_psnr", "train_ssim", "train_psnr_views") if k in rep}
+    return splat_dir
+
+
+def _stage_edge(map_path: Path, scene: Path, splat_dir: Path, work: Path, budget_ms: float, summary: dict) -> Path:
+    """Export FP32 + INT8 ONNX with the Gaussians and their initializer, replay the test split on the torch-free
+    edge runtime with each precision, then once more with refinement."""
     from acesplat.core.bundle import load_bundle
+    from edge.refine.cli_hooks import refine_session
     from edge.replay import replay_split
     from edge.runtime import EdgeLocalizer
     from export.bundle_export import ExportOptions, export_bundle
+    from export.splat_export import export_splat
 
     bundle_dir = work / "bundle"
     with PhaseProgress("demo export ") as bar:
         rep = export_bundle(map_path, bundle_dir, ExportOptions(int8=True, scene_path=scene), bar)
-    summary["export"] = {"seconds": rep.seconds, "checks": rep.manifest.get("checks", {})}
+        sp = export_splat(bundle_dir, splat_dir, map_path, progress=bar)
+    summary["export"] = {"seconds": rep.seconds + sp["seconds"], "checks": sp["manifest"].get("checks", {})}
     bundle = load_bundle(bundle_dir)
     for precision in ("fp32", "int8"):
         loc = EdgeLocalizer(bundle, precision)
@@ -78,6 +120,21 @@ def _stage_edge(map_path: Path, scene: Path, work: Path, summary: dict) -> Path:
             r = replay_split(loc, scene, "test", lambda i, n: bar("localize", i / n, {"frame": i}))
         r.pop("per_frame", None)
         summary[f"replay_{precision}"] = r
+    loc = EdgeLocalizer(bundle, REFINE_PRECISION)
+    session = refine_session(True, loc, bundle, budget_ms, None, True, lambda msg: console.print(f"[yellow]{msg}[/yellow]"),
+                             evaluate=True)
+    if session is None:
+        raise InputError(bundle_dir, "the demo bundle has no Gaussians to refine")
+    t0 = time.monotonic()
+    with PhaseProgress(f"demo replay {REFINE_PRECISION} + refinement ") as bar:
+        try:
+            r = replay_split(loc, scene, "test", lambda i, n: bar("localize + refine", i / n, {"frame": i}))
+        finally:
+            session.close()
+    r.pop("per_frame", None)
+    r["refine"] = session.summary
+    r["seconds"] = time.monotonic() - t0
+    summary["replay_refine"] = r
     return bundle_dir
 
 
@@ -94,15 +151,43 @@ def results_table(summary: dict) -> Table:
         m, e = summary["map"], summary["eval"]
         t.add_row("map", f"{m['iterations']} iterations, {m['buffer_features']} buffered features", f"{m['seconds']:.1f}")
         t.add_row("eval (torch)", _accuracy(e), f"{e['mean_ms'] * e['frames'] / 1000:.1f}")
+    if "splat" in summary:
+        sp = summary["splat"]
+        t.add_row("splat (Stage 2)", f"{sp['gaussians_initial']} -> {sp['gaussians_final']} Gaussians, {sp['iterations']} "
+                  f"iterations; train PSNR {sp['train_psnr']:.2f} dB over {sp['train_psnr_views']} views", f"{sp['seconds']:.1f}")
     if "export" in summary:
-        t.add_row("export (ONNX FP32 + INT8)", "bundle with manifest and hashes", f"{summary['export']['seconds']:.1f}")
+        t.add_row("export (ONNX FP32 + INT8 + splat)", "bundle: SCR graphs, Gaussians, initializer; self-checked",
+                  f"{summary['export']['seconds']:.1f}")
     for precision in ("fp32", "int8"):
         r = summary.get(f"replay_{precision}")
         if r:
             tm = r["timing_ms"]["total"]
             t.add_row(f"edge replay ({precision})", f"{_accuracy(r)}; total p50 {tm['p50']:.0f} ms, p95 {tm['p95']:.0f} ms",
                       f"{tm['mean'] * r['frames'] / 1000:.1f}")
+    r = summary.get("replay_refine")
+    if r:
+        t.add_row(f"edge replay ({r['precision']}) + refinement", _refinement(r, summary.get(f"replay_{r['precision']}")),
+                  f"{r['seconds']:.1f}")
+    if "seconds" in summary:
+        t.add_row("total", "", f"{summary['seconds']:.1f}")
     return t
+
+
+def _refinement(r: dict, plain: dict | None) -> str:
+    f = r["refine"]
+    tm, w = r["timing_ms"]["total"], f["timing_ms"]["window"]
+    psnr = (f"PSNR {f['psnr_before']:.2f} -> {f['psnr_after']:.2f} dB over {f['psnr_views']} test views"
+            if "psnr_before" in f else "no PSNR (no views with poses)")
+    without = f" (without: {plain['timing_ms']['total']['p95']:.0f} ms)" if plain else ""
+    init = f["calibration_ms"].get("initializer_ms")
+    init_text = f"; initializer {init:.1f} ms" if init is not None else ""
+    return (f"{psnr}; {f['keyframes']} keyframes ({f['keyframes_committed']} kept), +{f['gaussians_added']} Gaussians, "
+            f"{f['steps']} steps in a {f['budget_ms']:.0f} ms budget; localization total p95 {tm['p95']:.0f} ms{without}; "
+            f"refinement per frame p50 {_ms(w['p50'])}, p95 {_ms(w['p95'])}{init_text}")
+
+
+def _ms(v: float) -> str:
+    return "-" if v is None or v != v else f"{v:.0f} ms"
 
 
 def _accuracy(e: dict) -> str:
@@ -114,16 +199,41 @@ def _accuracy(e: dict) -> str:
 @one_line_errors
 def demo_command(
     workdir: Path = typer.Option(Path("runs/demo"), help="Where the scene, map and outputs go."),
-    map_minutes: float = typer.Option(4.0, help="Mapping budget."),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Write all numbers here."),
+    map_minutes: float = typer.Option(4.0, help="Mapping budget (Stage 1)."),
+    splat_minutes: float = typer.Option(DEFAULT_SPLAT_MINUTES, help="Stage 2 budget (`acesplat splat --minutes`)."),
+    refine_budget_ms: float = typer.Option(DEFAULT_REFINE_BUDGET_MS, "--refine-budget-ms",
+                                           help="Per-frame budget of localization + refinement in the edge replay."),
+    size: Optional[str] = typer.Option(None, help="Image size HxW of the synthetic scene (default 240x320; smaller is quicker)."),
+    frames: Optional[str] = typer.Option(None, help="TRAIN,TEST frame counts of the synthetic scene (default 200,60)."),
+    splat_iterations: Optional[int] = typer.Option(None, help="Fixed Stage 2 iterations instead of --splat-minutes."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write all numbers here (default WORKDIR/demo.json)."),
 ) -> None:
-    """Run synth -> map -> eval -> export -> edge replay on the built-in synthetic scene and print the results."""
+    """Run synth -> map -> eval -> splat -> export -> edge replay (with and without refinement) on the built-in
+    synthetic scene and print the results."""
+    if map_minutes <= 0 or splat_minutes <= 0 or refine_budget_ms <= 0:
+        raise InputError(None, "--map-minutes, --splat-minutes and --refine-budget-ms must be positive")
+    if splat_iterations is not None and splat_iterations < 0:
+        raise InputError(None, f"--splat-iterations must be >= 0, got {splat_iterations}")
+    counts = _parse_frames(frames)
     t0 = time.monotonic()
     workdir.mkdir(parents=True, exist_ok=True)
     summary: dict = {}
-    scene = _stage_synth(workdir, summary)
+    scene = _stage_synth(workdir, summary, parse_size(size) if size else None, counts)
     map_path = _stage_map(scene, workdir, map_minutes, summary)
-    _stage_edge(map_path, scene, workdir, summary)
+    splat_dir = _stage_splat(scene, map_path, workdir, splat_minutes, splat_iterations, summary)
+    _stage_edge(map_path, scene, splat_dir, workdir, refine_budget_ms, summary)
     summary["seconds"] = time.monotonic() - t0
     console.print(results_table(summary))
     report_json(json_out if json_out else workdir / "demo.json", summary)
+
+
+def _parse_frames(text: Optional[str]) -> tuple[int, int] | None:
+    if text is None:
+        return None
+    try:
+        train, test = (int(v) for v in text.split(","))
+    except ValueError:
+        raise InputError(None, f"--frames must look like TRAIN,TEST (e.g. 200,60), got {text!r}") from None
+    if train < 2 or test < 1:
+        raise InputError(None, f"--frames needs at least 2 training and 1 test frame, got {text!r}")
+    return train, test

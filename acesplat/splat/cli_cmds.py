@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Callable, Optional
 
 import typer
 from rich.console import Console
 
 from acesplat.core.cli_support import PhaseProgress, one_line_errors, report_json
 from acesplat.core.errors import InputError
+
+if TYPE_CHECKING:
+    from .pipeline import SplatConfig
 
 console = Console()
 
@@ -75,16 +78,8 @@ def splat_command(
     """Optimise Gaussians for a scene, seeded by its SCR map (Stage 2)."""
     import torch
 
-    from acesplat.core.scene import read_split
-    from acesplat.scr.cli_cmds import resolve_device
-    from acesplat.scr.mapfile import encoder_for_map, load_map
-
-    from .evaluate import evaluate_views
-    from .params import gaussians_from_params
-    from .pipeline import SplatConfig, splat_scene, spread
-    from .splatfile import save_splat
+    from .pipeline import SplatConfig
     from .validity import ValidityConfig
-    from .views import load_views
 
     if max_gaussians < 1:
         raise InputError(None, f"--max-gaussians must be positive, got {max_gaussians}")
@@ -106,6 +101,33 @@ def splat_command(
         fill=fill,
         seed=seed,
     )
+    with PhaseProgress("splat ") as bar:
+        report = run_splat(scene, map_path, out, cfg, encoder, device, bar)
+    tgt = f", held-out targets PSNR {report['target_psnr']:.2f} dB" if "target_psnr" in report else ""
+    console.print(
+        f"splat ({protocol}): {report['gaussians_initial']} -> {report['gaussians_final']} Gaussians, "
+        f"{report['iterations']} iterations in {report['seconds']:.1f} s; train PSNR {report['train_psnr']:.2f} dB / "
+        f"SSIM {report['train_ssim']:.3f} over {report['train_psnr_views']} views{tgt} -> {out}"
+    )
+    report_json(json_out, report)
+
+
+def run_splat(scene: Path, map_path: Path, out: Path, cfg: "SplatConfig", encoder: Optional[Path] = None,
+              device: str = "auto", progress: Optional[Callable[[str, float, dict], None]] = None) -> dict:
+    """`acesplat splat` as a library function (the demo calls it): Stage 2 on ``scene``'s training split seeded
+    by ``map_path``, scored, written to the splat folder ``out``; returns the report (the command's JSON)."""
+    import torch
+
+    from acesplat.core.scene import read_split
+    from acesplat.scr.cli_cmds import resolve_device
+    from acesplat.scr.mapfile import encoder_for_map, load_map
+
+    from .evaluate import evaluate_views
+    from .params import gaussians_from_params
+    from .pipeline import splat_scene, spread
+    from .splatfile import save_splat
+    from .views import load_views
+
     dev = resolve_device(device)
     m = load_map(map_path)
     enc = encoder_for_map(m, map_path, encoder)
@@ -114,17 +136,16 @@ def splat_command(
     net = m.network(enc).to(dev)
     for p in net.parameters():
         p.requires_grad_(False)
-    with PhaseProgress("splat ") as bar:
-        res = splat_scene(train.frames, net, m.short_side, cfg, source=map_path, progress=bar)
-        res.initializer.cpu()
-        g = gaussians_from_params(res.params)
-        t_eval = time.monotonic()
-        probe = [res.train_views[i] for i in spread(len(res.train_views), TRAIN_PSNR_VIEWS)]
-        ev = evaluate_views(g, probe, progress=lambda d, n: bar("evaluate", d / n, {"views": d}))
-        targets = None
-        if res.target_frames:
-            targets = evaluate_views(g, load_views(res.target_frames, m.short_side))
-        eval_s = time.monotonic() - t_eval
+    res = splat_scene(train.frames, net, m.short_side, cfg, source=map_path, progress=progress)
+    res.initializer.cpu()
+    g = gaussians_from_params(res.params)
+    t_eval = time.monotonic()
+    probe = [res.train_views[i] for i in spread(len(res.train_views), TRAIN_PSNR_VIEWS)]
+    ev = evaluate_views(g, probe, progress=(lambda d, n: progress("evaluate", d / n, {"views": d})) if progress else None)
+    targets = None
+    if res.target_frames:
+        targets = evaluate_views(g, load_views(res.target_frames, m.short_side))
+    eval_s = time.monotonic() - t_eval
     s = res.stats
     report = {
         "seconds": s["seconds"],
@@ -156,12 +177,7 @@ def splat_command(
         **{k: v for k, v in report.items() if k != "history"},
     }
     save_splat(out, g, res.initializer, manifest)
-    tgt = f", held-out targets PSNR {targets['psnr']:.2f} dB" if targets else ""
-    console.print(
-        f"splat ({protocol}): {s['gaussians_initial']} -> {s['gaussians_final']} Gaussians, {s['iterations']} iterations "
-        f"in {s['seconds']:.1f} s; train PSNR {ev['psnr']:.2f} dB / SSIM {ev['ssim']:.3f} over {ev['frames']} views{tgt} -> {out}"
-    )
-    report_json(json_out, report)
+    return report
 
 
 @one_line_errors

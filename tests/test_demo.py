@@ -1,0 +1,38 @@
+"""`acesplat demo` end to end at a tiny size: every stage runs, the table and the JSON carry the numbers."""
+
+from __future__ import annotations
+
+import json
+import math
+
+from typer.testing import CliRunner
+
+from acesplat.cli import app
+
+
+def test_tiny_demo_runs_every_stage_and_reports_refinement(tmp_path) -> None:
+    out = tmp_path / "demo.json"
+    r = CliRunner().invoke(app, ["demo", "--workdir", str(tmp_path / "w"), "--size", "64x80", "--frames", "12,4",
+                                 "--map-minutes", "0.05", "--splat-iterations", "3", "--refine-budget-ms", "500",
+                                 "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    s = json.loads(out.read_text())
+    assert s["synth"]["train_frames"] == 12 and s["synth"]["size"] == [64, 80]
+    assert s["splat"]["iterations"] == 3 and s["splat"]["gaussians_final"] > 0
+    checks = s["export"]["checks"]
+    assert {"fp32_vs_torch", "test_split", "splat_init_fp32_vs_torch", "splat_init_via_scr_int8_vs_torch"} <= set(checks)
+    for k in ("replay_fp32", "replay_int8", "replay_refine"):
+        assert s[k]["frames"] == 4
+    ref = s["replay_refine"]["refine"]
+    assert s["replay_refine"]["precision"] == "int8" and ref["budget_ms"] == 500
+    assert ref["psnr_views"] == 4 and math.isfinite(ref["psnr_before"]) and math.isfinite(ref["psnr_after"])
+    assert ref["seeder"] == "onnx_initializer" and ref["calibration_ms"]["initializer_ms"] > 0
+    assert "edge replay (int8) + refinement" in r.output and "PSNR" in r.output
+    assert s["seconds"] > 0 and (tmp_path / "w" / "bundle" / "splat_init.onnx").is_file()
+
+
+def test_demo_bad_options_are_one_line_errors(tmp_path) -> None:
+    for args, message in ((["--frames", "12"], "TRAIN,TEST"), (["--refine-budget-ms", "0"], "must be positive"),
+                          (["--size", "64by80"], "HxW")):
+        r = CliRunner().invoke(app, ["demo", "--workdir", str(tmp_path / "w"), *args])
+        assert r.exit_code == 2 and message in r.output and "Traceback" not in r.output, r.output
