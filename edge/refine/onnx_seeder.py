@@ -101,22 +101,31 @@ class OnnxSeeder:
             return Gaussians.empty(sh_degree)
         if sh_degree < self.head_degree:
             raise ValueError(f"map SH degree {sh_degree} is below the initializer's {self.head_degree}")
-        k_in = kf.k_input
-        pix_in = pixel_depths(kf.coords, kf.pose, k_in, k_in)
-        rgb_in = cv2.resize(kf.rgb, (k_in.width, k_in.height), interpolation=cv2.INTER_LINEAR)
-        prior = np.concatenate([rgb_in - 0.5, (pix_in.centres - self.centre) / self.scale,
-                                np.log(np.maximum(pix_in.depth, 1e-6) / self.scale)[..., None]], axis=-1)
-        prior = np.nan_to_num(prior).transpose(2, 0, 1)
-        raw_in = self.residuals(kf.features, prior)
-        raw = np.stack([cv2.resize(raw_in[..., c], (kf.k.width, kf.k.height), interpolation=cv2.INTER_AREA)
-                        for c in range(raw_in.shape[2])], axis=-1)
-        pix = pixel_depths(kf.coords, kf.pose, k_in, kf.k)
+        pix = pixel_depths(kf.coords, kf.pose, kf.k_input, kf.k)
         idx, s = seed_pixels(need & pix.valid, self.spacing, max_new, rng)
-        if idx.size == 0:
+        if idx.size == 0:  # nothing to seed: skip the graph
             return Gaussians.empty(sh_degree)
-        return self.decode(raw.reshape(-1, raw.shape[2])[idx], block_colours(kf.rgb, float(s)).reshape(-1, 3)[idx],
+        raw_in = self.residuals(kf.features, self.prior(kf))
+        # One call over all channels (cv2 resizes up to 512 channels at once).
+        raw = cv2.resize(raw_in, (kf.k.width, kf.k.height), interpolation=cv2.INTER_AREA).reshape(-1, raw_in.shape[2])
+        return self.decode(raw[idx], block_colours(kf.rgb, float(s)).reshape(-1, 3)[idx],
                            pix.centres.reshape(-1, 3)[idx], pix.depth.reshape(-1)[idx],
                            0.5 * (kf.k.fx + kf.k.fy), float(s), sh_degree)
+
+    def prior(self, kf) -> np.ndarray:
+        """The head's prior (PRIOR_CHANNELS, H, W) float32 at the network input size: rgb - 0.5, normalised
+        world centres, log(depth / scale) (acesplat/splat/init_head.coordinate_prior), written in place."""
+        k_in = kf.k_input
+        pix = pixel_depths(kf.coords, kf.pose, k_in, k_in)
+        rgb = cv2.resize(kf.rgb, (k_in.width, k_in.height), interpolation=cv2.INTER_LINEAR)
+        prior = np.empty((PRIOR_CHANNELS, k_in.height, k_in.width), np.float32)
+        prior[0:3] = np.moveaxis(rgb, -1, 0)
+        prior[0:3] -= 0.5
+        prior[3:6] = np.moveaxis(pix.centres, -1, 0)
+        prior[3:6] -= self.centre.astype(np.float32)[:, None, None]
+        prior[3:6] /= np.float32(self.scale)
+        prior[6] = np.log(np.maximum(pix.depth, 1e-6) / self.scale)
+        return np.nan_to_num(prior, copy=False)
 
     def decode(self, raw: np.ndarray, rgb: np.ndarray, centres: np.ndarray, depth: np.ndarray, focal_px: float,
                spacing_px: float, sh_degree: int) -> Gaussians:
