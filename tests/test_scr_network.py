@@ -36,6 +36,27 @@ def test_homogeneous_output_divides_by_softplus_scale_and_adds_mean() -> None:
     assert h == pytest.approx(1.0)  # ACE's choice of beta makes a zero output mean scale 1
 
 
+@pytest.mark.parametrize("homogeneous,width,in_ch", [(True, 16, 32), (False, 32, 32)])
+def test_forward_points_is_the_convolutional_head(homogeneous: bool, width: int, in_ch: int) -> None:
+    torch.manual_seed(0)
+    head = Head(torch.tensor([0.5, -1.0, 2.0]), in_ch, HeadConfig(width, 2, homogeneous=homogeneous))
+    f = torch.randn(37, in_ch)
+    grid = head(f.T[None, :, :, None])[0, :, :, 0].T.detach()
+    np.testing.assert_allclose(head.forward_points(f).detach().numpy(), grid.detach().numpy(), rtol=1e-5, atol=1e-6)
+    # bfloat16 hidden layers: about 3 significant digits in the hidden activations, float32 output.
+    low = head.forward_points(f, autocast_bf16=True).detach()
+    assert low.dtype == torch.float32
+    assert float((low - grid).abs().max()) < 0.05 * float(grid.abs().max())
+
+
+def test_forward_points_rejects_wrong_shapes() -> None:
+    head = Head(torch.zeros(3), 32, HeadConfig(16, 0))
+    with pytest.raises(ValueError, match=r"\(N, 32\)"):
+        head.forward_points(torch.randn(4, 16))
+    with pytest.raises(ValueError):
+        head.forward_points(torch.randn(1, 32, 2, 2))
+
+
 def test_homogeneous_scale_is_clamped() -> None:
     head = Head(torch.zeros(3), 32, HeadConfig(16, 0, homogeneous=True))
     with torch.no_grad():

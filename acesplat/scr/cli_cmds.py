@@ -36,6 +36,7 @@ def map_command(
     encoder: Optional[Path] = typer.Option(None, help="Encoder weights (default: the shipped encoder; ACE's file works)."),
     short_side: Optional[int] = typer.Option(None, help="Shorter image side for the network (default: min(360, image))."),
     head_width: int = typer.Option(256, help="Width of the head's 1x1 layers."),
+    precision: str = typer.Option("auto", help="Head training arithmetic: auto (bf16 where the CPU/GPU has it), fp32, bf16."),
     seed: int = typer.Option(0),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the numbers here."),
 ) -> None:
@@ -46,11 +47,13 @@ def map_command(
 
     from .encoders import load_encoder
     from .mapfile import SceneMap, save_map
-    from .mapping import IMAGE_SHORT_SIDE, MappingConfig, map_scene
+    from .mapping import IMAGE_SHORT_SIDE, MappingConfig, map_scene, use_bf16
     from .network import HeadConfig
 
     if minutes <= 0:
         raise InputError(None, f"--minutes must be positive, got {minutes}")
+    if precision not in ("auto", "fp32", "bf16"):
+        raise InputError(None, f"--precision must be auto, fp32 or bf16, got {precision!r}")
     dev = resolve_device(device)
     if dev == "cpu":
         torch.set_num_threads(max(1, torch.get_num_threads()))
@@ -58,11 +61,13 @@ def map_command(
     enc, ident = load_encoder(encoder)
     first = split.frames[0].intrinsics
     side = short_side or min(IMAGE_SHORT_SIDE, first.width, first.height)
-    cfg = MappingConfig(minutes=minutes, short_side=side, head=HeadConfig(width=head_width, blocks=1), seed=seed, device=dev)
+    cfg = MappingConfig(minutes=minutes, short_side=side, head=HeadConfig(width=head_width, blocks=1), seed=seed, device=dev,
+                        precision=precision)
     with PhaseProgress("map ") as bar:
         res = map_scene(split, enc, cfg, bar)
     meta = {"scene": str(Path(scene).resolve()), "train_frames": len(split), "seconds": res.seconds,
-            "iterations": res.iterations, "buffer_features": res.buffer_features, "device": dev}
+            "iterations": res.iterations, "buffer_features": res.buffer_features, "device": dev,
+            "precision": "bf16" if use_bf16(precision, dev) else "fp32"}
     save_map(out, SceneMap(res.head, ident, res.mean, side, meta))
     console.print(
         f"mapped {len(split)} images in {res.seconds:.1f} s ({res.buffer_seconds:.1f} s buffer, "

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
+from typing import Callable
 
 import torch
 import torch.nn as nn
@@ -145,23 +146,50 @@ class Head(nn.Module):
 
     def forward(self, feats: torch.Tensor) -> torch.Tensor:
         """(B, C, h, w) features -> (B, 3, h, w) scene coordinates."""
-        x = F.relu(self.res3_conv1(feats))
-        x = F.relu(self.res3_conv2(x))
-        x = F.relu(self.res3_conv3(x))
-        res = self.head_skip(feats) + x
+        return self._run(feats, lambda m, x: m(x), self.mean)
+
+    def forward_points(self, feats: torch.Tensor, autocast_bf16: bool = False) -> torch.Tensor:
+        """(N, C) features -> (N, 3) scene coordinates: the same network as matrix products.
+
+        Training sees features as a flat batch; torch's CPU 1x1 convolution over a (1, C, N, 1) tensor is
+        about 5x slower than the equivalent matrix product (measured in bench/head_speed.py). With
+        ``autocast_bf16`` the hidden layers run in bfloat16 (AMX/AVX512-BF16 CPUs, CUDA); the output
+        layer and the homogeneous division stay float32, so coordinates keep millimetre resolution.
+        """
+        if feats.dim() != 2 or feats.shape[1] != self.in_channels:
+            raise ValueError(f"expected features (N, {self.in_channels}), got {tuple(feats.shape)}")
+
+        def lin(m: nn.Module, x: torch.Tensor) -> torch.Tensor:
+            if isinstance(m, nn.Identity):
+                return x
+            if m is self.fc3:
+                with torch.autocast(feats.device.type, enabled=False):
+                    return F.linear(x.float(), m.weight.flatten(1), m.bias)
+            return F.linear(x, m.weight.flatten(1), m.bias)
+
+        # One autocast region for the whole body: its cache converts each weight to bfloat16 once per call.
+        with torch.autocast(feats.device.type, dtype=torch.bfloat16, enabled=autocast_bf16):
+            return self._run(feats, lin, self.mean.view(1, 3))
+
+    def _run(self, feats: torch.Tensor, lin: Callable, mean: torch.Tensor) -> torch.Tensor:
+        """The head body, written once for both layouts: ``lin(layer, x)`` applies one 1x1 layer."""
+        x = F.relu(lin(self.res3_conv1, feats))
+        x = F.relu(lin(self.res3_conv2, x))
+        x = F.relu(lin(self.res3_conv3, x))
+        res = lin(self.head_skip, feats) + x
         for block in self.res_blocks:
-            x = F.relu(block[0](res))
-            x = F.relu(block[1](x))
-            x = F.relu(block[2](x))
+            x = F.relu(lin(block[0], res))
+            x = F.relu(lin(block[1], x))
+            x = F.relu(lin(block[2], x))
             res = res + x
-        sc = F.relu(self.fc1(res))
-        sc = F.relu(self.fc2(sc))
-        sc = self.fc3(sc)
+        sc = F.relu(lin(self.fc1, res))
+        sc = F.relu(lin(self.fc2, sc))
+        sc = lin(self.fc3, sc).float()
         if self.cfg.homogeneous:
             h = F.softplus(sc[:, 3:4], beta=self._h_beta) + self._max_inv_scale
             h = torch.clamp(h, max=self._min_inv_scale)
             sc = sc[:, :3] / h
-        return sc + self.mean
+        return sc + mean
 
 
 def normalize_gray(gray_u8: torch.Tensor) -> torch.Tensor:

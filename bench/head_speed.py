@@ -1,0 +1,70 @@
+"""Cost of one head training step (batch 5120, forward + backward + AdamW) in the layouts torch offers on CPU.
+
+The mapping loop trains the head on a flat batch of buffered features. The same network can run as 1x1
+convolutions over a (1, C, N, 1) tensor (how ACE writes it) or as matrix products over (N, C); on CPUs
+with AVX512-BF16/AMX the hidden layers can also run in bfloat16. This prints the time per step of each,
+measured in one run, as ratios to the convolutional layout, plus the machine.
+
+    python bench/head_speed.py [--width 256] [--blocks 1] [--steps 20] [--threads 0]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import torch
+
+from acesplat.core.machine import machine_line
+from acesplat.scr.mapping import BATCH_SIZE
+from acesplat.scr.network import Head, HeadConfig
+
+
+def step_times(head: Head, feats: torch.Tensor, layout: str, steps: int) -> list[float]:
+    opt = torch.optim.AdamW(head.parameters(), lr=1e-4)
+    times = []
+    for k in range(steps + 3):
+        t = time.perf_counter()
+        if layout == "conv":
+            pred = head(feats.T[None, :, :, None])[0, :, :, 0].T
+        else:
+            pred = head.forward_points(feats, autocast_bf16=layout == "linear-bf16")
+        loss = pred.abs().mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if k >= 3:  # the first steps allocate and pick kernels
+            times.append(time.perf_counter() - t)
+    return times
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--width", type=int, default=256)
+    ap.add_argument("--blocks", type=int, default=1)
+    ap.add_argument("--in-channels", type=int, default=512)
+    ap.add_argument("--batch", type=int, default=BATCH_SIZE)
+    ap.add_argument("--steps", type=int, default=20)
+    ap.add_argument("--threads", type=int, default=0, help="torch threads (0 = all cores)")
+    args = ap.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+    feats = torch.randn(args.batch, args.in_channels)
+    layouts = ["conv", "linear"]
+    if torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported():
+        layouts.append("linear-bf16")
+    print(machine_line())
+    print(f"head width {args.width}, blocks {args.blocks}, batch {args.batch}, torch threads {torch.get_num_threads()}")
+    base = None
+    for layout in layouts:
+        head = Head(torch.zeros(3), args.in_channels, HeadConfig(args.width, args.blocks))
+        ts = step_times(head, feats, layout, args.steps)
+        med = statistics.median(ts)
+        base = base or med
+        print(f"{layout:12s} median {med * 1000:7.1f} ms/step  (min {min(ts) * 1000:6.1f})  time ratio {med / base:5.2f}")
+
+
+if __name__ == "__main__":
+    main()
