@@ -206,7 +206,7 @@ def _accuracy(e: dict) -> str:
 @one_line_errors
 def demo_command(
     workdir: Path = typer.Option(Path("runs/demo"), help="Where the scene, map and outputs go."),
-    map_minutes: float = typer.Option(4.0, help="Mapping budget (Stage 1)."),
+    map_minutes: float = typer.Option(4.5, help="Mapping budget (Stage 1; acesplat map's default)."),
     splat_minutes: float = typer.Option(DEFAULT_SPLAT_MINUTES, help="Stage 2 budget (`acesplat splat --minutes`)."),
     refine_budget_ms: float = typer.Option(DEFAULT_REFINE_BUDGET_MS, "--refine-budget-ms",
                                            help="Per-frame budget of localization + refinement in the edge replay."),

@@ -3,7 +3,7 @@
 Runs `acesplat map` and `acesplat eval` through their library functions with default settings, in one
 process, one scene after the other, and prints one table plus the machine it ran on.
 
-    python bench/bench_stage1.py [--herz-minutes 10] [--synth-minutes 4] [--out runs/bench_stage1]
+    python bench/bench_stage1.py [--herz-minutes 10] [--synth-minutes 4.5] [--out runs/bench_stage1]
     python bench/bench_stage1.py --skip-herz --iterations 1000 --buffer 300000 --threads 1   # fixed work, not time
 """
 
@@ -21,7 +21,7 @@ from acesplat.core.machine import machine_info, machine_line
 from acesplat.core.scene import read_split
 from acesplat.scr.encoders import load_encoder
 from acesplat.scr.localize import Localizer, evaluate
-from acesplat.scr.mapping import IMAGE_SHORT_SIDE, MappingConfig, map_scene
+from acesplat.scr.mapping import IMAGE_SHORT_SIDE, MAP_MINUTES, MappingConfig, map_scene
 from acesplat.synth import synthesize
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -52,7 +52,7 @@ def run(scene: Path, minutes: float, triangulate: bool, encoder_path: Path | Non
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--synth-minutes", type=float, default=4.0)
+    ap.add_argument("--synth-minutes", type=float, default=MAP_MINUTES)
     ap.add_argument("--herz-minutes", type=float, default=10.0)
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "bench_stage1")
     ap.add_argument("--encoder", type=Path, default=None)

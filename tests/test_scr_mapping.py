@@ -57,3 +57,33 @@ def test_cell_targets_follow_the_augmentation(tiny_scene) -> None:
 
     uv = view.intrinsics.project(transform_points(invert_pose(view.c2w), tg[has]))
     np.testing.assert_allclose(uv, cell_centers(gh, gw)[has], atol=1e-3)
+
+
+E2E_SIZE = (120, 160)
+E2E_ITERATIONS = 1500
+"""About 70 s on two idle cores in float32 (the suite's one end-to-end map; full-size runs live in bench/)."""
+E2E_MIN_WITHIN = 8
+"""Test frames of 12 that must land within 25 cm / 10 deg (measured 10 of 12: a 120x160 image gives only
+300 prediction cells, so this tiny map is far coarser than the 240x320 built-in scene's)."""
+
+
+def test_tiny_scene_maps_and_localizes_most_test_frames(tmp_path) -> None:
+    import torch
+
+    from acesplat.scr.encoders import load_encoder
+    from acesplat.scr.localize import Localizer, evaluate
+    from acesplat.scr.mapping import MappingConfig, map_scene
+    from acesplat.scr.network import SCRNetwork
+
+    scene = tmp_path / "scene"
+    synthesize(scene, seed=3, train_frames=60, test_frames=12, size=E2E_SIZE, supersample=1)
+    enc, _ = load_encoder(None)  # the shipped encoder: what a user maps with
+    cfg = MappingConfig(iterations=E2E_ITERATIONS, short_side=E2E_SIZE[0], batch_size=1024, buffer_size=60_000,
+                        samples_per_image=512, precision="fp32")
+    torch.manual_seed(0)
+    res = map_scene(read_split(scene, "train"), enc, cfg)
+    assert res.iterations == E2E_ITERATIONS and res.target_features > 1000
+    s = evaluate(read_split(scene, "test"), Localizer(SCRNetwork(enc, res.head).eval(), E2E_SIZE[0], {}))
+    within = [f for f in s["per_frame"] if f["localized"] and f["translation_m"] < 0.25 and f["rotation_deg"] < 10]
+    assert len(within) >= E2E_MIN_WITHIN, s["per_frame"]
+    assert s["median_translation_m"] < 0.25

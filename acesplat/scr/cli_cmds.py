@@ -31,7 +31,9 @@ def resolve_device(device: str) -> str:
 def map_command(
     scene: Path = typer.Argument(..., help="Scene folder in the ACE layout."),
     out: Path = typer.Option(..., "-o", "--out", help="Map file to write."),
-    minutes: float = typer.Option(4.0, help="Wall-clock budget for mapping."),
+    minutes: Optional[float] = typer.Option(
+        None, help="Wall-clock budget for mapping, from reading the images to the trained head [default: 4.5]."
+    ),
     device: str = typer.Option("auto", help="auto, cpu or cuda."),
     encoder: Optional[Path] = typer.Option(None, help="Encoder weights (default: the shipped encoder; ACE's file works)."),
     short_side: Optional[int] = typer.Option(None, help="Shorter image side for the network (default: min(360, image))."),
@@ -47,9 +49,10 @@ def map_command(
 
     from .encoders import load_encoder
     from .mapfile import SceneMap, save_map
-    from .mapping import IMAGE_SHORT_SIDE, MappingConfig, map_scene, use_bf16
+    from .mapping import IMAGE_SHORT_SIDE, MAP_MINUTES, MappingConfig, map_scene, use_bf16
     from .network import HeadConfig
 
+    minutes = MAP_MINUTES if minutes is None else minutes
     if minutes <= 0:
         raise InputError(None, f"--minutes must be positive, got {minutes}")
     if precision not in ("auto", "fp32", "bf16"):

@@ -30,6 +30,8 @@ from .network import Encoder, Head, HeadConfig, normalize_gray
 from .targets import ImageTargets, triangulate_targets
 
 # ACE's defaults, and where this project departs from them for a CPU budget.
+MAP_MINUTES = 4.5
+"""Default wall-clock mapping budget: the issue's 5 minutes less a margin for reading the scene and saving."""
 ACE_IMAGE_SHORT_SIDE = 480
 IMAGE_SHORT_SIDE = 360
 """Mapping/localization resolution (shorter image side); ACE uses 480, a CPU budget favours fewer pixels."""
@@ -58,7 +60,7 @@ TARGET_CLAMP_M = 2.0
 
 @dataclass
 class MappingConfig:
-    minutes: float = 4.0
+    minutes: float = MAP_MINUTES
     short_side: int = IMAGE_SHORT_SIDE
     head: HeadConfig = field(default_factory=lambda: HeadConfig(width=256, blocks=1))
     batch_size: int = BATCH_SIZE
