@@ -29,7 +29,7 @@ HERZ = ROOT.parent / "shared" / "data" / "herzjesu25"
 
 
 def run(scene: Path, minutes: float, triangulate: bool, encoder_path: Path | None,
-        iterations: int | None = None, buffer_size: int | None = None) -> dict:
+        iterations: int | None = None, buffer_size: int | None = None, map_out: Path | None = None) -> dict:
     enc, ident = load_encoder(encoder_path)
     train, test = read_split(scene, "train"), read_split(scene, "test")
     f0 = train.frames[0].intrinsics
@@ -38,7 +38,11 @@ def run(scene: Path, minutes: float, triangulate: bool, encoder_path: Path | Non
     if buffer_size:
         cfg.buffer_size = buffer_size
     res = map_scene(train, enc, cfg)
+    from acesplat.scr.mapfile import SceneMap, save_map
     from acesplat.scr.network import SCRNetwork
+
+    if map_out is not None:  # kept for bench_export.py and acesplat export
+        save_map(map_out, SceneMap(res.head, ident, res.mean, side, {"scene": str(scene), "iterations": res.iterations}))
 
     loc = Localizer(SCRNetwork(enc, res.head).eval(), side, {})
     out = {"scene": scene.name, "triangulate": triangulate, "map_seconds": res.seconds, "iterations": res.iterations,
@@ -78,7 +82,8 @@ def main() -> None:
     for scene, minutes in scenes:
         for tri in ([True, False] if args.ablate_triangulation else [True]):
             t0 = time.monotonic()
-            r = run(scene, minutes, tri, args.encoder, args.iterations, args.buffer)
+            map_out = args.out / f"{scene.name}{'' if tri else '.notri'}.map.pt"
+            r = run(scene, minutes, tri, args.encoder, args.iterations, args.buffer, map_out)
             r["wall_seconds"] = time.monotonic() - t0
             rows.append(r)
             print(json.dumps({k: v for k, v in r.items() if k not in ("test", "train")}))
