@@ -93,9 +93,11 @@ def quant_variants(work: Path, scene: Path, size: tuple[int, int], threads: int)
     ref_sess = ScrSession(fp32, size, threads)
     refs = [ref_sess.run(f.gray) for f in test]
     variants = {
-        "MinMax, last conv + tail float (shipped)": dict(method=CalibrationMethod.MinMax, float_tail=True),
-        "MinMax, every conv INT8": dict(method=CalibrationMethod.MinMax, float_tail=False),
-        "Percentile, last conv + tail float": dict(method=CalibrationMethod.Percentile, float_tail=True),
+        "MinMax, last conv + tail float": dict(method=CalibrationMethod.MinMax, float_tail=True, float_convs=1),
+        "MinMax, every conv INT8 (tail float)": dict(method=CalibrationMethod.MinMax, float_tail=False),
+        "Percentile, last conv + tail float": dict(method=CalibrationMethod.Percentile, float_tail=True, float_convs=1),
+        "MinMax, head's fc1-fc3 float (shipped)": dict(method=CalibrationMethod.MinMax, float_tail=True, float_convs=3),
+        "MinMax, whole head float (10 convs)": dict(method=CalibrationMethod.MinMax, float_tail=True, float_convs=10),
     }
     print("\nINT8 variants on the same map (coordinate deviation from FP32 ONNX over test cells; replay of the test split)")
     for name, kw in variants.items():
@@ -113,7 +115,7 @@ def quant_variants(work: Path, scene: Path, size: tuple[int, int], threads: int)
         dev = np.concatenate([np.linalg.norm(sess.run(f.gray) - r, axis=-1).ravel() for f, r in zip(test, refs)])
         s = replay_split(EdgeLocalizer(load_bundle(root), "int8", threads), scene, "test")
         print(f"  {name:42s} deviation median {100 * np.median(dev):6.2f} cm, p90 {100 * np.percentile(dev, 90):6.2f} cm; "
-              f"localized {s['localized']}/{s['frames']}, median {_num(s['median_translation_m'])} m / {_num(s['median_rotation_deg'])} deg, "
+              f"localized {s['localized']}/{s['frames']}, 10cm/5deg {s['recall_10cm_5deg']:.1f}%, median {_num(s['median_translation_m'])} m / {_num(s['median_rotation_deg'])} deg, "
               f"inference p50 {s['timing_ms']['inference']['p50']:.2f} ms; quantized in {qs:.0f} s")
 
 
@@ -202,12 +204,14 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=30)
     ap.add_argument("--threads", type=int, default=default_threads())
     ap.add_argument("--skip-accuracy", action="store_true")
+    ap.add_argument("--skip-latency", action="store_true")
     args = ap.parse_args()
     print(f"machine: {cpu_model()}, {os.cpu_count()} cores; threads {args.threads}; load average {os.getloadavg()}")
     work = Path(tempfile.mkdtemp(prefix="bench_export_"))
     if not args.skip_accuracy:
         accuracy_part(args.map, args.scene, args.threads, work)
-    latency_part(tuple(int(v) for v in args.size.split("x")), args.frames, args.threads, work)
+    if not args.skip_latency:
+        latency_part(tuple(int(v) for v in args.size.split("x")), args.frames, args.threads, work)
     print(f"\nload average after: {os.getloadavg()} (other jobs on the machine inflate every number above)")
 
 

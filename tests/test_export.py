@@ -118,3 +118,16 @@ def test_int8_needs_the_training_images(tiny, tmp_path: Path) -> None:
 
     with pytest.raises(InputError, match="calibrates on the map's training images"):
         export_bundle(tiny["map"], tmp_path / "b", ExportOptions(int8=True, scene_path=tmp_path / "gone", size_hw=(64, 80)))
+
+
+def test_int8_keeps_the_heads_last_layers_float(tiny) -> None:
+    import onnx
+
+    from export.quantize import FLOAT_HEAD_CONVS
+
+    g = onnx.load(str(Path(tiny["bundle"]) / "scr.int8.onnx")).graph
+    produced_by = {o: n.op_type for n in g.node for o in n.output}
+    convs = [n for n in g.node if n.op_type == "Conv"]
+    dequantized = [produced_by.get(c.input[1]) == "DequantizeLinear" for c in convs]
+    assert dequantized[:-FLOAT_HEAD_CONVS] == [True] * (len(convs) - FLOAT_HEAD_CONVS)
+    assert dequantized[-FLOAT_HEAD_CONVS:] == [False] * FLOAT_HEAD_CONVS
