@@ -29,12 +29,14 @@ HERZ = ROOT.parent / "shared" / "data" / "herzjesu25"
 
 
 def run(scene: Path, minutes: float, triangulate: bool, encoder_path: Path | None,
-        iterations: int | None = None, buffer_size: int | None = None, map_out: Path | None = None) -> dict:
+        iterations: int | None = None, buffer_size: int | None = None, map_out: Path | None = None,
+        precision: str = "auto") -> dict:
     enc, ident = load_encoder(encoder_path)
     train, test = read_split(scene, "train"), read_split(scene, "test")
     f0 = train.frames[0].intrinsics
     side = min(IMAGE_SHORT_SIDE, f0.width, f0.height)
-    cfg = MappingConfig(minutes=minutes, short_side=side, triangulate=triangulate, iterations=iterations)
+    cfg = MappingConfig(minutes=minutes, short_side=side, triangulate=triangulate, iterations=iterations,
+                        precision=precision)
     if buffer_size:
         cfg.buffer_size = buffer_size
     res = map_scene(train, enc, cfg)
@@ -66,6 +68,7 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=None, help="Fixed head iterations instead of the time budget.")
     ap.add_argument("--buffer", type=int, default=None, help="Buffer size (features).")
     ap.add_argument("--threads", type=int, default=0, help="Torch threads (0 = all cores).")
+    ap.add_argument("--precision", default="auto", help="Head training arithmetic: auto, fp32 or bf16.")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -83,7 +86,7 @@ def main() -> None:
         for tri in ([True, False] if args.ablate_triangulation else [True]):
             t0 = time.monotonic()
             map_out = args.out / f"{scene.name}{'' if tri else '.notri'}.map.pt"
-            r = run(scene, minutes, tri, args.encoder, args.iterations, args.buffer, map_out)
+            r = run(scene, minutes, tri, args.encoder, args.iterations, args.buffer, map_out, args.precision)
             r["wall_seconds"] = time.monotonic() - t0
             rows.append(r)
             print(json.dumps({k: v for k, v in r.items() if k not in ("test", "train")}))
