@@ -15,7 +15,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from acesplat.core.cli_support import PhaseProgress, one_line_errors, parse_size, report_json
+from acesplat.core.cli_support import PhaseProgress, one_line_errors, parse_int_pair, parse_size, report_json
 from acesplat.core.errors import InputError
 
 console = Console()
@@ -237,10 +237,7 @@ def demo_command(
 def _parse_frames(text: Optional[str]) -> tuple[int, int] | None:
     if text is None:
         return None
-    try:
-        train, test = (int(v) for v in text.split(","))
-    except ValueError:
-        raise InputError(None, f"--frames must look like TRAIN,TEST (e.g. 200,60), got {text!r}") from None
+    train, test = parse_int_pair(text, "--frames must look like TRAIN,TEST (e.g. 200,60)")
     if train < 2 or test < 1:
         raise InputError(None, f"--frames needs at least 2 training and 1 test frame, got {text!r}")
     return train, test

@@ -74,34 +74,32 @@ def quantize_int8(
         pre = Path(td) / "pre.onnx"
         quant_pre_process(str(fp32_path), str(pre), skip_symbolic_shape=True)
         model = onnx.load(str(pre))
-        nodes = conv_nodes_to_quantize(model, float_convs) if float_tail else [n.name for n in model.graph.node if n.op_type == "Conv"]
         with atomic_path(out_path) as tmp:
             quantize_static(
                 str(pre), str(tmp), _Images(calibration),
                 quant_format=QuantFormat.QDQ, per_channel=True,
                 activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
                 op_types_to_quantize=["Conv", "Relu", "Add"],
-                nodes_to_quantize=_with_followers(model, nodes, float_convs) if float_tail else None,
+                nodes_to_quantize=_with_followers(model, conv_nodes_to_quantize(model, float_convs)) if float_tail else None,
                 calibrate_method=method,
                 extra_options={"ActivationSymmetric": False, "WeightSymmetric": True},
             )
     return out_path
 
 
-def _with_followers(model: onnx.ModelProto, convs: list[str], float_convs: int = FLOAT_HEAD_CONVS) -> list[str]:
+def _with_followers(model: onnx.ModelProto, convs: list[str]) -> list[str]:
     """The chosen convolutions plus the Relu/Add nodes between them, so activations stay INT8 end to end.
 
-    Nodes fed by the first float convolution (and everything after it) stay float.
+    Nodes fed by the first convolution left out of ``convs`` (and everything after it) stay float.
     """
     keep = set(convs)
-    all_convs = [n for n in model.graph.node if n.op_type == "Conv"]
-    last_conv = all_convs[len(all_convs) - float_convs]
-    tail_tensors = set(last_conv.output)
+    first_float = next(n for n in model.graph.node if n.op_type == "Conv" and n.name not in keep)
+    tail_tensors = set(first_float.output)
     names = []
     for n in model.graph.node:
         if any(i in tail_tensors for i in n.input):
             tail_tensors.update(n.output)
             continue
-        if n.name in keep or (n.op_type in ("Relu", "Add") and n is not last_conv):
+        if n.name in keep or n.op_type in ("Relu", "Add"):
             names.append(n.name)
     return names

@@ -87,3 +87,14 @@ def test_tiny_scene_maps_and_localizes_most_test_frames(tmp_path) -> None:
     within = [f for f in s["per_frame"] if f["localized"] and f["translation_m"] < 0.25 and f["rotation_deg"] < 10]
     assert len(within) >= E2E_MIN_WITHIN, s["per_frame"]
     assert s["median_translation_m"] < 0.25
+
+
+def test_map_command_rejects_a_bad_precision(tmp_path) -> None:
+    from typer.testing import CliRunner
+
+    from acesplat.cli import app
+
+    res = CliRunner().invoke(app, ["map", str(tmp_path), "-o", str(tmp_path / "m.pt"), "--precision", "fp64"])
+    assert res.exit_code == 2, res.output
+    assert res.stderr.count("\n") == 1 and "--precision must be auto, fp32 or bf16, got 'fp64'" in res.stderr
+    assert not (tmp_path / "m.pt").exists()

@@ -46,6 +46,15 @@ def parse_size(text: str) -> tuple[int, int]:
     return h, w
 
 
+def parse_int_pair(text: str, requirement: str) -> tuple[int, int]:
+    """'A,B' -> (A, B); ``requirement`` opens the one-line error (e.g. "--views must be ... like 10,14")."""
+    try:
+        a, b = (int(v) for v in text.split(","))
+    except ValueError:
+        raise InputError(None, f"{requirement}, got {text!r}") from None
+    return a, b
+
+
 class PhaseProgress:
     """A rich progress bar with one task per named phase, driven by (phase, fraction, info) callbacks."""
 

@@ -55,9 +55,11 @@ def map_command(
     minutes = MAP_MINUTES if minutes is None else minutes
     if minutes <= 0:
         raise InputError(None, f"--minutes must be positive, got {minutes}")
-    if precision not in ("auto", "fp32", "bf16"):
-        raise InputError(None, f"--precision must be auto, fp32 or bf16, got {precision!r}")
     dev = resolve_device(device)
+    try:
+        bf16 = use_bf16(precision, dev)
+    except ValueError as e:
+        raise InputError(None, f"--{e}") from None
     if dev == "cpu":
         torch.set_num_threads(max(1, torch.get_num_threads()))
     split = read_split(scene, "train")
@@ -70,7 +72,7 @@ def map_command(
         res = map_scene(split, enc, cfg, bar)
     meta = {"scene": str(Path(scene).resolve()), "train_frames": len(split), "seconds": res.seconds,
             "iterations": res.iterations, "buffer_features": res.buffer_features, "device": dev,
-            "precision": "bf16" if use_bf16(precision, dev) else "fp32"}
+            "precision": "bf16" if bf16 else "fp32"}
     save_map(out, SceneMap(res.head, ident, res.mean, side, meta))
     console.print(
         f"mapped {len(split)} images in {res.seconds:.1f} s ({res.buffer_seconds:.1f} s buffer, "

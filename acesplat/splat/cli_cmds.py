@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Callable, Optional
 import typer
 from rich.console import Console
 
-from acesplat.core.cli_support import PhaseProgress, one_line_errors, report_json
+from acesplat.core.cli_support import PhaseProgress, one_line_errors, parse_int_pair, report_json
 from acesplat.core.errors import InputError
 
 if TYPE_CHECKING:
@@ -19,16 +19,6 @@ console = Console()
 
 TRAIN_PSNR_VIEWS = 25
 """train_psnr is the mean over this many training views spread along the sequence (all of them: `acesplat render`)."""
-
-
-def _parse_pair(text: Optional[str]) -> Optional[tuple[int, int]]:
-    if text is None:
-        return None
-    try:
-        a, b = (int(v) for v in text.split(","))
-    except ValueError:
-        raise InputError(None, f"--views must be two training frame indices like 10,14, got {text!r}") from None
-    return a, b
 
 
 def _check_map_fits(map_path: Path, short_side: int, frames) -> None:
@@ -93,7 +83,7 @@ def splat_command(
     cfg = SplatConfig(
         minutes=minutes,
         protocol=protocol,
-        sparse_views=_parse_pair(views),
+        sparse_views=None if views is None else parse_int_pair(views, "--views must be two training frame indices like 10,14"),
         max_gaussians=max_gaussians,
         iterations=iterations,
         head_iterations=None if iterations is None else iterations // 5,
