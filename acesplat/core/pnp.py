@@ -1,4 +1,4 @@
-"""Camera pose from 2D-3D correspondences: PnP-RANSAC, LM refinement on the inliers, an inlier gate.
+"""Camera pose from 2D-3D correspondences: PnP-RANSAC, LM on its inliers, robust refinement, an inlier gate.
 
 Shared by desktop evaluation and the edge runtime so both compute poses the same way.
 """
@@ -12,6 +12,7 @@ import numpy as np
 
 from .camera import Intrinsics
 from .geometry import invert_pose, make_pose, rodrigues_to_matrix
+from .pose_refine import ROBUST_SCALES, refine_pose_robust
 
 OUTPUT_STRIDE = 8
 """SCR predictions are made for every 8th pixel; cell (i, j) belongs to pixel (8 j + 4, 8 i + 4)."""
@@ -66,11 +67,14 @@ def solve_pnp(
     min_inliers: int = DEFAULT_MIN_INLIERS,
     iterations: int = DEFAULT_ITERATIONS,
     confidence: float = DEFAULT_CONFIDENCE,
+    robust_scales: tuple[float, ...] = ROBUST_SCALES,
 ) -> PnPResult:
     """Camera-to-world pose from pixels (N, 2) and scene points (N, 3) of an undistorted pinhole image.
 
-    RANSAC finds the inliers, Levenberg-Marquardt refines on them; the frame counts as localized only
-    with at least ``min_inliers`` inliers (the gate that turns a guess into TRACKING or LOST).
+    RANSAC finds the inliers, Levenberg-Marquardt refines on them, then a Cauchy-weighted refinement
+    over all correspondences with the scale annealed through ``robust_scales`` (pixels; empty: off)
+    lets the precise ones decide (acesplat.core.pose_refine). The frame counts as localized only with
+    at least ``min_inliers`` inliers (the gate that turns a guess into TRACKING or LOST).
     """
     pixels = np.ascontiguousarray(pixels, dtype=np.float64).reshape(-1, 2)
     points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
@@ -107,6 +111,9 @@ def solve_pnp(
         return PnPResult(None, 0, n, False)
     idx = inl.reshape(-1)
     rvec, tvec = cv2.solvePnPRefineLM(points[idx], pixels[idx], K, dist, rvec, tvec)
+    if robust_scales:
+        r, t = refine_pose_robust(pixels, points, K, rvec, tvec, tuple(robust_scales))
+        rvec, tvec = r.reshape(3, 1), t.reshape(3, 1)
     # Recount inliers under the refined pose so the gate sees the final solution.
     proj, _ = cv2.projectPoints(points, rvec, tvec, K, dist)
     err = np.linalg.norm(proj.reshape(-1, 2) - pixels, axis=1)
