@@ -6,7 +6,11 @@ Two sets of correspondences:
 2. the default bundle size's correspondence count (360x480 input -> 45x60 = 2700 cells) on a
    synthetic wall with 40% gross outliers and 1 px noise, for the timing at full size.
 
-Usage: python bench/pnp_choice.py [--size 96x128] [--steps 300]
+3. with --map/--scene: a Stage 1 map's predictions on a scene's test split (e.g. the maps that
+   bench/bench_stage1.py writes), each method with and without the robust refinement
+   (acesplat.core.pose_refine), and the refinement's scale schedules.
+
+Usage: python bench/pnp_choice.py [--size 96x128] [--steps 300] [--map MAP --scene SCENE] [--map-only]
 """
 
 from __future__ import annotations
@@ -30,13 +34,13 @@ from acesplat.core.pnp import PNP_METHODS, cell_centers, solve_pnp  # noqa: E402
 from edge.profile import cpu_model  # noqa: E402
 
 
-def run_method(method: str, cases: list, repeats: int = 1, iterations: int = 1000) -> dict:
+def run_method(method: str, cases: list, repeats: int = 1, iterations: int = 1000, **kw) -> dict:
     errs, ms, loc = [], [], 0
     for pix, pts, intr, T in cases:
         for _ in range(repeats):
             cv2.setRNGSeed(len(ms))
             t0 = time.perf_counter()
-            r = solve_pnp(pix, pts, intr, method=method, iterations=iterations)
+            r = solve_pnp(pix, pts, intr, method=method, iterations=iterations, **kw)
             ms.append((time.perf_counter() - t0) * 1000)
         loc += r.localized
         errs.append(pose_error(r.T_c2w, T) if r.T_c2w is not None and r.localized else (np.inf, np.inf))
@@ -45,6 +49,7 @@ def run_method(method: str, cases: list, repeats: int = 1, iterations: int = 100
         "localized": f"{loc}/{len(cases)}",
         "median_cm": 100 * float(np.median(e[:, 0])),
         "median_deg": float(np.median(e[:, 1])),
+        "recall_5cm_5deg": 100.0 * float(np.mean((e[:, 0] < 0.05) & (e[:, 1] < 5))),
         "recall_10cm_5deg": 100.0 * float(np.mean((e[:, 0] < 0.10) & (e[:, 1] < 5))),
         **{f"ms_{k}": v for k, v in timing_stats(ms).items() if k in ("mean", "p50", "p95", "max")},
     }
@@ -81,6 +86,25 @@ def real_cases(size: tuple[int, int], steps: int) -> list:
 real_cases.errors = []
 
 
+def map_cases(map_path: str, scene: str) -> list:
+    """A Stage 1 map's coordinate predictions for every test frame of a scene."""
+    import torch
+
+    from acesplat.core.scene import read_split
+    from acesplat.scr.localize import Localizer
+    from acesplat.scr.mapfile import encoder_for_map, load_map
+
+    m = load_map(map_path)
+    loc = Localizer(m.network(encoder_for_map(m, map_path)).eval(), m.short_side, {})
+    cases = []
+    with torch.no_grad():
+        for f in read_split(scene, "test").frames:
+            c, intr = loc.predict(f.load_rgb(), f.intrinsics)
+            h, w = c.shape[:2]
+            cases.append((cell_centers(h, w), c.reshape(-1, 3).astype(np.float64), intr, f.pose))
+    return cases
+
+
 def synthetic_cases(n_frames: int = 10) -> list:
     rng = np.random.default_rng(0)
     intr = Intrinsics(430.0, 430.0, 239.5, 179.5, 480, 360)
@@ -115,9 +139,27 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--size", default="96x128")
     ap.add_argument("--steps", type=int, default=300)
+    ap.add_argument("--map", default=None, help="A Stage 1 map file (with --scene): real predictions of a trained map.")
+    ap.add_argument("--scene", default=None)
+    ap.add_argument("--map-only", action="store_true", help="Only the --map tables.")
     args = ap.parse_args()
     size = tuple(int(v) for v in args.size.split("x"))
     print(f"machine: {cpu_model()}, {os.cpu_count()} cores; load average {os.getloadavg()}; opencv {cv2.__version__}")
+    if args.map:
+        cases = map_cases(args.map, args.scene)
+        print(f"\n{args.map} on {args.scene} test split: {len(cases)} frames x {len(cases[0][0])} cells")
+        rows = {}
+        for m in PNP_METHODS:
+            rows[f"{m} LM"] = run_method(m, cases, iterations=256, robust_scales=())
+            rows[f"{m} robust"] = run_method(m, cases, iterations=256)
+        table("each method (256 iterations): LM on the RANSAC inliers only vs + robust refinement", rows)
+        sched = {"(4, 2, 1)": (4.0, 2.0, 1.0), "(8, 4, 2, 1)": (8.0, 4.0, 2.0, 1.0), "(2, 2, 2)": (2.0, 2.0, 2.0),
+                 "(4, 2)": (4.0, 2.0), "(4, 2, 1, 0.5)": (4.0, 2.0, 1.0, 0.5)}
+        table("robust scale schedule (px), ransac_ap3p, 256 iterations",
+              {k: run_method("ransac_ap3p", cases, iterations=256, robust_scales=v) for k, v in sched.items()})
+        if args.map_only:
+            print(f"\nload average after: {os.getloadavg()}")
+            return
     real = real_cases(size, args.steps)
     e = np.concatenate(real_cases.errors)
     print(f"real predictions: {len(real)} frames x {len(real[0][0])} cells; coordinate error median {100 * np.median(e):.1f} cm, "
