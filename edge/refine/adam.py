@@ -18,15 +18,18 @@ PARAMS = ("means", "log_scales", "quats", "opacity_logits", "sh")
 
 @dataclass(frozen=True)
 class LearningRates:
-    """Per-step learning rates. Larger than 3DGS's (which assume 30k steps): a keyframe gets a handful."""
+    """Per-step learning rates: three times 3DGS's (which assume 30k steps; a keyframe gets a handful).
+    Measured on the demo scene (30 test views as keyframes, 30 steps on 80x60 full-resolution crops, ground-truth
+    poses): PSNR of the other views +0.52 dB with these, +0.45 dB at 3DGS's rates, +0.23 dB with the earlier
+    rates (4-8x larger: 2e-3 m, 2e-2 for the colour)."""
 
-    means: float = 2e-3
+    means: float = 4.8e-4
     """Metres per step (scaled by the scene extent in :meth:`scaled`)."""
-    log_scales: float = 1e-2
-    quats: float = 5e-3
-    opacity_logits: float = 5e-2
-    sh_dc: float = 2e-2
-    sh_rest: float = 1e-3
+    log_scales: float = 1.5e-2
+    quats: float = 3e-3
+    opacity_logits: float = 7.5e-2
+    sh_dc: float = 7.5e-3
+    sh_rest: float = 3.75e-4
 
     def scaled(self, scene_extent: float) -> "LearningRates":
         return LearningRates(self.means * scene_extent, self.log_scales, self.quats, self.opacity_logits, self.sh_dc, self.sh_rest)
@@ -80,3 +83,36 @@ class RowAdam:
                 arr -= (update * lr[None, :, None]).astype(arr.dtype)
             else:
                 arr -= (np.float32(getattr(self.lr, p)) * update).astype(arr.dtype)
+
+    def step_rows(self, g: Gaussians, grads, idx: np.ndarray) -> None:
+        """Update rows ``idx`` (M,) int of ``g`` in place from ``grads`` shaped like those rows (M, ...).
+
+        For a step that sees a small part of the set (a crop of the view): gathering the rows costs less than
+        the whole-array arithmetic of :meth:`step` when most rows are untouched."""
+        idx = np.asarray(idx, np.int64)
+        if idx.ndim != 1 or (idx.size and (idx.min() < 0 or idx.max() >= self.t.shape[0])):
+            raise ValueError(f"row indices must be a 1-D array within [0, {self.t.shape[0]})")
+        if idx.size == 0:
+            return
+        self.t[idx] += 1
+        t = self.t[idx].astype(np.float64)
+        step_scale = (np.sqrt(1.0 - self.beta2**t) / (1.0 - self.beta1**t)).astype(np.float32)
+        eps = (np.float32(self.eps) * np.sqrt(1.0 - self.beta2**t)).astype(np.float32)
+        b1, b2 = np.float32(self.beta1), np.float32(self.beta2)
+        c1, c2 = np.float32(1.0 - self.beta1), np.float32(1.0 - self.beta2)
+        for p in PARAMS:
+            grad = np.asarray(getattr(grads, p), np.float32)
+            if grad.shape[0] != idx.size:
+                raise ValueError(f"{p} gradient has {grad.shape[0]} rows for {idx.size} indices")
+            shape = (-1,) + (1,) * (grad.ndim - 1)
+            m = b1 * self.m[p][idx] + c1 * grad
+            v = b2 * self.v[p][idx] + c2 * grad * grad
+            self.m[p][idx], self.v[p][idx] = m, v
+            update = (step_scale.reshape(shape) * m) / (np.sqrt(v) + eps.reshape(shape))
+            arr = getattr(g, p)
+            if p == "sh":
+                lr = np.full(arr.shape[1], self.lr.sh_rest, np.float32)
+                lr[0] = self.lr.sh_dc
+                arr[idx] -= (update * lr[None, :, None]).astype(arr.dtype)
+            else:
+                arr[idx] -= (np.float32(getattr(self.lr, p)) * update).astype(arr.dtype)

@@ -120,8 +120,8 @@ class RefineSession:
             set_num_threads(opts.raster_threads)
         self.refiner = Refiner(self.initial.copy(), opts.config, seeder=seeder, clock=clock)
         h, w = getattr(localizer, "input_size", (3 * opts.max_side // 4, opts.max_side))
-        self.calibration_ms = self.refiner.warm_up(refine_intrinsics(Intrinsics.from_focal(float(w), int(w), int(h)),
-                                                                     opts.max_side))
+        k_in = Intrinsics.from_focal(float(w), int(w), int(h))
+        self.calibration_ms = self.refiner.warm_up(refine_intrinsics(k_in, opts.max_side), k_in)
         timing = getattr(seeder, "time_once", None)
         if timing is not None:  # measure the ONNX initializer (adapter + head) before it competes for a deadline
             self.calibration_ms["initializer_ms"] = 1000.0 * timing(self.refiner.seed_cost)
@@ -169,7 +169,9 @@ class RefineSession:
             name = out.name or str(rec.frame_id)
 
             def make_keyframe() -> Keyframe:
-                return Keyframe(pose, colour_at(image, intr, dist, k_input, k_ref), k_ref, coords, k_input, name, feats)
+                detail = colour_at(image, intr, dist, k_input, k_input)  # optimisation crops at the input size
+                small = cv2.resize(detail, (k_ref.width, k_ref.height), interpolation=cv2.INTER_AREA)
+                return Keyframe(pose, small, k_ref, coords, k_input, name, feats, detail, k_input)
 
             def cell_depth() -> tuple[np.ndarray, Intrinsics]:
                 return cell_trust(coords, pose, k_input)[0], k_input

@@ -81,9 +81,9 @@ def lower_priority(nice: int = NICE) -> bool:
         return False
 
 
-MAX_WINDOWS = 8
+MAX_WINDOWS = 16
 """A batch may continue over this many frames' windows; then optional work stops and required work gives up."""
-STEP_WINDOWS = 2
+STEP_WINDOWS = 8
 """Optimisation steps wait for at most this many windows: newer keyframes (new surfaces to seed) wait meanwhile."""
 
 
@@ -201,13 +201,15 @@ class RefineWorker:
         try:
             kind, cost, reserve = next(gen)
             while True:
-                ok = deadline.allows(cost, reserve if kind != "must" or rep.windows >= self.max_windows else 0.0)
+                # The reserve (what must follow) matters only in the last window: required work (the guard, tile
+                # renders) waits for later windows like any other piece.
+                last = rep.windows >= self.max_windows
+                ok = deadline.allows(cost, reserve if last else 0.0)
                 if not ok and kind != "option":
                     # Wait for the next frame's window only for work that would fit in a whole window: a step that
                     # never fits ends the optimisation now (the batch goes on to its guard); required work larger
                     # than every window seen so far abandons the batch.
-                    last = rep.windows >= self.max_windows
-                    if kind == "step" and (last or rep.windows >= STEP_WINDOWS or cost + reserve > window_s):
+                    if kind == "step" and (last or rep.windows >= STEP_WINDOWS or cost > window_s):
                         rep.stopped_by_deadline = True
                         kind, cost, reserve = gen.send(False)
                         continue
