@@ -68,7 +68,8 @@ def test_a_step_that_would_overrun_the_deadline_is_not_started(frames, start_map
         return real_backward(*a, **k)
 
     monkeypatch.setattr(refiner_mod, "rasterize_backward", slow_backward)
-    cfg = RefineConfig(max_steps=100, held=0, step_prior_s=0.1, render_prior_s=0.0)
+    # Pose alignment off: this is about the deadline, and on the tiny room's rough map flow cannot be trusted anyway.
+    cfg = RefineConfig(max_steps=100, held=0, step_prior_s=0.1, render_prior_s=0.0, align=False)
     ref = Refiner(start_map, cfg, clock=clock)
     deadline = Deadline(0.35, clock)
     rep = ref.refine(keyframe(frames[5]), deadline)

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Protocol
 
 import numpy as np
@@ -24,6 +24,9 @@ from acesplat.core.gaussians import Gaussians, concat_gaussians
 from acesplat.core.raster import rasterize, rasterize_backward
 
 from .adam import LearningRates, RowAdam
+from .align import MAX_SHIFT_DEG as ALIGN_MAX_DEG
+from .align import MAX_SHIFT_M as ALIGN_MAX_M
+from .align import align_pose
 from .coverage import ALPHA_MIN, analyse_render, frustum_mask
 from .deadline import Clock, CostEstimate, Deadline
 from .guard import HELD_TOLERANCE, HeldView, HeldViews, all_finite, downsample, held_verdict, view_mse
@@ -65,6 +68,11 @@ class RefineConfig:
     held: int = 2
     """Earlier keyframes the photometric guard checks."""
     tiles: int = 2
+    align: bool = True
+    """Correct each keyframe's pose against the map before using it (edge.refine.align)."""
+    align_tiles: int = 4
+    align_max_m: float = ALIGN_MAX_M
+    align_max_deg: float = ALIGN_MAX_DEG
     """Keyframe renders (before and after) are split into tiles x tiles pieces, so each fits in one frame's window."""
     guard_max_side: int = 48
     held_tolerance: float = HELD_TOLERANCE
@@ -81,7 +89,7 @@ class RefineConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if self.cap < 1 or self.max_new < 0 or self.seed_spacing < 1 or self.max_steps < 0 or self.held < 0 or self.tiles < 1 or self.crop_side < 4:
+        if self.cap < 1 or self.max_new < 0 or self.seed_spacing < 1 or self.max_steps < 0 or self.held < 0 or self.tiles < 1 or self.align_tiles < 1 or self.crop_side < 4:
             raise ValueError(f"invalid RefineConfig {self}")
 
 
@@ -144,6 +152,10 @@ class BatchReport:
     ms: dict[str, float] = field(default_factory=dict)
     step_ms: list[float] = field(default_factory=list)
     stopped_by_deadline: bool = False
+    align: str = ""
+    """The pose alignment's status (edge.refine.align.Alignment), '' when not run."""
+    align_shift_m: float = 0.0
+    align_shift_deg: float = 0.0
     windows: int = 1
     """Frames' time windows the batch ran in (the worker carries a batch over several frames)."""
 
@@ -179,6 +191,10 @@ class Refiner:
         self.seed_cost = CostEstimate(0.0)
         self.scr_seed_cost = CostEstimate(0.0)
         self.cull_cost = CostEstimate(0.0)
+        self.align_render_cost = CostEstimate(cfg.render_prior_s)
+        """One tile of the full-resolution render the pose alignment compares with the keyframe."""
+        self.align_cost = CostEstimate(cfg.render_prior_s)
+        """Optical flow and PnP of the pose alignment."""
         """Selecting the map's Gaussians in a keyframe's view (a copy of them)."""
         self.guard_view_cost = CostEstimate(cfg.render_prior_s)
         """One held-view render at guard resolution."""
@@ -294,13 +310,35 @@ class Refiner:
         kf_px = kf.k.width * kf.k.height
         yield ("must", self.cull_cost.predict(), self.guard_reserve(kf_px) + 2 * self.kf_check_reserve())
 
+        # 0. The keyframe's pose, corrected against the map (edge.refine.align): rendered at the full resolution.
+        if cfg.align and len(self.map):
+            t0 = clock()
+            k_al, img = (kf.k_detail, kf.detail) if kf.detail is not None else (kf.k, kf.rgb)
+            near = np.flatnonzero(frustum_mask(self.map.means, self.map.log_scales, kf.pose, k_al))
+            self.cull_cost.record(clock() - t0)
+            c_al, a_al, _, d_al = yield from self._render_tiles(self.map, kf.pose, k_al, 0.0, near, cfg.align_tiles,
+                                                                self.align_render_cost)
+            yield ("must", self.align_cost.predict(), 0.0)
+            t1 = clock()
+            al = align_pose(c_al, a_al, d_al, img, k_al, kf.pose, cfg.align_max_m, cfg.align_max_deg)
+            self.align_cost.record(clock() - t1)
+            rep.align, rep.align_shift_m, rep.align_shift_deg = al.status, al.shift_m, al.shift_deg
+            rep.ms["align"] = 1000.0 * (clock() - t0)
+            if al.status == "too_far":
+                rep.outcome = "rolled_back_pose"
+                self.totals["rolled_back"] += 1
+                rep.ms["total"] = 1000.0 * (clock() - t_start)
+                return rep
+            kf = replace(kf, pose=al.pose)
+            yield ("must", self.cull_cost.predict(), 0.0)
+
         # 1. What the map shows from the keyframe, and where it falls short (rendered tile by tile: each tile is a
         # piece of work small enough for one frame's window).
         t0 = clock()
         in_view = np.flatnonzero(frustum_mask(self.map.means, self.map.log_scales, kf.pose, kf.k)) if len(self.map) else np.zeros(0, np.int64)
         self.cull_cost.record(clock() - t0)
-        color, alpha, seen = yield from self._render_tiles(self.map, kf.pose, kf.k, self.guard_reserve(kf_px) + self.kf_check_reserve(),
-                                                           in_view)
+        color, alpha, seen, _ = yield from self._render_tiles(self.map, kf.pose, kf.k, self.guard_reserve(kf_px) + self.kf_check_reserve(),
+                                                              in_view)
         an = analyse_render(color, alpha, kf.rgb, cfg.alpha_min, cfg.error_max)
         rep.mse_before, rep.coverage = an.mse, an.coverage
         rep.ms["render"] = 1000.0 * (clock() - t0)
@@ -406,7 +444,7 @@ class Refiner:
             # needs just those.
             t0 = clock()
             after_map = concat_gaussians([self.map.subset(in_view[~seen]), kept])
-            c_after, _, _ = yield from self._render_tiles(after_map, kf.pose, kf.k, 0.0)
+            c_after, _, _, _ = yield from self._render_tiles(after_map, kf.pose, kf.k, 0.0)
             kf_after = float(np.mean((c_after - kf.rgb) ** 2))
             guard_s += clock() - t0
         rep.mse_after = kf_after
@@ -418,7 +456,7 @@ class Refiner:
                 if hv.version != self.version or hv.mse is None:  # its error under the current map
                     t0 = clock()
                     idx = np.flatnonzero(frustum_mask(self.map.means, self.map.log_scales, hv.pose, hv.k))
-                    c, _, _ = yield from self._render_tiles(self.map, hv.pose, hv.k, 0.0, idx)
+                    c, _, _, _ = yield from self._render_tiles(self.map, hv.pose, hv.k, 0.0, idx)
                     hv.mse, hv.version = float(np.mean((c - hv.target) ** 2)), self.version
                     guard_s += clock() - t0
                 rep.held_before.append(hv.mse)
@@ -427,7 +465,7 @@ class Refiner:
                     t0 = clock()
                     rest = np.flatnonzero(frustum_mask(self.map.means, self.map.log_scales, hv.pose, hv.k) & ~is_active)
                     g = concat_gaussians([self.map.subset(rest), kept.subset(mine)])
-                    c, _, _ = yield from self._render_tiles(g, hv.pose, hv.k, 0.0)
+                    c, _, _, _ = yield from self._render_tiles(g, hv.pose, hv.k, 0.0)
                     rep.held_after.append(float(np.mean((c - hv.target) ** 2)))
                     guard_s += clock() - t0
                 else:  # nothing the batch changed can reach this view
@@ -488,27 +526,31 @@ class Refiner:
         """Time for rendering the keyframe whole once (tile by tile): its check after crop steps or seeding."""
         return len(tile_bounds(1 << 16, 1 << 16, self.cfg.tiles)) * self.render_cost.predict()
 
-    def _render_tiles(self, g: Gaussians, pose: np.ndarray, k: Intrinsics, reserve: float, idx: np.ndarray | None = None):
-        """Render ``g`` (only its rows ``idx`` (M,) int when given) tile by tile, each tile a required piece of work;
-        returns (color (H, W, 3), alpha (H, W), seen (M,) which of the rows any tile drew). The same pixels as one
+    def _render_tiles(self, g: Gaussians, pose: np.ndarray, k: Intrinsics, reserve: float, idx: np.ndarray | None = None,
+                      tiles: int | None = None, cost: CostEstimate | None = None):
+        """Render ``g`` (only its rows ``idx`` (M,) int when given) tile by tile (``tiles`` x ``tiles``, default the
+        config's), each tile a required piece of work predicted by ``cost`` (default a keyframe tile's); returns
+        (color (H, W, 3), alpha (H, W), seen (M,) which rows any tile drew, depth (H, W)). The same pixels as one
         render of the whole image."""
         idx = np.arange(len(g)) if idx is None else np.asarray(idx, np.int64)
+        cost = self.render_cost if cost is None else cost
         color = np.empty((k.height, k.width, 3), np.float32)
         alpha = np.zeros((k.height, k.width), np.float32)
+        depth = np.zeros((k.height, k.width), np.float32)
         seen = np.zeros(idx.size, bool)
-        for y0, y1, x0, x1 in tile_bounds(k.height, k.width, self.cfg.tiles):
-            yield ("must", self.render_cost.predict(), reserve)
+        for y0, y1, x0, x1 in tile_bounds(k.height, k.width, tiles or self.cfg.tiles):
+            yield ("must", cost.predict(), reserve)
             t0 = self.clock()
             kt = window_intrinsics(k, y0, y1, x0, x1)
             m = frustum_mask(g.means[idx], g.log_scales[idx], pose, kt) if idx.size else np.zeros(0, bool)
             if m.any():
                 r = rasterize(g.subset(idx[m]), pose, kt, self.bg)
-                color[y0:y1, x0:x1], alpha[y0:y1, x0:x1] = r.color, r.alpha
+                color[y0:y1, x0:x1], alpha[y0:y1, x0:x1], depth[y0:y1, x0:x1] = r.color, r.alpha, r.depth
                 seen[np.flatnonzero(m)[r.visible]] = True
             else:
                 color[y0:y1, x0:x1] = self.bg.astype(np.float32)
-            self.render_cost.record(self.clock() - t0)
-        return color, alpha, seen
+            cost.record(self.clock() - t0)
+        return color, alpha, seen, depth
 
     def guard_reserve(self, kf_pixels: int) -> float:
         """Time kept for the guard (one tiled render per held view, two when its cached error is stale) and the
