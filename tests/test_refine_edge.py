@@ -120,7 +120,8 @@ def _candidate(name: str, seconds: float, moved: float) -> Candidate:
 def _run_preempted(max_windows: int) -> tuple[_StepRefiner, RefineWorker]:
     """Keyframe 'a' runs; 'b', 'c', 'd' arrive meanwhile (only 'd' survives); then two preemptions."""
     ref = _StepRefiner()
-    w = RefineWorker(ref, KeyframeSelector(KeyframePolicy(min_inliers=0, min_translation_m=0.0)), max_windows=max_windows)
+    w = RefineWorker(ref, KeyframeSelector(KeyframePolicy(min_inliers=0, min_translation_m=0.0)), max_windows=max_windows,
+                     step_windows=2)
     try:
         w.submit(_candidate("a", 30.0, 0.0))
         assert ref.started.wait(5.0)
@@ -298,3 +299,36 @@ def test_export_splat_refuses_a_splat_of_another_encoder(splat_bundle, tiny, tmp
     (other / MANIFEST_NAME).write_text(json.dumps(m))
     with pytest.raises(InputError, match="trained on features of encoder"):
         export_splat(other, splat_bundle.parent / "splat", tiny["map"])
+
+
+def test_wait_parked_returns_only_after_the_running_piece_and_no_piece_starts_until_the_next_window() -> None:
+    """What a paced session relies on: after preempt + wait_parked nothing of refinement runs until the next frame."""
+    events: list[tuple[str, float]] = []
+
+    class SlowSteps(_StepRefiner):
+        def batch(self, kf, rep: BatchReport):
+            self.started.set()
+            while (yield ("step", 0.001, 0.0)):
+                events.append(("start", time.perf_counter()))
+                time.sleep(0.03)
+                events.append(("end", time.perf_counter()))
+            rep.outcome = "committed"
+
+    ref = SlowSteps()
+    w = RefineWorker(ref, KeyframeSelector(KeyframePolicy(min_inliers=0)), max_windows=4, step_windows=4)
+    try:
+        w.submit(_candidate("a", 30.0, 0.0))
+        assert ref.started.wait(5.0)
+        time.sleep(0.05)  # inside a step now or between two
+        w.preempt()
+        assert w.wait_parked(5.0)
+        parked = time.perf_counter()
+        time.sleep(0.1)  # a 'localization': the worker must stay parked
+        quiet = [e for e in events if e[1] > parked]
+        w.submit(_candidate("b", 30.0, 1.0))  # the next frame's window: steps resume
+        time.sleep(0.05)
+    finally:
+        w.close()
+    assert any(k == "end" for k, _ in events)
+    assert quiet == []
+    assert any(t > parked + 0.1 for _, t in events)

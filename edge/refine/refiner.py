@@ -26,6 +26,7 @@ from acesplat.core.raster import rasterize, rasterize_backward
 from .adam import LearningRates, RowAdam
 from .align import MAX_SHIFT_DEG as ALIGN_MAX_DEG
 from .align import MAX_SHIFT_M as ALIGN_MAX_M
+from .align import MIN_COVERAGE as ALIGN_MIN_COVERAGE
 from .align import align_pose
 from .coverage import ALPHA_MIN, analyse_render, frustum_mask
 from .deadline import Clock, CostEstimate, Deadline
@@ -345,6 +346,13 @@ class Refiner:
         if self.stepless_batches:
             # No step ran lately, so the step estimate is stale; what a tile's render cost implies stands in for a step.
             self.step_cost.record(self.step_per_render * self.render_cost.predict() / self.render_cost.safety)
+        if rep.align == "no_fit" and rep.coverage >= ALIGN_MIN_COVERAGE:
+            # The map covers and explains the view, yet no pose fits the flow from it to the frame: fitting the map
+            # to a frame whose pose may be far off smears it (the demo scene's first frame: 24 cm off, no_fit).
+            rep.outcome = "rolled_back_pose"
+            self.totals["rolled_back"] += 1
+            rep.ms["total"] = 1000.0 * (clock() - t_start)
+            return rep
         covered = alpha >= cfg.alpha_min
         if covered.mean() >= POSE_CHECK_MIN_COVERAGE:
             d = np.asarray(color, np.float32)[covered] - kf.rgb[covered]

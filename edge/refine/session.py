@@ -8,8 +8,10 @@ worker with the frame's deadline: its capture start plus the budget.
 
 With ``pace`` (file sources) the loop then waits until the worker is idle or the deadline has
 passed, as a camera delivering one frame per budget would: refinement gets what localization left
-of the budget, and never overlaps the next frame's localization. Live sources do not wait; the
-preemption keeps the overlap to at most one step.
+of the budget. Before the next localization the worker is preempted and its running piece (predicted
+to end by the deadline) is waited for, so no refinement code runs beside inference and PnP; a piece
+that overran shows as that frame's 'park' time, inside its localization latency. Live sources do not
+wait; the preemption keeps the overlap to at most one piece.
 """
 
 from __future__ import annotations
@@ -39,6 +41,11 @@ from .worker import Candidate, RefineWorker
 MAX_SIDE = 80
 """Refinement renders at this longer side. Measured on 2 busy cores with a 45k-Gaussian map (SH degree 3):
 a render took 15-45 ms at 160x120 and 10-27 ms at 80x60, beside 45-60 ms of localization in a 100 ms budget."""
+
+
+PARK_TIMEOUT_S = 1.0
+"""Longest a paced localization waits for the worker's running piece (pieces are predicted to end in their window;
+this bounds a misprediction)."""
 
 
 @dataclass
@@ -129,6 +136,8 @@ class RefineSession:
         self.worker = RefineWorker(self.refiner, KeyframeSelector(opts.policy), self.saver, clock)
         self.frames = 0
         self.wait_ms: list[float] = []
+        self.park_ms: list[float] = []
+        """Per frame: how long its localization waited for the worker's running piece (paced sessions)."""
         self.counts_over_time: list[tuple[int, int]] = [(0, len(self.initial))]
         self._eval: list[tuple[np.ndarray, Intrinsics, np.ndarray]] = []
         self._last_coords: np.ndarray | None = None
@@ -142,6 +151,10 @@ class RefineSession:
 
         def localize(frame, *args, **kwargs):
             self.worker.preempt()
+            if opts.pace:  # let the worker finish its piece first: nothing of refinement runs beside localization
+                t0 = self.clock()
+                self.worker.wait_parked(PARK_TIMEOUT_S)
+                self.park_ms.append(1000.0 * (self.clock() - t0))
             self._last_coords = self._last_features = None
             out = inner(frame, *args, **kwargs)
             if not self._closed:
@@ -230,6 +243,7 @@ class RefineSession:
                 "render": timing_stats([r.ms["render"] for r in reps if "render" in r.ms]),
                 "guard": timing_stats([r.ms["guard"] for r in reps if "guard" in r.ms]),
                 "wait": timing_stats(self.wait_ms),
+                "park": timing_stats(self.park_ms),
                 "overrun": timing_stats(ws.overrun_ms),
                 "piece_spill": timing_stats(ws.piece_spill_ms),
             },

@@ -84,15 +84,18 @@ def lower_priority(nice: int = NICE) -> bool:
 MAX_WINDOWS = 16
 """A batch may continue over this many frames' windows; then optional work stops and required work gives up."""
 STEP_WINDOWS = 8
-"""Optimisation steps wait for at most this many windows: newer keyframes (new surfaces to seed) wait meanwhile."""
+"""Optimisation steps wait for at most this many windows: newer keyframes (new surfaces to seed) wait meanwhile.
+Steps on crops cost 5-20 ms, so a keyframe's 30 steps need several windows beside a 40-60 ms localization."""
 
 
 class RefineWorker:
     def __init__(self, refiner: Refiner, selector: KeyframeSelector, saver: SplatSaver | None = None,
-                 clock: Clock = time.perf_counter, keep_reports: int = 10_000, max_windows: int = MAX_WINDOWS) -> None:
-        if max_windows < 1:
-            raise ValueError(f"max_windows must be >= 1, got {max_windows}")
+                 clock: Clock = time.perf_counter, keep_reports: int = 10_000, max_windows: int = MAX_WINDOWS,
+                 step_windows: int = STEP_WINDOWS) -> None:
+        if max_windows < 1 or step_windows < 1:
+            raise ValueError(f"max_windows and step_windows must be >= 1, got {max_windows}, {step_windows}")
         self.max_windows = max_windows
+        self.step_windows = step_windows
         self.refiner = refiner
         self.selector = selector
         self.saver = saver
@@ -104,6 +107,8 @@ class RefineWorker:
         self._cond = threading.Condition()
         self._item: Candidate | None = None
         self._busy = False
+        self._working = False
+        """True while the worker thread runs code (not waiting for a candidate or a frame's window)."""
         self._stop = False
         self._deadline: Deadline | None = None
         self._thread = threading.Thread(target=self._run, name="refine", daemon=True)
@@ -123,6 +128,12 @@ class RefineWorker:
         with self._cond:
             if self._deadline is not None:
                 self._deadline.preempt()
+
+    def wait_parked(self, timeout: float | None = None) -> bool:
+        """Wait until the worker thread is not running code (after ``preempt``: the end of its current piece).
+        Paced sessions call it before each localization, so nothing of refinement runs beside it."""
+        with self._cond:
+            return self._cond.wait_for(lambda: not self._working, timeout)
 
     def wait_idle(self, timeout: float | None = None) -> bool:
         """Wait until the worker has nothing queued or running (paced replays use it)."""
@@ -151,7 +162,7 @@ class RefineWorker:
                     self._item = None
                     self._cond.notify_all()
                     return
-                c, self._item, self._busy = self._item, None, True
+                c, self._item, self._busy, self._working = self._item, None, True, True
             t0 = self.clock()
             try:
                 self._handle(c)
@@ -159,7 +170,7 @@ class RefineWorker:
                 self.stats.errors.append(f"{c.name}: {type(e).__name__}: {e}")
             self.stats.busy_ms.append(1000.0 * (self.clock() - t0))
             with self._cond:
-                self._busy = False
+                self._busy = self._working = False
                 self._cond.notify_all()
 
     def _handle(self, c: Candidate) -> None:
@@ -209,7 +220,7 @@ class RefineWorker:
                     # Wait for the next frame's window only for work that would fit in a whole window: a step that
                     # never fits ends the optimisation now (the batch goes on to its guard); required work larger
                     # than every window seen so far abandons the batch.
-                    if kind == "step" and (last or rep.windows >= STEP_WINDOWS or cost > window_s):
+                    if kind == "step" and (last or rep.windows >= self.step_windows or cost > window_s):
                         rep.stopped_by_deadline = True
                         kind, cost, reserve = gen.send(False)
                         continue
@@ -238,8 +249,11 @@ class RefineWorker:
         """The deadline of the next frame (waiting for it); None when the worker is stopping."""
         while True:
             with self._cond:
+                self._working = False
+                self._cond.notify_all()
                 while self._item is None and not self._stop:
                     self._cond.wait(0.1)
+                self._working = True
                 if self._stop:
                     return None
                 c, self._item = self._item, None
