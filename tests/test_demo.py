@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 from typer.testing import CliRunner
 
@@ -28,6 +29,12 @@ def test_tiny_demo_runs_every_stage_and_reports_refinement(tmp_path) -> None:
     assert ref["psnr_views"] == 4 and math.isfinite(ref["psnr_before"]) and math.isfinite(ref["psnr_after"])
     assert ref["seeder"] == "onnx_initializer" and ref["calibration_ms"]["initializer_ms"] > 0
     assert "edge replay (int8) + refinement" in r.output and "PSNR" in r.output
+    assert s["replay_paced"]["frames"] == 4 and "park" in ref["timing_ms"]
+    renders = s["replay_refine"]["renders"]
+    assert len(renders) == 3 and "before/after render" in r.output
+    for im in renders:
+        png = (tmp_path / "w" / "refine_renders" / Path(im["path"]).name).read_bytes()
+        assert png[:8] == b"\x89PNG\r\n\x1a\n" and math.isfinite(im["psnr_after"])
     assert s["seconds"] > 0 and (tmp_path / "w" / "bundle" / "splat_init.onnx").is_file()
 
 

@@ -31,7 +31,7 @@ from acesplat.core.pose import TrackingState
 
 from ..frame_prep import crop_to_aspect
 from .deadline import Clock
-from .guard import psnr, view_mse
+from .guard import psnr, render_view, view_mse
 from .keyframes import KeyframePolicy, KeyframeSelector
 from .persist import SAVE_EVERY_S, SplatSaver
 from .refiner import Keyframe, RefineConfig, Refiner
@@ -266,6 +266,37 @@ class RefineSession:
             s["psnr_size"] = [self._eval[0][1].height, self._eval[0][1].width]
         self.summary = s
         return s
+
+
+def write_before_after(session: "RefineSession", out_dir: Path, count: int = 3) -> list[dict]:
+    """PNG triptychs (captured frame | map before refinement | map after), rendered from ground-truth poses of the
+    evaluated views: the ``count`` views whose PSNR changed most, either way. Returns one record per file."""
+    from acesplat.core.atomic import write_bytes
+
+    if not session._eval or count <= 0:
+        return []
+    bg = np.asarray(session.opts.config.background, np.float64)
+    final = session.refiner.snapshot()
+    rows = []
+    for i, (pose, k, rgb) in enumerate(session._eval):
+        before, after = psnr(view_mse(session.initial, pose, k, rgb, bg)), psnr(view_mse(final, pose, k, rgb, bg))
+        rows.append((abs(after - before), i, before, after))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for _, i, before, after in sorted(rows, reverse=True)[:count]:
+        pose, k, rgb = session._eval[i]
+        panels = [rgb]
+        for g in (session.initial, final):
+            r = render_view(g, pose, k, bg)
+            panels.append(np.broadcast_to(bg.astype(np.float32), rgb.shape) if r is None else r.color)
+        strip = np.concatenate([np.clip(p_, 0.0, 1.0) for p_ in panels], axis=1)
+        ok, png = cv2.imencode(".png", cv2.cvtColor((strip * 255.0 + 0.5).astype(np.uint8), cv2.COLOR_RGB2BGR))
+        if not ok:
+            raise RuntimeError("PNG encoding failed")
+        path = out_dir / f"view{i:04d}_frame_before_after.png"
+        write_bytes(path, png.tobytes())
+        written.append({"path": str(path), "view": i, "psnr_before": before, "psnr_after": after})
+    return written
 
 
 def start_refinement(localizer: Any, bundle: Any, opts: RefineOptions, warn: Callable[[str], None]) -> RefineSession | None:
