@@ -24,6 +24,9 @@ DEFAULT_THRESHOLD_PX = 10.0
 DEFAULT_MIN_INLIERS = 50
 DEFAULT_ITERATIONS = 1000
 DEFAULT_CONFIDENCE = 0.9999
+RANSAC_SEED = 0
+"""RANSAC's random samples are seeded per call: the same predictions always give the same pose, so
+torch-vs-ONNX parity, replays and tests compare solutions, not random draws."""
 
 
 @dataclass
@@ -55,6 +58,7 @@ def _usac_params(method: str, threshold: float, iterations: int, confidence: flo
     params.score = cv2.SCORE_METHOD_MAGSAC if method == "usac_magsac" else cv2.SCORE_METHOD_MSAC
     params.sampler = cv2.SAMPLING_UNIFORM
     params.final_polisher = cv2.NONE_POLISHER
+    params.randomGeneratorState = RANSAC_SEED
     return params
 
 
@@ -89,6 +93,7 @@ def solve_pnp(
         return PnPResult(None, 0, n, False)
     K = intrinsics.K
     dist = np.zeros(5)
+    cv2.setRNGSeed(RANSAC_SEED)
     try:
         if method.startswith("usac"):
             ok, _, rvec, tvec, inl = cv2.solvePnPRansac(
