@@ -9,10 +9,13 @@ localization leaves), and with unpaced refinement (frames back to back, the work
 localizer all the time: the worst case for contention on 2 cores and the GIL), the Gaussian count
 over time, and the machine's load. Every number comes from this run.
 
-The SCR map is fitted directly to depth-derived coordinates (tests/test_edge_scene.train_tiny_map: the
-project's default encoder is still being pretrained); pass --map to use a real one.
+The SCR map is a real Stage 1 map (`acesplat map`'s library function with the default encoder, --map-minutes,
+on the whole training trajectory), or an existing one (--map, with --scene the scene it was mapped on, e.g. the
+demo's); --fitted-map fits one directly to depth-derived coordinates instead (tests/test_edge_scene.train_tiny_map:
+seconds, but poses far better than Stage 1 gives). Keyframe poses are the localizer's, as on a device.
 
     python bench/bench_refine.py --workdir runs/bench_refine [--json runs/bench_refine/result.json]
+    python bench/bench_refine.py --scene runs/demo/scene --map runs/demo/map.pt --workdir runs/bench_refine_demo
 """
 
 from __future__ import annotations
@@ -53,8 +56,8 @@ def prepare(work: Path, args) -> dict:
     from acesplat.core.scene import read_split
     from acesplat.synth import synthesize
 
-    scene = work / "scene"
-    if not (scene / "synth.json").is_file():
+    scene = Path(args.scene) if args.scene else work / "scene"
+    if not args.scene and not (scene / "synth.json").is_file():
         log(f"synthesize the built-in scene at {args.size[0]}x{args.size[1]}, {args.frames} training frames")
         synthesize(scene, seed=0, train_frames=args.frames, test_frames=4, size=tuple(args.size), overwrite=True)
     names = [f.name for f in read_split(scene, "train").frames]
@@ -64,7 +67,14 @@ def prepare(work: Path, args) -> dict:
         link_split(scene / "train", names[:half], first / "train")
     if not second.is_dir():
         link_split(scene / "train", names[half:], second / "test")
-    map_path = Path(args.map) if args.map else work / "tiny.map"
+    map_path = Path(args.map) if args.map else work / ("tiny.map" if args.fitted_map else "map.pt")
+    if not map_path.is_file() and not args.fitted_map:
+        from acesplat.demo import _stage_map
+
+        log(f"Stage 1: map the whole training trajectory with the default encoder, {args.map_minutes} min")
+        info: dict = {}
+        _stage_map(scene, work, args.map_minutes, info)
+        log(f"map: {info['map']['iterations']} iterations; test median {info['eval']['median_translation_m']} m")
     if not map_path.is_file():
         from tests.test_edge_scene import train_tiny_map
 
@@ -93,12 +103,14 @@ def prepare(work: Path, args) -> dict:
         from export.splat_export import export_splat
 
         log("export the bundle with --splat")
-        export_bundle(map_path, bundle, ExportOptions(scene_path=scene))  # size: the map's, from the scene's images
+        # size: the map's, from the scene's images; INT8 too (the edge's fast path)
+        export_bundle(map_path, bundle, ExportOptions(int8=True, scene_path=scene))
         export_splat(bundle, splat, map_path)
     return {"scene": scene, "second": second, "bundle": bundle, "first_frames": half, "second_frames": len(names) - half}
 
 
-def replay(bundle: Path, split_root: Path, threads: int, refine: dict | None, pace_ms: float | None = None) -> dict:
+def replay(bundle: Path, split_root: Path, threads: int, refine: dict | None, pace_ms: float | None = None,
+           precision: str = "int8") -> dict:
     """One replay of the second half; refine=None: localization only (``pace_ms``: one frame per that many ms,
     as a camera would deliver them, so the reference idles between frames exactly as the paced refinement run)."""
     from acesplat.core.bundle import load_bundle
@@ -107,7 +119,7 @@ def replay(bundle: Path, split_root: Path, threads: int, refine: dict | None, pa
     from edge.runtime import EdgeLocalizer
 
     b = load_bundle(bundle)
-    loc = EdgeLocalizer(b, "fp32", threads)
+    loc = EdgeLocalizer(b, precision, threads)
     session = None
     if refine is not None:
         session = start_refinement(loc, b, RefineOptions(evaluate=True, **refine), log)
@@ -195,7 +207,13 @@ def main() -> None:
     ap.add_argument("--workdir", type=Path, default=ROOT / "runs" / "bench_refine")
     ap.add_argument("--size", type=int, nargs=2, default=[120, 160], metavar=("H", "W"))
     ap.add_argument("--frames", type=int, default=80, help="training frames of the built-in scene (half seed, half replayed)")
-    ap.add_argument("--map", type=str, default=None, help="an existing map of this scene instead of the fitted one")
+    ap.add_argument("--scene", type=str, default=None, help="an existing scene (its training split is halved) instead of synthesizing one")
+    ap.add_argument("--map", type=str, default=None, help="an existing Stage 1 map of the scene")
+    ap.add_argument("--map-minutes", type=float, default=4.5, help="Stage 1 mapping budget when no --map is given")
+    ap.add_argument("--fitted-map", action="store_true", help="fit the map to depth-derived coordinates instead of Stage 1")
+    ap.add_argument("--precision", default="int8", choices=["fp32", "int8"])
+    ap.add_argument("--skip-unpaced", action="store_true", help="only the paced settings and the reference (half the time)")
+    ap.add_argument("--skip-gil", action="store_true")
     ap.add_argument("--map-steps", type=int, default=200)
     ap.add_argument("--map-every", type=int, default=2, help="fit the map to every n-th training frame (CPU time)")
     ap.add_argument("--splat-minutes", type=float, default=2.0)
@@ -219,22 +237,27 @@ def main() -> None:
     # Reference runs without refinement: 'off' paced like a camera at one frame per budget (the paced run's
     # situation: measured, idling between frames alone slows the next localization on this shared machine),
     # 'off_unpaced' back to back (the unpaced run's situation).
-    settings = {"off": (None, args.budget_ms), "paced": ({"budget_ms": args.budget_ms, "pace": True}, None),
-                "off_unpaced": (None, None), "unpaced": ({"budget_ms": args.budget_ms, "pace": False}, None)}
+    settings = {"off": (None, args.budget_ms), "paced": ({"budget_ms": args.budget_ms, "pace": True}, None)}
+    if not args.skip_unpaced:
+        settings.update({"off_unpaced": (None, None), "unpaced": ({"budget_ms": args.budget_ms, "pace": False}, None)})
     runs: dict[str, list[dict]] = {name: [] for name in settings}
-    replay(prep["bundle"], prep["second"], args.threads, None)  # warm-up: onnxruntime, numba kernels, page cache
+    # warm-up: onnxruntime, numba kernels, page cache
+    replay(prep["bundle"], prep["second"], args.threads, None, precision=args.precision)
     for rep in range(args.repeats):
         for name, (cfg, pace) in settings.items():  # interleaved, so drifting load hits all settings alike
-            log(f"replay {rep + 1}/{args.repeats}: {name}")
-            runs[name].append(replay(prep["bundle"], prep["second"], args.threads, cfg, pace))
+            log(f"replay {rep + 1}/{args.repeats}: {name} (load {load_avg()})")
+            runs[name].append(replay(prep["bundle"], prep["second"], args.threads, cfg, pace, args.precision))
 
     def loc_ms(name: str) -> list[float]:
         return [f["ms"] for r in runs[name] for f in r["per_frame"]]
 
     lat = {name: timing_stats(loc_ms(name)) for name in runs}
-    log("GIL probe")
-    gil = gil_probe(prep["bundle"], prep["second"], 4.0)
+    gil = None
+    if not args.skip_gil:
+        log("GIL probe")
+        gil = gil_probe(prep["bundle"], prep["second"], 4.0)
     paced = runs["paced"][-1]["refine"]
+    unpaced = runs["unpaced"][-1]["refine"] if "unpaced" in runs else None
     result = {
         "machine": machine_info(),
         "load_average": {"start": load_start, "end": load_avg()},
@@ -243,33 +266,38 @@ def main() -> None:
         "psnr_before": paced["psnr_before"],
         "psnr_after": paced["psnr_after"],
         "psnr_gain_db": paced["psnr_after"] - paced["psnr_before"],
-        "psnr_unpaced_after": runs["unpaced"][-1]["refine"]["psnr_after"],
+        "psnr_unpaced_after": unpaced["psnr_after"] if unpaced else None,
+        "precision": args.precision,
         "localization_ms": lat,
         "localization_p95_ratio_paced": lat["paced"]["p95"] / lat["off"]["p95"],
-        "localization_p95_ratio_unpaced": lat["unpaced"]["p95"] / lat["off_unpaced"]["p95"],
+        "localization_p95_ratio_unpaced": lat["unpaced"]["p95"] / lat["off_unpaced"]["p95"] if unpaced else None,
         "localized": {name: [r["localized"] for r in runs[name]] for name in runs},
         "refine_paced": {k: v for k, v in paced.items() if k != "gaussians_over_time"},
-        "refine_unpaced": {k: v for k, v in runs["unpaced"][-1]["refine"].items() if k != "gaussians_over_time"},
+        "refine_unpaced": {k: v for k, v in unpaced.items() if k != "gaussians_over_time"} if unpaced else None,
         "gaussians_over_time": paced["gaussians_over_time"],
         "gil_wait": gil,
     }
     m = result["machine"]
     print(f"\nmachine: {m.get('cpu')} ({m.get('cores')} cores); load {load_start} -> {result['load_average']['end']}")
-    print(f"scene {args.size[0]}x{args.size[1]}: Gaussians from the first {prep['first_frames']} frames, "
-          f"{prep['second_frames']} frames replayed, budget {args.budget_ms:.0f} ms")
+    size = paced.get("psnr_size", args.size)
+    print(f"scene {size[0]}x{size[1]}: Gaussians from the first {prep['first_frames']} frames, "
+          f"{prep['second_frames']} frames replayed ({args.precision}), budget {args.budget_ms:.0f} ms")
+    un = f"; unpaced run: {result['psnr_unpaced_after']:.2f}" if unpaced else ""
     print(f"PSNR on the replayed frames: {result['psnr_before']:.2f} -> {result['psnr_after']:.2f} dB "
-          f"(+{result['psnr_gain_db']:.2f}; unpaced run: {result['psnr_unpaced_after']:.2f})")
+          f"({result['psnr_gain_db']:+.2f}{un})")
     for name in runs:
         t = lat[name]
         print(f"localization ({name:11s}) ms: p50 {t['p50']:.1f}  p95 {t['p95']:.1f}  max {t['max']:.1f}")
-    print(f"p95 ratio with/without refinement: paced {result['localization_p95_ratio_paced']:.3f} (vs off), "
-          f"unpaced {result['localization_p95_ratio_unpaced']:.3f} (vs off_unpaced)")
-    print(f"GIL probe (lateness of a 1 ms sleep): idle p95 {gil['idle_ms']['p95']:.2f} max {gil['idle_ms']['max']:.2f} ms; "
-          f"beside refinement p95 {gil['refining_ms']['p95']:.2f} max {gil['refining_ms']['max']:.2f} ms")
+    print(f"p95 ratio with/without refinement: paced {result['localization_p95_ratio_paced']:.3f} (vs off)"
+          + (f", unpaced {result['localization_p95_ratio_unpaced']:.3f} (vs off_unpaced)" if unpaced else ""))
+    if gil:
+        print(f"GIL probe (lateness of a 1 ms sleep): idle p95 {gil['idle_ms']['p95']:.2f} max {gil['idle_ms']['max']:.2f} ms; "
+              f"beside refinement p95 {gil['refining_ms']['p95']:.2f} max {gil['refining_ms']['max']:.2f} ms")
     r = paced
     print(f"refinement (paced): {r['keyframes']} keyframes, {r['keyframes_committed']} committed, {r['steps']} steps, "
           f"step p50 {r['timing_ms']['step']['p50']:.1f} ms, refinement work per frame window p95 {r['timing_ms']['window']['p95']:.1f} ms, "
-          f"Gaussians {r['gaussians_initial']} -> {r['gaussians_final']} (cap {r['gaussian_cap']})")
+          f"Gaussians {r['gaussians_initial']} -> {r['gaussians_final']} (cap {r['gaussian_cap']}); localization waited for "
+          f"a running piece p95 {r['timing_ms']['park']['p95']:.1f} max {r['timing_ms']['park']['max']:.1f} ms")
     counts = r["gaussians_over_time"]
     step = max(1, len(counts) // 8)
     print("Gaussians over time (frame, count): " + ", ".join(f"({f}, {c})" for f, c in counts[::step] + [counts[-1]]))

@@ -17,6 +17,7 @@ from collections import deque
 from dataclasses import dataclass, field, replace
 from typing import Callable, Protocol
 
+import cv2
 import numpy as np
 
 from acesplat.core.camera import Intrinsics
@@ -25,6 +26,7 @@ from acesplat.core.raster import rasterize, rasterize_backward
 
 from .adam import LearningRates, RowAdam
 from .align import MAX_SHIFT_DEG as ALIGN_MAX_DEG
+from .align import MAX_MSE as ALIGN_MAX_MSE
 from .align import MAX_SHIFT_M as ALIGN_MAX_M
 from .align import MIN_COVERAGE as ALIGN_MIN_COVERAGE
 from .align import align_pose
@@ -71,7 +73,10 @@ class RefineConfig:
     tiles: int = 2
     align: bool = True
     """Correct each keyframe's pose against the map before using it (edge.refine.align)."""
-    align_tiles: int = 4
+    align_side: int = 160
+    """Longer side of the pose alignment's render. Measured on the demo scene's INT8 keyframes: 160x120 gives a median
+    1.07 cm / 0.22 deg (from 3.98 cm / 0.81 deg), 320x240 0.53 cm / 0.12 deg for 4x the pixels."""
+    align_tiles: int = 3
     align_max_m: float = ALIGN_MAX_M
     align_max_deg: float = ALIGN_MAX_DEG
     """Keyframe renders (before and after) are split into tiles x tiles pieces, so each fits in one frame's window."""
@@ -311,12 +316,20 @@ class Refiner:
         kf_px = kf.k.width * kf.k.height
         yield ("must", self.cull_cost.predict(), self.guard_reserve(kf_px) + 2 * self.kf_check_reserve())
 
-        # 0. The keyframe's pose, corrected against the map (edge.refine.align): rendered at the full resolution.
-        if cfg.align and len(self.map):
+        # 1. What the map shows from the keyframe, and where it falls short (rendered tile by tile: each tile is a
+        # piece of work small enough for one frame's window).
+        t0 = clock()
+        reserve = self.guard_reserve(kf_px) + self.kf_check_reserve()
+        in_view, color, alpha, seen, an = yield from self._analyse(kf, reserve)
+        rep.ms["render"] = 1000.0 * (clock() - t0)
+
+        # 1b. Where the map covers the view, the keyframe's pose corrected against it (edge.refine.align) and the
+        # analysis redone from the corrected pose. New territory keeps the localizer's pose.
+        if cfg.align and an.coverage >= ALIGN_MIN_COVERAGE:
             t0 = clock()
-            k_al, img = (kf.k_detail, kf.detail) if kf.detail is not None else (kf.k, kf.rgb)
+            yield ("must", self.cull_cost.predict(), 0.0)
+            k_al, img = _align_image(kf, cfg.align_side)
             near = np.flatnonzero(frustum_mask(self.map.means, self.map.log_scales, kf.pose, k_al))
-            self.cull_cost.record(clock() - t0)
             c_al, a_al, _, d_al = yield from self._render_tiles(self.map, kf.pose, k_al, 0.0, near, cfg.align_tiles,
                                                                 self.align_render_cost)
             yield ("must", self.align_cost.predict(), 0.0)
@@ -324,37 +337,31 @@ class Refiner:
             al = align_pose(c_al, a_al, d_al, img, k_al, kf.pose, cfg.align_max_m, cfg.align_max_deg)
             self.align_cost.record(clock() - t1)
             rep.align, rep.align_shift_m, rep.align_shift_deg = al.status, al.shift_m, al.shift_deg
-            rep.ms["align"] = 1000.0 * (clock() - t0)
-            if al.status == "too_far":
+            if al.status == "too_far" or (al.status == "no_fit" and an.mse <= ALIGN_MAX_MSE):
+                # The map covers and explains the view, yet the frame's pose disagrees with it or no pose fits the
+                # flow: fitting the map to it would smear it (the demo scene's first frame: 24 cm off, no_fit at
+                # MSE 0.0026). A view the map explains poorly (new territory seen from afar) keeps the localizer's
+                # pose: there the map has more to gain than a few centimetres can spoil.
                 rep.outcome = "rolled_back_pose"
+                rep.mse_before, rep.coverage = an.mse, an.coverage
                 self.totals["rolled_back"] += 1
+                rep.ms["align"] = 1000.0 * (clock() - t0)
                 rep.ms["total"] = 1000.0 * (clock() - t_start)
                 return rep
-            kf = replace(kf, pose=al.pose)
-            yield ("must", self.cull_cost.predict(), 0.0)
-
-        # 1. What the map shows from the keyframe, and where it falls short (rendered tile by tile: each tile is a
-        # piece of work small enough for one frame's window).
-        t0 = clock()
-        in_view = np.flatnonzero(frustum_mask(self.map.means, self.map.log_scales, kf.pose, kf.k)) if len(self.map) else np.zeros(0, np.int64)
-        self.cull_cost.record(clock() - t0)
-        color, alpha, seen, _ = yield from self._render_tiles(self.map, kf.pose, kf.k, self.guard_reserve(kf_px) + self.kf_check_reserve(),
-                                                              in_view)
-        an = analyse_render(color, alpha, kf.rgb, cfg.alpha_min, cfg.error_max)
+            if al.status == "aligned":
+                kf = replace(kf, pose=al.pose)
+                yield ("must", self.cull_cost.predict(), 0.0)
+                in_view, color, alpha, seen, an = yield from self._analyse(kf, reserve)
+            rep.ms["align"] = 1000.0 * (clock() - t0)
         rep.mse_before, rep.coverage = an.mse, an.coverage
-        rep.ms["render"] = 1000.0 * (clock() - t0)
         if self.stepless_batches:
             # No step ran lately, so the step estimate is stale; what a tile's render cost implies stands in for a step.
             self.step_cost.record(self.step_per_render * self.render_cost.predict() / self.render_cost.safety)
-        if rep.align == "no_fit" and rep.coverage >= ALIGN_MIN_COVERAGE:
-            # The map covers and explains the view, yet no pose fits the flow from it to the frame: fitting the map
-            # to a frame whose pose may be far off smears it (the demo scene's first frame: 24 cm off, no_fit).
-            rep.outcome = "rolled_back_pose"
-            self.totals["rolled_back"] += 1
-            rep.ms["total"] = 1000.0 * (clock() - t_start)
-            return rep
         covered = alpha >= cfg.alpha_min
-        if covered.mean() >= POSE_CHECK_MIN_COVERAGE:
+        if rep.align in ("", "few_points") and covered.mean() >= POSE_CHECK_MIN_COVERAGE:
+            # Without a pose alignment (off, or too little texture at this size), a keyframe whose error where the
+            # map covers it is far above recent keyframes' is taken for a wrong pose. (With one, that test rejected
+            # most views of new territory, which the map covers only from afar.)
             d = np.asarray(color, np.float32)[covered] - kf.rgb[covered]
             rep.covered_mse = float(np.mean(d * d))
             if (len(self.covered_history) >= POSE_CHECK_MIN_HISTORY
@@ -534,6 +541,17 @@ class Refiner:
         """Time for rendering the keyframe whole once (tile by tile): its check after crop steps or seeding."""
         return len(tile_bounds(1 << 16, 1 << 16, self.cfg.tiles)) * self.render_cost.predict()
 
+    def _analyse(self, kf: Keyframe, reserve: float):
+        """Cull the map to the keyframe's view and render it there (tiled); returns (in_view (M,) rows, color, alpha,
+        seen (M,), the RenderAnalysis). The first piece (the cull) was granted by the caller."""
+        t0 = self.clock()
+        in_view = (np.flatnonzero(frustum_mask(self.map.means, self.map.log_scales, kf.pose, kf.k)) if len(self.map)
+                   else np.zeros(0, np.int64))
+        self.cull_cost.record(self.clock() - t0)
+        color, alpha, seen, _ = yield from self._render_tiles(self.map, kf.pose, kf.k, reserve, in_view)
+        an = analyse_render(color, alpha, kf.rgb, self.cfg.alpha_min, self.cfg.error_max)
+        return in_view, color, alpha, seen, an
+
     def _render_tiles(self, g: Gaussians, pose: np.ndarray, k: Intrinsics, reserve: float, idx: np.ndarray | None = None,
                       tiles: int | None = None, cost: CostEstimate | None = None):
         """Render ``g`` (only its rows ``idx`` (M,) int when given) tile by tile (``tiles`` x ``tiles``, default the
@@ -569,6 +587,19 @@ class Refiner:
     def _count(self, rep: BatchReport) -> None:
         self.totals["steps"] += rep.steps
         self.totals["nonfinite_skipped"] += rep.nonfinite_skipped
+
+
+def _align_image(kf: Keyframe, side: int) -> tuple[Intrinsics, np.ndarray]:
+    """The keyframe at the pose alignment's resolution: its full-resolution image brought to longer side ``side``
+    (its refinement-size image when it has no other)."""
+    if kf.detail is None or kf.k_detail is None:
+        return kf.k, kf.rgb
+    k = kf.k_detail
+    s = min(1.0, side / max(k.width, k.height))
+    if s >= 1.0:
+        return k, kf.detail
+    w, h = max(1, int(round(k.width * s))), max(1, int(round(k.height * s)))
+    return k.resized(w, h), cv2.resize(kf.detail, (w, h), interpolation=cv2.INTER_AREA)
 
 
 def random_crop(k: Intrinsics, image: np.ndarray, side: int, rng: np.random.Generator) -> tuple[Intrinsics, np.ndarray]:
