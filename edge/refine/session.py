@@ -36,7 +36,7 @@ from .keyframes import KeyframePolicy, KeyframeSelector
 from .persist import SAVE_EVERY_S, SplatSaver
 from .refiner import Keyframe, RefineConfig, Refiner
 from .seeding import cell_trust
-from .worker import Candidate, RefineWorker
+from .worker import NICE, Candidate, RefineWorker
 
 MAX_SIDE = 80
 """Refinement renders at this longer side. Measured on 2 busy cores with a 45k-Gaussian map (SH degree 3):
@@ -133,7 +133,9 @@ class RefineSession:
         if timing is not None:  # measure the ONNX initializer (adapter + head) before it competes for a deadline
             self.calibration_ms["initializer_ms"] = 1000.0 * timing(self.refiner.seed_cost)
         self.saver = SplatSaver(opts.save_path, opts.save_every_s) if opts.save_path else None
-        self.worker = RefineWorker(self.refiner, KeyframeSelector(opts.policy), self.saver, clock)
+        # Paced: the worker never runs beside localization (parked), so it need not yield the CPU to it.
+        self.worker = RefineWorker(self.refiner, KeyframeSelector(opts.policy), self.saver, clock,
+                                   nice=0 if opts.pace else NICE)
         self.frames = 0
         self.wait_ms: list[float] = []
         self.park_ms: list[float] = []

@@ -64,12 +64,16 @@ class WorkerStats:
     """For each piece of work run: how far past its window's deadline it ended (0 when inside it; a piece
     that ends late overlaps the next frame's localization)."""
     """For each keyframe batch: how long after its deadline it finished (0 when on time)."""
+    late_pieces: list[tuple[str, float, float, float]] = field(default_factory=list)
+    """Pieces that ended past their window: (kind, predicted ms, took ms, past the deadline ms), the first 200."""
 
 
 NICE = 5
-"""Refinement's thread runs at this nice value (Linux): the scheduler prefers localization when both want a core.
-Measured on the shared 2 cores (3 other busy processes): at nice 10 refinement starved (1 of 15 keyframes
-committed), at 0 localization p95 rose up to 1.4x beside unpaced refinement."""
+"""Refinement's thread runs at this nice value (Linux) when it may overlap localization (live sources): the scheduler
+prefers localization when both want a core. Measured on the shared 2 cores (3 other busy processes): at nice 10
+refinement starved (1 of 15 keyframes committed), at 0 localization p95 rose up to 1.4x beside unpaced refinement.
+Paced sessions park the worker during localization and run it at nice 0: at nice 5 on the loaded machine (load 3.7)
+its pieces took 3-10x their predicted (warm-up) time and ran past their windows."""
 
 
 def lower_priority(nice: int = NICE) -> bool:
@@ -91,11 +95,12 @@ Steps on crops cost 5-20 ms, so a keyframe's 30 steps need several windows besid
 class RefineWorker:
     def __init__(self, refiner: Refiner, selector: KeyframeSelector, saver: SplatSaver | None = None,
                  clock: Clock = time.perf_counter, keep_reports: int = 10_000, max_windows: int = MAX_WINDOWS,
-                 step_windows: int = STEP_WINDOWS) -> None:
+                 step_windows: int = STEP_WINDOWS, nice: int = NICE) -> None:
         if max_windows < 1 or step_windows < 1:
             raise ValueError(f"max_windows and step_windows must be >= 1, got {max_windows}, {step_windows}")
         self.max_windows = max_windows
         self.step_windows = step_windows
+        self.nice = nice
         self.refiner = refiner
         self.selector = selector
         self.saver = saver
@@ -153,7 +158,8 @@ class RefineWorker:
 
     # -- the worker thread -----------------------------------------------------------------------
     def _run(self) -> None:
-        lower_priority()
+        if self.nice:
+            lower_priority(self.nice)
         while True:
             with self._cond:
                 while self._item is None and not self._stop:
@@ -235,13 +241,17 @@ class RefineWorker:
                     self.stats.window_work_ms.append(0.0)
                     continue
                 t_piece = self.clock()
+                piece_kind, piece_cost = kind, cost
                 try:
                     kind, cost, reserve = gen.send(ok)
                 finally:
                     if ok:
                         now = self.clock()
-                        self.stats.piece_spill_ms.append(max(0.0, 1000.0 * (now - deadline.at)))
+                        spill = max(0.0, 1000.0 * (now - deadline.at))
+                        self.stats.piece_spill_ms.append(spill)
                         self.stats.window_work_ms[-1] += 1000.0 * (now - t_piece)
+                        if spill > 0 and len(self.stats.late_pieces) < 200:
+                            self.stats.late_pieces.append((piece_kind, 1000.0 * piece_cost, 1000.0 * (now - t_piece), spill))
         except StopIteration:
             return rep
 
