@@ -1,13 +1,18 @@
-"""One keyframe's refinement batch: render, find what is missing, seed, optimise within the deadline, guard, commit.
+"""One keyframe's refinement batch: render, align the pose, find what is missing, seed, optimise within the
+deadline, guard, commit.
 
 The batch works on a private copy of the Gaussians the keyframe sees (plus its new ones), so the
-map itself changes only at the commit, all at once, and rolling back is simply not committing. The
-copy's best state is the one with the lowest measured error on the keyframe (each forward pass
-measures the state left by the previous step), so a step that made the keyframe worse is undone too.
+map itself changes only at the commit, all at once, and rolling back is simply not committing.
+Where the map covers the view, the keyframe's pose is first corrected against it (``align``): fitting
+the map to a frame seen from a pose a few centimetres off smears it. Optimisation steps fit random
+crops of the keyframe at full resolution (fitting the whole view at the refinement size washes out
+detail the low-resolution loss cannot see), so the keyframe is checked with one more render after
+them; with no full-resolution image the steps fit the whole view and the best measured state is kept.
 
 Time: the batch is a generator that announces each piece of work with its predicted cost (from
 earlier measurements) before doing it; the driver (``refine`` for one deadline, the worker across
 several frames' windows) answers whether it may run, so work that would overrun is never started.
+Renders are split into tiles so each piece fits in what a frame's localization leaves of the budget.
 """
 
 from __future__ import annotations
