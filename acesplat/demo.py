@@ -266,6 +266,8 @@ def demo_command(
     _stage_edge(map_path, scene, splat_dir, workdir, refine_budget_ms, summary)
     summary["seconds"] = time.monotonic() - t0
     console.print(results_table(summary))
+    for im in summary["replay_refine"].get("renders", []):  # full paths (the table may shorten them)
+        console.print(f"before/after render (frame | before | after): {im['path']}", soft_wrap=True)
     report_json(json_out if json_out else workdir / "demo.json", summary)
 
 
