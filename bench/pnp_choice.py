@@ -38,7 +38,6 @@ def run_method(method: str, cases: list, repeats: int = 1, iterations: int = 100
     errs, ms, loc = [], [], 0
     for pix, pts, intr, T in cases:
         for _ in range(repeats):
-            cv2.setRNGSeed(len(ms))
             t0 = time.perf_counter()
             r = solve_pnp(pix, pts, intr, method=method, iterations=iterations, **kw)
             ms.append((time.perf_counter() - t0) * 1000)

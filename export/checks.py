@@ -10,7 +10,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
-import cv2
 import numpy as np
 import onnxruntime as ort
 import torch
@@ -23,9 +22,6 @@ from acesplat.core.pnp import solve_from_grid
 from acesplat.core.preprocess import to_gray_input
 from acesplat.core.scene import Frame
 from acesplat.scr.network import SCRNetwork, normalize_gray
-
-PNP_SEED = 0
-"""OpenCV's RANSAC draws from a global RNG; reseeding before each solve makes two models' poses comparable."""
 
 ProgressFn = Callable[[str, float, dict], None]
 
@@ -81,11 +77,6 @@ def torch_features(net: SCRNetwork, gray: np.ndarray) -> np.ndarray:
     return net.encoder(normalize_gray(torch.from_numpy(gray).float()[None, None]))[0].numpy()
 
 
-def seeded_pose(coords: np.ndarray, intr: Intrinsics):
-    cv2.setRNGSeed(PNP_SEED)
-    return solve_from_grid(coords, intr)
-
-
 def coordinate_extent(coords: Sequence[np.ndarray]) -> float:
     """Diagonal of the 1st-99th percentile box of predicted coordinates: the scale the differences are judged against."""
     pts = np.concatenate([c.reshape(-1, 3) for c in coords])
@@ -114,7 +105,7 @@ def fp32_parity(net: SCRNetwork, fp32_path: Path, frames: Sequence[CheckFrame], 
             has_features = True
             feat_diff = max(feat_diff, float(np.abs(feats - ref_feats).max()))
             feat_scale = max(feat_scale, float(np.abs(ref_feats).max()))
-        pa, pb = seeded_pose(a, f.intrinsics), seeded_pose(b, f.intrinsics)
+        pa, pb = solve_from_grid(a, f.intrinsics), solve_from_grid(b, f.intrinsics)
         if pa.T_c2w is not None and pb.T_c2w is not None:
             t, r = pose_error(pb.T_c2w, pa.T_c2w)
             dt.append(t)
@@ -141,7 +132,7 @@ def localization_accuracy(model_path: Path, frames: Sequence[CheckFrame], label:
     results = []
     for i, f in enumerate(frames):
         t0 = time.perf_counter()
-        res = seeded_pose(onnx_coords(sess, f.gray), f.intrinsics)
+        res = solve_from_grid(onnx_coords(sess, f.gray), f.intrinsics)
         ms = (time.perf_counter() - t0) * 1000.0
         t_err, r_err = pose_error(res.T_c2w, f.pose) if res.T_c2w is not None else (float("inf"), float("inf"))
         results.append(FrameResult(f.name, res.localized, t_err, r_err, res.inliers, ms))
