@@ -202,6 +202,8 @@ class Refiner:
         self.seed_cost = CostEstimate(0.0)
         self.scr_seed_cost = CostEstimate(0.0)
         self.cull_cost = CostEstimate(0.0)
+        self.setup_cost = CostEstimate(0.0)
+        """A batch's private copy of the Gaussians in view and its optimiser state."""
         self.align_render_cost = CostEstimate(cfg.render_prior_s)
         """One tile of the full-resolution render the pose alignment compares with the keyframe."""
         self.align_cost = CostEstimate(cfg.render_prior_s)
@@ -380,15 +382,22 @@ class Refiner:
         # 2. New Gaussians where the map is missing or wrong.
         # The primary seeder (the ONNX initializer: adapter + head) only when it fits; else the SCR seeder.
         room = max(0, min(cfg.max_new, cfg.cap))
-        primary = self.seeder is not self.scr_seeder and (
-            yield ("option", self.seed_cost.predict(), self.guard_reserve(kf_px) + self.kf_check_reserve()))
+        new = Gaussians.empty(self.map.sh_degree)
+        if room and an.need.any():  # nothing to seed: no piece (an empty run would also spoil the seeders' estimates)
+            primary = self.seeder is not self.scr_seeder and (
+                yield ("option", self.seed_cost.predict(), self.guard_reserve(kf_px) + self.kf_check_reserve()))
+            if not primary:
+                yield ("must", self.scr_seed_cost.predict(), 0.0)
+            t0 = clock()
+            seeder, cost = (self.seeder, self.seed_cost) if primary else (self.scr_seeder, self.scr_seed_cost)
+            new = seeder(kf, an.need, room, self.map.sh_degree, self.rng)
+            new = new.with_sh_degree(self.map.sh_degree).astype(np.float32) if len(new) else Gaussians.empty(self.map.sh_degree)
+            cost.record(clock() - t0)
+            rep.seeded_by = "primary" if primary else "scr"
+            rep.ms["seed"] = 1000.0 * (clock() - t0)
+        # The batch's private copy and its optimiser state: a piece of its own (copies of every row in view).
+        yield ("must", self.setup_cost.predict(), 0.0)
         t0 = clock()
-        seeder, cost = (self.seeder, self.seed_cost) if primary else (self.scr_seeder, self.scr_seed_cost)
-        new = seeder(kf, an.need, room, self.map.sh_degree, self.rng) if room else Gaussians.empty(self.map.sh_degree)
-        new = new.with_sh_degree(self.map.sh_degree).astype(np.float32) if len(new) else Gaussians.empty(self.map.sh_degree)
-        cost.record(clock() - t0)
-        rep.seeded_by = "primary" if primary else "scr"
-        rep.ms["seed"] = 1000.0 * (clock() - t0)
         active_idx = in_view[seen]
         n_old = active_idx.size
         active = concat_gaussians([self.map.subset(active_idx), new])
@@ -400,10 +409,11 @@ class Refiner:
         # 3. Optimise the batch's copy while steps fit before the deadline (keeping the guard's reserve). With a
         # full-resolution image each step fits a random crop of it (see CROP_SIDE); the crops' errors are not
         # comparable, so then the keyframe is checked once after the steps instead of keeping the best step.
-        t0 = clock()
-        best, best_mse = active.copy(), float("inf")
-        opt = RowAdam(active, cfg.lr)
         crops = kf.detail is not None and kf.k_detail is not None
+        best, best_mse = (active if crops else active.copy()), float("inf")
+        opt = RowAdam(active, cfg.lr)
+        self.setup_cost.record(clock() - t0)
+        t0 = clock()
         target = np.ascontiguousarray(kf.detail if crops else kf.rgb, np.float32)
         measured = 0
         while rep.steps + rep.nonfinite_skipped < cfg.max_steps:
