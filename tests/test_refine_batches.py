@@ -117,3 +117,23 @@ def test_the_cap_holds_over_a_long_run(frames, start_map) -> None:
     assert max(counts) <= cap
     assert ref.totals["capped"] > 0 and ref.totals["gaussians_added"] > 150
     assert len(ref.snapshot()) == counts[-1] and len(ref.map) <= 2 * cap  # removed rows are compacted away
+
+
+def test_crop_steps_on_a_full_resolution_image_raise_psnr(frames, start_map) -> None:
+    """The edge path: keyframes carry their full-resolution image and steps fit random crops of it (here 24 px wide
+    crops of the 48x64 frames; the low-resolution image for the analysis and the check is half size)."""
+    from edge.refine.guard import downsample
+
+    views = frames[4:10]
+    before = mean_psnr(start_map, views)
+    ref = Refiner(start_map, RefineConfig(max_steps=20, cap=20_000, crop_side=24, align=False))
+    reports = []
+    for f in views:
+        kf = keyframe(f)
+        small, k_small = downsample(kf.rgb, kf.k, 32)
+        kf.rgb, kf.k, kf.detail, kf.k_detail = small, k_small, keyframe(f).rgb, f.intrinsics
+        reports.append(ref.refine(kf, Deadline.after(60.0)))
+    after = mean_psnr(ref.map, views)
+    assert sum(r.committed for r in reports) >= 4 and ref.totals["steps"] >= 60
+    assert all(r.steps == 0 or np.isfinite(r.mse_after) for r in reports)
+    assert after > before + 1.0, (before, after)
