@@ -120,7 +120,7 @@ def _stage_edge(map_path: Path, scene: Path, splat_dir: Path, work: Path, budget
     from edge.refine.cli_hooks import refine_session
     from edge.refine.session import write_before_after
     from edge.replay import replay_split
-    from edge.runtime import EdgeLocalizer
+    from edge.runtime import EdgeLocalizer, paced
     from export.bundle_export import ExportOptions, export_bundle
     from export.splat_export import export_splat
 
@@ -138,7 +138,7 @@ def _stage_edge(map_path: Path, scene: Path, splat_dir: Path, work: Path, budget
         summary[f"replay_{precision}"] = r
     # The reference for refinement's latency: the same precision paced at one frame per budget without refinement
     # (the refinement replay is paced too; idling between frames changes latency on a shared machine).
-    loc = _paced(EdgeLocalizer(bundle, REFINE_PRECISION, REFINE_THREADS), budget_ms)
+    loc = paced(EdgeLocalizer(bundle, REFINE_PRECISION, REFINE_THREADS), budget_ms)
     with PhaseProgress(f"demo replay {REFINE_PRECISION} paced ") as bar:
         r = replay_split(loc, scene, "test", lambda i, n: bar("localize", i / n, {"frame": i}))
     r.pop("per_frame", None)
@@ -160,19 +160,6 @@ def _stage_edge(map_path: Path, scene: Path, splat_dir: Path, work: Path, budget
     r["renders"] = write_before_after(session, work / "refine_renders", RENDER_PAIRS)
     summary["replay_refine"] = r
     return bundle_dir
-
-
-def _paced(loc, budget_ms: float):
-    """``loc`` whose localize returns no earlier than ``budget_ms`` after the frame's start (a camera's frame rate)."""
-    inner = loc.localize
-
-    def paced(frame, *args, **kwargs):
-        out = inner(frame, *args, **kwargs)
-        time.sleep(max(0.0, (budget_ms - out.times_ms["total"]) / 1000.0))
-        return out
-
-    loc.localize = paced
-    return loc
 
 
 def results_table(summary: dict) -> Table:

@@ -116,7 +116,7 @@ def replay(bundle: Path, split_root: Path, threads: int, refine: dict | None, pa
     from acesplat.core.bundle import load_bundle
     from edge.refine.session import RefineOptions, start_refinement
     from edge.replay import replay_split
-    from edge.runtime import EdgeLocalizer
+    from edge.runtime import EdgeLocalizer, paced
 
     b = load_bundle(bundle)
     loc = EdgeLocalizer(b, precision, threads)
@@ -124,14 +124,7 @@ def replay(bundle: Path, split_root: Path, threads: int, refine: dict | None, pa
     if refine is not None:
         session = start_refinement(loc, b, RefineOptions(evaluate=True, **refine), log)
     elif pace_ms is not None:
-        inner = loc.localize
-
-        def paced(frame, *a, **k):
-            out = inner(frame, *a, **k)
-            time.sleep(max(0.0, (pace_ms - out.times_ms["total"]) / 1000.0))
-            return out
-
-        loc.localize = paced
+        paced(loc, pace_ms)
     t0 = time.monotonic()
     try:
         s = replay_split(loc, split_root, "test")

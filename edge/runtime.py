@@ -97,3 +97,20 @@ def to_record(frame: SourceFrame, res: PnPResult | None) -> PoseRecord:
         return PoseRecord(ts_us, T, 0, TrackingState.LOST, 0.0, frame.frame_id)
     state = TrackingState.TRACKING if res.localized else TrackingState.LOST
     return PoseRecord(ts_us, res.T_c2w, res.inliers, state, float(res.inlier_ratio), frame.frame_id)
+
+
+def paced(localizer: EdgeLocalizer, budget_ms: float) -> EdgeLocalizer:
+    """``localizer`` whose ``localize`` returns no earlier than ``budget_ms`` after the frame's start.
+
+    A replay from files then arrives at a camera's rate: the reference for refinement runs, which
+    idle between frames the same way (localization latency compared under equal pacing).
+    """
+    inner = localizer.localize
+
+    def localize(frame, *args, **kwargs):
+        out = inner(frame, *args, **kwargs)
+        time.sleep(max(0.0, (budget_ms - out.times_ms["total"]) / 1000.0))
+        return out
+
+    localizer.localize = localize  # type: ignore[method-assign]
+    return localizer

@@ -365,3 +365,17 @@ def test_localize_sends_poses_over_the_firmware_bridge(tiny, tmp_path: Path) -> 
     assert s["frames"] == 4 and s["bridge"]["submitted"] == 4
     # a pose still waiting when the sink closes is neither sent nor counted as dropped by the bridge
     assert 1 <= s["bridge"]["sent"] + s["bridge"]["dropped"] <= 4 and s["bridge"]["sent"] >= 1
+
+
+def test_paced_localizer_returns_no_earlier_than_the_budget() -> None:
+    import time
+    from types import SimpleNamespace
+
+    from edge.runtime import paced
+
+    loc = SimpleNamespace(localize=lambda frame: SimpleNamespace(times_ms={"total": 5.0}, frame=frame))
+    paced(loc, 40.0)
+    t0 = time.perf_counter()
+    out = loc.localize("f")
+    assert out.frame == "f"
+    assert time.perf_counter() - t0 >= 0.034  # 40 ms budget less the 5 ms the frame already took
