@@ -26,11 +26,13 @@ class Localizer:
     network: SCRNetwork
     short_side: int
     pnp: dict
+    input_size: tuple[int, int] | None = None
+    """Exact (H, W) to run at instead of the short side's (a bundle's stride-aligned size, for parity)."""
 
     @torch.no_grad()
     def predict(self, rgb: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, Intrinsics]:
         """Scene coordinates (h, w, 3) for an RGB image (H, W, 3) and the intrinsics of the network input."""
-        size = size_for_short_side(rgb.shape[0], rgb.shape[1], self.short_side)
+        size = self.input_size or size_for_short_side(rgb.shape[0], rgb.shape[1], self.short_side)
         gray, intr = to_gray_input(rgb, intrinsics, size)
         x = torch.from_numpy(gray)[None, None]
         coords = self.network(x)[0].permute(1, 2, 0).numpy()
