@@ -73,7 +73,7 @@ def prepare(work: Path, args) -> dict:
 
         log(f"Stage 1: map the whole training trajectory with the default encoder, {args.map_minutes} min")
         info: dict = {}
-        _stage_map(scene, work, args.map_minutes, info)
+        map_path = _stage_map(scene, work, args.map_minutes, info)
         log(f"map: {info['map']['iterations']} iterations; test median {info['eval']['median_translation_m']} m")
     if not map_path.is_file():
         from tests.test_edge_scene import train_tiny_map

@@ -12,7 +12,7 @@ import numpy as np
 
 from .camera import Intrinsics
 from .geometry import invert_pose, make_pose, rodrigues_to_matrix
-from .pose_refine import ROBUST_SCALES, refine_pose_robust
+from .pose_refine import ROBUST_SCALES, refine_pose_robust, reprojection
 
 OUTPUT_STRIDE = 8
 """SCR predictions are made for every 8th pixel; cell (i, j) belongs to pixel (8 j + 4, 8 i + 4)."""
@@ -124,11 +124,8 @@ def solve_pnp(
         r, t = rvec.reshape(3), tvec.reshape(3)
     # Recount inliers under the final pose so the gate sees the final solution.
     R = rodrigues_to_matrix(r)
-    Xc = points @ R.T + t
-    depth = Xc[:, 2]
-    z = np.where(depth > 1e-9, depth, 1.0)
-    err = np.hypot(K[0, 0] * Xc[:, 0] / z + K[0, 2] - pixels[:, 0], K[1, 1] * Xc[:, 1] / z + K[1, 2] - pixels[:, 1])
-    inliers = int(np.count_nonzero((err < threshold_px) & (depth > 1e-9)))
+    _, _, err = reprojection(points, pixels, K, R, t)  # inf behind the camera: never an inlier
+    inliers = int(np.count_nonzero(err < threshold_px))
     T_w2c = make_pose(R, t)
     return PnPResult(invert_pose(T_w2c), inliers, n, inliers >= min_inliers)
 

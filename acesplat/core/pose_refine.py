@@ -33,6 +33,24 @@ def cauchy_cost(residuals: np.ndarray, scale: float) -> float:
     return float(np.sum(0.5 * scale * scale * np.log1p((r / scale) ** 2)))
 
 
+def reprojection(
+    points: np.ndarray, pixels: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Camera points (N, 3), residuals (N, 2) and their norms (N,) (inf behind the camera) of world points
+    (N, 3) seen by world-to-camera (R (3, 3), t (3,)) against pixels (N, 2).
+
+    Projected here rather than by cv2.projectPoints, which costs ~20x more (it always builds the Jacobian
+    for intrinsics and distortion too); the solver's inlier recount uses it as well.
+    """
+    Xc = points @ R.T + t
+    z = Xc[:, 2]
+    zs = np.where(z > 1e-9, z, 1.0)
+    res = np.stack([K[0, 0] * Xc[:, 0] / zs + K[0, 2], K[1, 1] * Xc[:, 1] / zs + K[1, 2]], axis=1) - pixels
+    e = np.hypot(res[:, 0], res[:, 1])
+    e[z <= 1e-9] = np.inf
+    return Xc, res, e
+
+
 def refine_pose_robust(
     pixels: np.ndarray,
     points: np.ndarray,
@@ -53,19 +71,7 @@ def refine_pose_robust(
         raise ValueError(f"pixels {pixels.shape} and points {points.shape} differ in count")
     R = cv2.Rodrigues(np.asarray(rvec, np.float64).reshape(3, 1))[0]
     t = np.asarray(tvec, np.float64).reshape(3).copy()
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-
-    def residuals(R_: np.ndarray, t_: np.ndarray, pts: np.ndarray, pix: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Camera points (N, 3), residuals (N, 2) and their norms (N,), inf behind the camera.
-        Projected here rather than by cv2.projectPoints, which costs ~20x more (it always builds
-        the Jacobian for intrinsics and distortion too)."""
-        Xc = pts @ R_.T + t_
-        z = Xc[:, 2]
-        zs = np.where(z > 1e-9, z, 1.0)
-        res = np.stack([fx * Xc[:, 0] / zs + cx, fy * Xc[:, 1] / zs + cy], axis=1) - pix
-        e = np.hypot(res[:, 0], res[:, 1])
-        e[z <= 1e-9] = np.inf
-        return Xc, res, e
+    fx, fy = K[0, 0], K[1, 1]
 
     def jacobian(Xc: np.ndarray) -> np.ndarray:
         """d(residual)/d(w, v) (N, 2, 6) for the update Xc -> exp([w]x) Xc + v (rotation about the camera)."""
@@ -90,13 +96,13 @@ def refine_pose_robust(
     for s in scales:
         # Each scale works on the correspondences within its cutoff at the pose it starts from: the
         # gross outliers leave once, so later steps cost a fraction of the first.
-        _, _, e = residuals(R, t, points, pixels)
+        Xc, res, e = reprojection(points, pixels, K, R, t)
         near = e < CUTOFF * s
         if np.count_nonzero(near) < MIN_SUPPORT:
             break
         pts, pix = points[near], pixels[near]
+        Xc, res, e = Xc[near], res[near], e[near]
         damping = 1e-4
-        Xc, res, e = residuals(R, t, pts, pix)
         cost = cauchy_cost(e, s)
         for _ in range(steps_per_scale):
             w = cauchy_weights(e, s)
@@ -111,7 +117,7 @@ def refine_pose_robust(
                 step = cv2.solve(H + damping * np.diag(np.diag(H) + 1e-12), -g.reshape(6, 1), flags=cv2.DECOMP_CHOLESKY)[1].reshape(6)
                 dR = cv2.Rodrigues(step[:3].reshape(3, 1))[0]
                 R_new, t_new = dR @ R, dR @ t + step[3:]
-                Xc_new, res_new, e_new = residuals(R_new, t_new, pts, pix)
+                Xc_new, res_new, e_new = reprojection(pts, pix, K, R_new, t_new)
                 cost_new = cauchy_cost(e_new, s)
                 if cost_new <= cost:
                     damping = max(damping / 10.0, 1e-7)
