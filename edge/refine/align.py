@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from acesplat.core.camera import Intrinsics
-from acesplat.core.geometry import invert_pose, pose_error
+from acesplat.core.geometry import invert_pose, make_pose, pose_error
 
 MIN_ALPHA = 0.8
 """Rendered pixels used: nearly opaque (a surface the map knows; a short Stage 2 leaves the demo scene's renders
@@ -92,8 +92,7 @@ def align_pose(
         return Alignment(pose, "unlike", mse, n)
     flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM).calc(a, b, None)
     u, v, z = xs[use].astype(np.float64), ys[use].astype(np.float64), z[use]
-    X_cam = np.stack([(u - k.cx) / k.fx * z, (v - k.cy) / k.fy * z, z], axis=1)
-    X = X_cam @ pose[:3, :3].T + pose[:3, 3]
+    X = k.unproject(np.stack([u, v], axis=1), z) @ pose[:3, :3].T + pose[:3, 3]
     seen = np.stack([u + flow[ys, xs, 0][use], v + flow[ys, xs, 1][use]], axis=1)
     w2c = invert_pose(pose)
     rvec0, _ = cv2.Rodrigues(w2c[:3, :3])
@@ -103,10 +102,7 @@ def align_pose(
     n_in = 0 if inl is None else len(inl)
     if not ok or n_in < max(MIN_POINTS, MIN_INLIER_RATIO * n) or not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
         return Alignment(pose, "no_fit", mse, n, n_in)
-    T = np.eye(4)
-    T[:3, :3] = cv2.Rodrigues(rvec)[0]
-    T[:3, 3] = tvec.ravel()
-    new = invert_pose(T)
+    new = invert_pose(make_pose(cv2.Rodrigues(rvec)[0], tvec))
     dt, dr = pose_error(new, pose)
     if dt > max_shift_m or dr > max_shift_deg:
         return Alignment(pose, "too_far", mse, n, n_in, dt, dr)
