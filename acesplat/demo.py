@@ -31,10 +31,6 @@ test PSNR 26.49 -> 26.63 dB, 10 of 17 keyframes committed; at 100 ms (INT8 local
 26.49 -> 26.52 dB, 2 of 8. The issue's 100 ms target is measured by bench/bench_refine.py."""
 RENDER_PAIRS = 3
 """Before/after render images the demo writes (the test views whose PSNR refinement changed most)."""
-REFINE_THREADS = 1
-"""onnxruntime threads of the paced replays (with and without refinement). Measured on the demo's bundle (100 ms,
-load ~1.6): with the default two threads refinement raised localization p95 57 -> 87-93 ms although no refinement code
-ran during localization (the wait for a running piece was ~0); with one thread 74 vs 68 ms (no rise)."""
 REFINE_PRECISION = "int8"
 """The refinement replay runs the INT8 SCR graph, the edge's fast path: more of the budget is left for refinement."""
 
@@ -138,12 +134,12 @@ def _stage_edge(map_path: Path, scene: Path, splat_dir: Path, work: Path, budget
         summary[f"replay_{precision}"] = r
     # The reference for refinement's latency: the same precision paced at one frame per budget without refinement
     # (the refinement replay is paced too; idling between frames changes latency on a shared machine).
-    loc = paced(EdgeLocalizer(bundle, REFINE_PRECISION, REFINE_THREADS), budget_ms)
+    loc = paced(EdgeLocalizer(bundle, REFINE_PRECISION), budget_ms)
     with PhaseProgress(f"demo replay {REFINE_PRECISION} paced ") as bar:
         r = replay_split(loc, scene, "test", lambda i, n: bar("localize", i / n, {"frame": i}))
     r.pop("per_frame", None)
     summary["replay_paced"] = r
-    loc = EdgeLocalizer(bundle, REFINE_PRECISION, REFINE_THREADS)
+    loc = EdgeLocalizer(bundle, REFINE_PRECISION)
     session = refine_session(True, loc, bundle, budget_ms, None, True, lambda msg: console.print(f"[yellow]{msg}[/yellow]"),
                              evaluate=True)
     if session is None:

@@ -109,7 +109,7 @@ def prepare(work: Path, args) -> dict:
     return {"scene": scene, "second": second, "bundle": bundle, "first_frames": half, "second_frames": len(names) - half}
 
 
-def replay(bundle: Path, split_root: Path, threads: int, refine: dict | None, pace_ms: float | None = None,
+def replay(bundle: Path, split_root: Path, threads: int | None, refine: dict | None, pace_ms: float | None = None,
            precision: str = "int8") -> dict:
     """One replay of the second half; refine=None: localization only (``pace_ms``: one frame per that many ms,
     as a camera would deliver them, so the reference idles between frames exactly as the paced refinement run)."""
@@ -212,7 +212,7 @@ def main() -> None:
     ap.add_argument("--splat-minutes", type=float, default=2.0)
     ap.add_argument("--max-gaussians", type=int, default=30_000)
     ap.add_argument("--budget-ms", type=float, default=100.0)
-    ap.add_argument("--threads", type=int, default=1, help="onnxruntime threads (1: measured faster than 2 on the shared 2 cores)")
+    ap.add_argument("--threads", type=int, default=None, help="onnxruntime threads (default: all cores, as acesplat-edge localize)")
     ap.add_argument("--repeats", type=int, default=1, help="replays per setting (latency statistics pool them)")
     ap.add_argument("--fresh", action="store_true", help="rebuild the scene, map, splat and bundle")
     ap.add_argument("--json", type=Path, default=None)
