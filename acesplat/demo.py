@@ -140,7 +140,7 @@ def _stage_edge(map_path: Path, scene: Path, splat_dir: Path, work: Path, budget
     r.pop("per_frame", None)
     summary["replay_paced"] = r
     loc = EdgeLocalizer(bundle, REFINE_PRECISION)
-    session = refine_session(True, loc, bundle, budget_ms, None, True, lambda msg: console.print(f"[yellow]{msg}[/yellow]"),
+    session = refine_session(True, loc, bundle, budget_ms, None, lambda msg: console.print(f"[yellow]{msg}[/yellow]"),
                              evaluate=True)
     if session is None:
         raise InputError(bundle_dir, "the demo bundle has no Gaussians to refine")

@@ -111,7 +111,7 @@ def localize_command(
     calib = read_calibration_file(intrinsics) if intrinsics else None
     loc = EdgeLocalizer(b, precision, threads, _pnp(pnp, min_inliers))
     src = open_source(source, SourceOptions(calibration=calib, input_size=b.input_size, realtime=realtime))
-    refiner = refine_session(refine, loc, b, budget_ms, save_splat, not src.live, _warn)
+    refiner = refine_session(refine, loc, b, budget_ms, save_splat, _warn)
     sink = None
     if serial is not None:
         from firmware_bridge.sink import open_sink
@@ -213,7 +213,7 @@ def replay_command(
     precision = "int8" if int8 else "fp32"
     b = open_bundle(bundle, [precision])
     loc = EdgeLocalizer(b, precision, threads, _pnp(pnp, None))
-    refiner = refine_session(refine, loc, b, budget_ms, save_splat, True, _warn, evaluate=True)
+    refiner = refine_session(refine, loc, b, budget_ms, save_splat, _warn, evaluate=True)
     with PhaseProgress("replay ") as bar:
         try:
             s = replay_split(loc, scene, split, lambda i, n: bar("localize", i / n, {"frame": i}))
@@ -270,7 +270,7 @@ def profile_command(
     src = open_source(source, SourceOptions(calibration=calib, input_size=b.input_size))
     nthreads = threads or default_threads()
     def attach(loc: EdgeLocalizer):
-        session = refine_session(refine, loc, b, budget_ms, None, True, _warn)
+        session = refine_session(refine, loc, b, budget_ms, None, _warn)
         return session.close if session is not None else None
 
     with PhaseProgress() as bar:

@@ -10,14 +10,15 @@ from acesplat.core.errors import InputError
 from .session import RefineOptions, RefineSession, start_refinement
 
 
-def refine_session(enabled: bool, loc, b, budget_ms: float, save_splat: Optional[Path], pace: bool,
+def refine_session(enabled: bool, loc, b, budget_ms: float, save_splat: Optional[Path],
                    warn: Callable[[str], None], evaluate: bool = False) -> RefineSession | None:
-    """Refinement beside localization (edge/refine), or None when off or the bundle has no Gaussians."""
+    """Refinement in what localization leaves of each frame's budget (paced, see edge/refine/session.py), or None
+    when off or the bundle has no Gaussians."""
     if not enabled:
         return None
     if budget_ms <= 0:
         raise InputError(None, f"--budget-ms must be positive, got {budget_ms}")
-    opts = RefineOptions(budget_ms=budget_ms, save_path=save_splat, pace=pace, evaluate=evaluate)
+    opts = RefineOptions(budget_ms=budget_ms, save_path=save_splat, evaluate=evaluate)
     return start_refinement(loc, b, opts, warn)
 
 

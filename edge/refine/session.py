@@ -6,12 +6,14 @@ frame over) and taps its SCR session for the scene coordinates. Every command th
 (localize, replay, profile) thus refines without changes to its loop. A confident frame goes to the
 worker with the frame's deadline: its capture start plus the budget.
 
-With ``pace`` (file sources) the loop then waits until the worker is idle or the deadline has
-passed, as a camera delivering one frame per budget would: refinement gets what localization left
-of the budget. Before the next localization the worker is preempted and its running piece (predicted
-to end by the deadline) is waited for, so no refinement code runs beside inference and PnP; a piece
-that overran shows as that frame's 'park' time, inside its localization latency. Live sources do not
-wait; the preemption keeps the overlap to at most one piece.
+With ``pace`` (every command) the loop then waits until the worker is idle or the deadline has
+passed: refinement gets what localization left of the budget, and a live camera's frames that arrive
+meanwhile are dropped and counted by its source (the latest wins). Before the next localization the
+worker is preempted and its running piece (predicted to end by the deadline) is waited for, so no
+refinement code runs beside inference and PnP; a piece that overran shows as that frame's 'park'
+time, inside its localization latency. Without ``pace`` (bench_refine's 'unpaced' setting only) the
+worker runs beside back-to-back localizations at a lower priority: measured there, localization p95
+rose 1.33x, which is why the commands pace.
 """
 
 from __future__ import annotations
@@ -64,6 +66,7 @@ class RefineOptions:
     margin: float = MARGIN
     """Share of the budget left free at its end (see MARGIN)."""
     pace: bool = True
+    """Wait for the worker (or the deadline) after each frame; False only for bench_refine's comparison."""
     evaluate: bool = False
     """Keep each frame with a ground-truth pose to report PSNR before/after (replay)."""
     raster_threads: int | None = 1
