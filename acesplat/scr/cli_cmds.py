@@ -173,14 +173,15 @@ def pretrain_command(
 
     if threads > 0:
         torch.set_num_threads(threads)
+    import sys
+
     cfg = PretrainConfig(scenes=scenes, frames_per_scene=frames, image_hw=parse_size(size), steps=steps, seed=seed)
+    command = "acesplat " + " ".join(sys.argv[1:])
     with PhaseProgress("pretrain ") as bar:
-        summary = pretrain(out, cfg, minutes, bar)
+        summary = pretrain(out, cfg, minutes, bar, command)
     console.print(summary)
     if install:
-        import sys
-
         from .pretrain import install_default
 
-        path = install_default(out, "acesplat " + " ".join(sys.argv[1:]))
+        path = install_default(out, command)
         console.print(f"installed {path} (provenance in {path.with_suffix('.json')})")

@@ -191,8 +191,13 @@ def pretrain(
     cfg: PretrainConfig,
     minutes: float,
     progress: Callable[[str, float, dict], None] | None = None,
+    command: str | None = None,
 ) -> dict:
-    """Run (or resume) pretraining for at most ``minutes``; returns a summary. Writes encoder.pt when done."""
+    """Run (or resume) pretraining for at most ``minutes``; returns a summary. Writes encoder.pt when done.
+
+    Each call appends its ``command``, steps and seconds to the checkpoint's ``sessions``: a run that spans
+    several sessions keeps its whole provenance (the schedule follows the ``steps`` of each call).
+    """
     out = Path(out_dir)
     cache = out / "scenes"
     cache.mkdir(parents=True, exist_ok=True)
@@ -211,18 +216,25 @@ def pretrain(
     ckpt_path = out / "checkpoint.pt"
     step, elapsed_before = 0, 0.0
     history: list[dict] = []
+    sessions: list[dict] = []
     if ckpt_path.is_file():
         ck = torch.load(ckpt_path, map_location="cpu", weights_only=True)
         encoder.load_state_dict(ck["encoder"])
         opt.load_state_dict(ck["optimizer"])
         step, elapsed_before, history = int(ck["step"]), float(ck["elapsed"]), list(ck["history"])
+        sessions = list(ck.get("sessions", []))
+    this_session = {"command": command, "start_step": step, "end_step": step, "steps_planned": cfg.steps,
+                    "seconds": 0.0, "threads": torch.get_num_threads()}
+    sessions.append(this_session)
     rng = np.random.default_rng([cfg.seed, step])
     t_train = time.monotonic()
 
     def save_checkpoint() -> None:
+        this_session.update(end_step=step, seconds=round(time.monotonic() - t_train, 1))
         with atomic_path(ckpt_path) as tmp:
             torch.save({"encoder": encoder.state_dict(), "optimizer": opt.state_dict(), "step": step,
-                        "elapsed": elapsed_before + time.monotonic() - t_train, "history": history}, tmp)
+                        "elapsed": elapsed_before + time.monotonic() - t_train, "history": history,
+                        "sessions": sessions}, tmp)
 
     last_ckpt = t_train
     running: list[tuple[float, float]] = []
@@ -256,7 +268,7 @@ def pretrain(
     finished = step >= cfg.steps
     total_s = elapsed_before + time.monotonic() - t_train
     summary = {"finished": finished, "step": step, "steps": cfg.steps, "train_seconds": total_s,
-               "last": history[-1] if history else None, "config": _cfg_dict(cfg)}
+               "last": history[-1] if history else None, "config": _cfg_dict(cfg), "sessions": sessions}
     with atomic_path(out / "encoder.pt") as tmp:
         torch.save(encoder.state_dict(), tmp)
     write_json(out / "pretrain_summary.json", {**summary, "history": history})
@@ -277,6 +289,7 @@ def install_default(out_dir: str | Path, command: str) -> Path:
         torch.save(sd, tmp)
     provenance = {
         "command": command,
+        "sessions": summary.get("sessions", []),
         "objective": "dense InfoNCE over exact correspondences of nearby views (acesplat/scr/pretrain.py)",
         "data": f"{summary['config']['scenes']} procedural rooms from acesplat.synth.random_scene_frames, "
                 f"{summary['config']['frames_per_scene']} frames each at {summary['config']['image_hw']}",
