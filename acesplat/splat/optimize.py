@@ -208,7 +208,7 @@ def optimise_gaussians(
             lifecycle.step_post_backward(state, out, v.intrinsics)
         optimizer.step()
         if lifecycle is not None:
-            ev = lifecycle.step_post_optimizer(params, optimizer, state, it, gen)
+            ev = lifecycle.step_post_optimizer(params, optimizer, state, it, p, gen)
             events["cloned"] += ev.cloned
             events["split"] += ev.split
             events["pruned"] += ev.pruned
