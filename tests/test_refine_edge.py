@@ -332,3 +332,26 @@ def test_wait_parked_returns_only_after_the_running_piece_and_no_piece_starts_un
     assert any(k == "end" for k, _ in events)
     assert quiet == []
     assert any(t > parked + 0.1 for _, t in events)
+
+
+def test_refinement_runs_blas_on_one_thread_and_restores_it(bundle_with_gaussians) -> None:
+    """OpenBLAS workers busy-wait after a call: left multi-threaded, the worker's numpy work kept both cores
+    spinning into the next localization. A session holds BLAS to one thread and gives the setting back."""
+    from threadpoolctl import threadpool_info
+
+    from acesplat.core.bundle import load_bundle
+    from edge.refine.cli_hooks import refine_session
+    from edge.runtime import EdgeLocalizer
+
+    def blas_threads() -> list[int]:
+        return [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+
+    before = blas_threads()
+    b = load_bundle(bundle_with_gaussians)
+    loc = EdgeLocalizer(b, "fp32", 1)
+    session = refine_session(True, loc, b, 100.0, None, lambda msg: None)
+    try:
+        assert blas_threads() and all(n == 1 for n in blas_threads())
+    finally:
+        session.close()
+    assert blas_threads() == before

@@ -25,6 +25,7 @@ from typing import Any, Callable
 
 import cv2
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from acesplat.core.camera import Intrinsics
 from acesplat.core.gaussians import Gaussians
@@ -139,6 +140,10 @@ class RefineSession:
 
             self._raster_threads_before = get_num_threads()
             set_num_threads(opts.raster_threads)
+        # BLAS on one thread while refining: OpenBLAS's workers busy-wait after each call, so the worker's numpy
+        # work left them spinning on both cores into the next localization (demo workdir, 200 ms, two inference
+        # threads: localization p95 1.6-1.9x without refinement's; with BLAS on one thread 0.94-1.07x).
+        self._blas_limit = threadpool_limits(limits=1, user_api="blas")
         self.refiner = Refiner(self.initial.copy(), opts.config, seeder=seeder, clock=clock)
         h, w = getattr(localizer, "input_size", (3 * opts.max_side // 4, opts.max_side))
         k_in = Intrinsics.from_focal(float(w), int(w), int(h))
@@ -226,6 +231,7 @@ class RefineSession:
             from acesplat.core.raster import set_num_threads
 
             set_num_threads(self._raster_threads_before)
+        self._blas_limit.restore_original_limits()
         ws = self.worker.stats
         reps = ws.reports
         steps_ms = [ms for r in reps for ms in r.step_ms]
