@@ -68,7 +68,7 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=None, help="Fixed head iterations instead of the time budget.")
     ap.add_argument("--buffer", type=int, default=None, help="Buffer size (features).")
     ap.add_argument("--threads", type=int, default=0, help="Torch threads (0 = all cores).")
-    ap.add_argument("--precision", default="auto", help="Head training arithmetic: auto, fp32 or bf16.")
+    ap.add_argument("--precision", default="auto", help="Mapping arithmetic (buffer encoder pass and head): auto, fp32 or bf16.")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)

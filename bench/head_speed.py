@@ -1,9 +1,13 @@
-"""Cost of one head training step (batch 5120, forward + backward + AdamW) in the layouts torch offers on CPU.
+"""Cost of the mapping loop's two compute parts in the layouts torch offers on CPU.
 
-The mapping loop trains the head on a flat batch of buffered features. The same network can run as 1x1
-convolutions over a (1, C, N, 1) tensor (how ACE writes it) or as matrix products over (N, C); on CPUs
-with AVX512-BF16/AMX the hidden layers can also run in bfloat16. This prints the time per step of each,
-measured in one run, as ratios to the convolutional layout, plus the machine.
+1. One head training step (batch 5120, forward + backward + AdamW). The mapping loop trains the head on a
+   flat batch of buffered features. The same network can run as 1x1 convolutions over a (1, C, N, 1)
+   tensor (how ACE writes it) or as matrix products over (N, C); on CPUs with AVX512-BF16/AMX the hidden
+   layers can also run in bfloat16.
+2. The encoder pass that fills the feature buffer (one image at the built-in scene's 240x320), in float32
+   and under bfloat16 autocast with contiguous or channels-last tensors, with the relative feature error.
+
+Each part prints its times measured in one run as ratios to the first layout, plus the machine.
 
     python bench/head_speed.py [--width 256] [--blocks 1] [--steps 20] [--threads 0]
 """
@@ -17,8 +21,9 @@ import time
 import torch
 
 from acesplat.core.machine import machine_line
+from acesplat.scr.encoders import load_encoder
 from acesplat.scr.mapping import BATCH_SIZE
-from acesplat.scr.network import Head, HeadConfig
+from acesplat.scr.network import Head, HeadConfig, normalize_gray
 
 
 def step_times(head: Head, feats: torch.Tensor, layout: str, steps: int) -> list[float]:
@@ -29,7 +34,8 @@ def step_times(head: Head, feats: torch.Tensor, layout: str, steps: int) -> list
         if layout == "conv":
             pred = head(feats.T[None, :, :, None])[0, :, :, 0].T
         else:
-            pred = head.forward_points(feats, autocast_bf16=layout == "linear-bf16")
+            bf16 = layout == "linear-bf16"
+            pred = head.forward_points(feats.bfloat16() if bf16 else feats, autocast_bf16=bf16)
         loss = pred.abs().mean()
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -64,6 +70,34 @@ def main() -> None:
         med = statistics.median(ts)
         base = base or med
         print(f"{layout:12s} median {med * 1000:7.1f} ms/step  (min {min(ts) * 1000:6.1f})  time ratio {med / base:5.2f}")
+    if "linear-bf16" in layouts:
+        encoder_times(args.steps)
+
+
+@torch.no_grad()
+def encoder_times(steps: int, hw: tuple[int, int] = (240, 320)) -> None:
+    encoder, _ = load_encoder(None)
+    encoder.eval()
+    x = normalize_gray(torch.randint(0, 256, (1, 1, *hw)).float())
+    ref = encoder(x)
+    print(f"encoder (shipped default) on one {hw[0]}x{hw[1]} image")
+    base = None
+    for name, bf16, layout in (("fp32", False, torch.contiguous_format), ("bf16", True, torch.contiguous_format),
+                               ("bf16-chlast", True, torch.channels_last)):
+        encoder.to(memory_format=layout)
+        xi = x.contiguous(memory_format=layout)
+        ts = []
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            for k in range(steps + 3):
+                t = time.perf_counter()
+                y = encoder(xi)
+                if k >= 3:
+                    ts.append(time.perf_counter() - t)
+        med = statistics.median(ts)
+        base = base or med
+        err = float((y.float() - ref).norm() / ref.norm())
+        print(f"{name:12s} median {med * 1000:7.1f} ms/image (min {min(ts) * 1000:6.1f})  time ratio {med / base:5.2f}"
+              f"  relative feature error {err:.4f}")
 
 
 if __name__ == "__main__":

@@ -98,3 +98,25 @@ def test_map_command_rejects_a_bad_precision(tmp_path) -> None:
     assert res.exit_code == 2, res.output
     assert res.stderr.count("\n") == 1 and "--precision must be auto, fp32 or bf16, got 'fp64'" in res.stderr
     assert not (tmp_path / "m.pt").exists()
+
+
+def test_bf16_buffer_features_match_fp32_and_leave_the_encoder_as_it_was(tiny_scene) -> None:
+    import time
+
+    import torch
+
+    from acesplat.scr.encoders import load_encoder
+    from acesplat.scr.mapping import MappingConfig, fill_buffer, load_training_images
+
+    images = load_training_images(read_split(tiny_scene, "train"), SIZE[0])[:4]
+    enc, _ = load_encoder(None)
+    bufs = {}
+    for precision in ("fp32", "bf16"):
+        cfg = MappingConfig(short_side=SIZE[0], buffer_size=400, samples_per_image=100, precision=precision)
+        bufs[precision] = fill_buffer(images, enc, cfg, time.monotonic() + 60, np.random.default_rng(0))
+        assert all(p.is_contiguous() for p in enc.parameters())  # localization sees the usual layout
+    a, b = bufs["fp32"]["feats"].float(), bufs["bf16"]["feats"].float()
+    assert a.shape == b.shape == (400, enc.cfg.out)
+    assert torch.equal(bufs["fp32"]["pixels"], bufs["bf16"]["pixels"])  # same views and cells, other arithmetic
+    rel = float((a - b).norm() / a.norm())
+    assert 0 < rel < 0.02, rel  # bfloat16 keeps ~3 significant digits

@@ -38,7 +38,9 @@ def map_command(
     encoder: Optional[Path] = typer.Option(None, help="Encoder weights (default: the shipped encoder; ACE's file works)."),
     short_side: Optional[int] = typer.Option(None, help="Shorter image side for the network (default: min(360, image))."),
     head_width: int = typer.Option(256, help="Width of the head's 1x1 layers."),
-    precision: str = typer.Option("auto", help="Head training arithmetic: auto (bf16 where the CPU/GPU has it), fp32, bf16."),
+    precision: str = typer.Option(
+        "auto", help="Mapping arithmetic (buffer encoder pass and head): auto (bf16 where the CPU/GPU has it), fp32, bf16."
+    ),
     seed: int = typer.Option(0),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the numbers here."),
 ) -> None:
