@@ -34,8 +34,7 @@ def step_times(head: Head, feats: torch.Tensor, layout: str, steps: int) -> list
         if layout == "conv":
             pred = head(feats.T[None, :, :, None])[0, :, :, 0].T
         else:
-            bf16 = layout == "linear-bf16"
-            pred = head.forward_points(feats.bfloat16() if bf16 else feats, autocast_bf16=bf16)
+            pred = head.forward_points(feats, autocast_bf16=layout == "linear-bf16")
         loss = pred.abs().mean()
         opt.zero_grad(set_to_none=True)
         loss.backward()

@@ -174,7 +174,7 @@ def fill_buffer(
     """Encoder features of augmented views: feats (N, C) fp16, pixels (N, 2), view (N,), and per view w2c (V, 3, 4), K (V, 3, 3)."""
     encoder.eval()
     # The encoder runs in bfloat16 where the head trains in it: channels-last convolutions on AMX are about
-    # 3.7x faster (bench/head_speed.py) for a 0.6% relative feature error, which leaves more of the budget
+    # 3-3.7x faster (bench/head_speed.py) for a 0.6% relative feature error, which leaves more of the budget
     # to the head; localization keeps float32 features.
     bf16 = use_bf16(cfg.precision, cfg.device)
     layout = torch.channels_last if bf16 else torch.contiguous_format
