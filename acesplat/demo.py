@@ -69,7 +69,7 @@ def _stage_map(scene: Path, work: Path, minutes: float, summary: dict) -> Path:
         res = map_scene(train, enc, cfg, bar)
     map_path = work / "map.pt"
     meta = {"scene": str(scene.resolve()), "train_frames": len(train), "seconds": res.seconds,
-            "iterations": res.iterations, "buffer_features": res.buffer_features, "device": dev}
+            "iterations": res.iterations, "buffer_features": res.buffer_features, "device": dev, "augment": cfg.augment}
     scene_map = SceneMap(res.head, ident, res.mean, side, meta)
     save_map(map_path, scene_map)
     loc = Localizer(scene_map.network(enc), side, {})

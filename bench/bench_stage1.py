@@ -5,6 +5,7 @@ process, one scene after the other, and prints one table plus the machine it ran
 
     python bench/bench_stage1.py [--herz-minutes 10] [--synth-minutes 4.5] [--out runs/bench_stage1]
     python bench/bench_stage1.py --skip-herz --iterations 1000 --buffer 300000 --threads 1   # fixed work, not time
+    python bench/bench_stage1.py --augment photometric,ace   # each scene mapped once per augmentation preset
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from acesplat.core.machine import machine_info, machine_line
 from acesplat.core.scene import read_split
 from acesplat.scr.encoders import load_encoder
 from acesplat.scr.localize import Localizer, evaluate
-from acesplat.scr.mapping import IMAGE_SHORT_SIDE, MAP_MINUTES, MappingConfig, map_scene
+from acesplat.scr.mapping import AUGMENT, IMAGE_SHORT_SIDE, MAP_MINUTES, MappingConfig, map_scene
 from acesplat.synth import synthesize
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -30,13 +31,13 @@ HERZ = ROOT.parent / "shared" / "data" / "herzjesu25"
 
 def run(scene: Path, minutes: float, triangulate: bool, encoder_path: Path | None,
         iterations: int | None = None, buffer_size: int | None = None, map_out: Path | None = None,
-        precision: str = "auto") -> dict:
+        precision: str = "auto", augment: str = AUGMENT) -> dict:
     enc, ident = load_encoder(encoder_path)
     train, test = read_split(scene, "train"), read_split(scene, "test")
     f0 = train.frames[0].intrinsics
     side = min(IMAGE_SHORT_SIDE, f0.width, f0.height)
     cfg = MappingConfig(minutes=minutes, short_side=side, triangulate=triangulate, iterations=iterations,
-                        precision=precision)
+                        precision=precision, augment=augment)
     if buffer_size:
         cfg.buffer_size = buffer_size
     res = map_scene(train, enc, cfg)
@@ -44,10 +45,11 @@ def run(scene: Path, minutes: float, triangulate: bool, encoder_path: Path | Non
     from acesplat.scr.network import SCRNetwork
 
     if map_out is not None:  # kept for bench_export.py and acesplat export
-        save_map(map_out, SceneMap(res.head, ident, res.mean, side, {"scene": str(scene), "iterations": res.iterations}))
+        save_map(map_out, SceneMap(res.head, ident, res.mean, side, {"scene": str(scene), "iterations": res.iterations,
+                                                                     "augment": augment}))
 
     loc = Localizer(SCRNetwork(enc, res.head).eval(), side, {})
-    out = {"scene": scene.name, "triangulate": triangulate, "map_seconds": res.seconds, "iterations": res.iterations,
+    out = {"scene": scene.name, "triangulate": triangulate, "augment": augment, "map_seconds": res.seconds, "iterations": res.iterations,
            "buffer_features": res.buffer_features, "target_features": res.target_features}
     for split in (test, train):
         ev = evaluate(split, loc)
@@ -69,6 +71,7 @@ def main() -> None:
     ap.add_argument("--buffer", type=int, default=None, help="Buffer size (features).")
     ap.add_argument("--threads", type=int, default=0, help="Torch threads (0 = all cores).")
     ap.add_argument("--precision", default="auto", help="Mapping arithmetic (buffer encoder pass and head): auto, fp32 or bf16.")
+    ap.add_argument("--augment", default=AUGMENT, help="Comma-separated augmentation presets to map each scene with.")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -82,23 +85,25 @@ def main() -> None:
         scenes.append((synth, args.synth_minutes))
     if not args.skip_herz and HERZ.is_dir():
         scenes.append((HERZ, args.herz_minutes))
+    presets = args.augment.split(",")
     for scene, minutes in scenes:
-        for tri in ([True, False] if args.ablate_triangulation else [True]):
+        for tri, aug in [(t, a) for t in ([True, False] if args.ablate_triangulation else [True]) for a in presets]:
             t0 = time.monotonic()
-            map_out = args.out / f"{scene.name}{'' if tri else '.notri'}.map.pt"
-            r = run(scene, minutes, tri, args.encoder, args.iterations, args.buffer, map_out, args.precision)
+            suffix = ("" if tri else ".notri") + ("" if aug == AUGMENT else f".{aug}")
+            map_out = args.out / f"{scene.name}{suffix}.map.pt"
+            r = run(scene, minutes, tri, args.encoder, args.iterations, args.buffer, map_out, args.precision, aug)
             r["wall_seconds"] = time.monotonic() - t0
             rows.append(r)
             print(json.dumps({k: v for k, v in r.items() if k not in ("test", "train")}))
     print(f"\nmachine: {machine_line()}")
-    hdr = f"{'scene':12s} {'tri':>4s} {'map s':>6s} {'split':>5s} {'loc':>6s} {'med cm':>8s} {'med deg':>8s} {'5cm5d':>6s} {'10cm5d':>7s} {'25cm2d':>7s} {'ms':>6s}"
+    hdr = f"{'scene':12s} {'tri':>4s} {'augment':>11s} {'map s':>6s} {'split':>5s} {'loc':>6s} {'med cm':>8s} {'med deg':>8s} {'5cm5d':>6s} {'10cm5d':>7s} {'25cm2d':>7s} {'ms':>6s}"
     print(hdr)
     for r in rows:
         for split in ("test", "train"):
             e = r[split]
             mt = "-" if e["median_translation_m"] is None else f"{100 * e['median_translation_m']:.2f}"
             mr = "-" if e["median_rotation_deg"] is None else f"{e['median_rotation_deg']:.3f}"
-            print(f"{r['scene']:12s} {str(r['triangulate'])[0]:>4s} {r['map_seconds']:6.0f} {split:>5s} "
+            print(f"{r['scene']:12s} {str(r['triangulate'])[0]:>4s} {r['augment']:>11s} {r['map_seconds']:6.0f} {split:>5s} "
                   f"{e['localized']:>3d}/{e['frames']:<3d}{mt:>8s} {mr:>8s} {e['recall_5cm_5deg']:6.1f} "
                   f"{e['recall_10cm_5deg']:7.1f} {e['recall_25cm_2deg']:7.1f} {e['mean_ms']:6.0f}")
     write_json(args.out / "results.json", {"machine": machine_info(), "rows": rows})

@@ -95,3 +95,30 @@ def test_same_predictions_give_the_same_pose(method: str) -> None:
     cv2.randu(np.zeros((100, 100)), 0, 1)  # advance OpenCV's global generator in between
     again = solve_from_grid(coords, INTR, method=method).T_c2w
     np.testing.assert_array_equal(first, again)
+
+
+def test_a_mirror_pose_from_the_first_solver_falls_back_to_magsac(monkeypatch) -> None:
+    import cv2
+
+    from acesplat.core import pnp
+
+    coords, T = _grid_scene(np.random.default_rng(5), outliers=0.2)
+    real = cv2.solvePnPRansac
+    calls = []
+
+    def first_returns_the_mirror(*args, **kwargs):
+        calls.append("usac" if "params" in kwargs else "p3p")
+        if "params" in kwargs:
+            return real(*args, **kwargs)
+        # The true pose turned half a turn about its own y axis: every scene point lands behind the camera.
+        w2c = invert_pose(T)
+        flip = np.diag([-1.0, 1.0, -1.0])
+        rvec, _ = cv2.Rodrigues(flip @ w2c[:3, :3])
+        return True, rvec, (flip @ w2c[:3, 3]).reshape(3, 1), np.arange(300).reshape(-1, 1)
+
+    monkeypatch.setattr(pnp.cv2, "solvePnPRansac", first_returns_the_mirror)
+    res = solve_from_grid(coords, INTR)
+    assert calls == ["p3p", "usac"]
+    assert res.localized
+    t, r = pose_error(res.T_c2w, T)
+    assert t < 1e-6 and r < 1e-4

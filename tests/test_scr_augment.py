@@ -6,7 +6,7 @@ import numpy as np
 
 from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import invert_pose, look_at, transform_points
-from acesplat.scr.augment import augment, cell_validity
+from acesplat.scr.augment import AUGMENT_PRESETS, augment, cell_validity
 
 
 def test_rotated_and_scaled_view_projects_scene_points_where_the_warp_moved_them() -> None:
@@ -33,3 +33,17 @@ def test_cell_validity_needs_a_full_patch() -> None:
     v = cell_validity(mask)
     assert v.shape == (2, 3)
     assert not v[0, 0] and v[1, 0] and v[0, 1]
+
+
+def test_photometric_preset_keeps_the_camera_and_every_cell() -> None:
+    rng = np.random.default_rng(1)
+    intr = Intrinsics(150.0, 150.0, 80.0, 60.0, 160, 120)
+    T = look_at(np.array([0.0, 0.0, 1.0]), np.array([0.0, 5.0, 1.0]))
+    img = rng.integers(0, 256, (120, 160), dtype=np.uint8)
+    p = AUGMENT_PRESETS["photometric"]
+    view = augment(img, intr, T, rng, p.scale_range, p.rotation_deg)
+    np.testing.assert_allclose(view.c2w, T, atol=1e-12)
+    np.testing.assert_allclose(view.intrinsics.K, intr.K, atol=1e-12)
+    np.testing.assert_allclose(view.pixel_map, np.eye(3), atol=1e-12)
+    assert view.cell_valid.all()
+    assert not np.array_equal(view.gray, img)  # brightness and contrast still vary

@@ -120,3 +120,30 @@ def test_bf16_buffer_features_match_fp32_and_leave_the_encoder_as_it_was(tiny_sc
     assert torch.equal(bufs["fp32"]["pixels"], bufs["bf16"]["pixels"])  # same views and cells, other arithmetic
     rel = float((a - b).norm() / a.norm())
     assert 0 < rel < 0.02, rel  # bfloat16 keeps ~3 significant digits
+
+
+def test_map_command_rejects_an_unknown_augmentation(tmp_path) -> None:
+    from typer.testing import CliRunner
+
+    from acesplat.cli import app
+
+    res = CliRunner().invoke(app, ["map", str(tmp_path), "-o", str(tmp_path / "m.pt"), "--augment", "flip"])
+    assert res.exit_code == 2, res.output
+    assert res.stderr.count("\n") == 1 and "--augment must be one of ace, photometric, got 'flip'" in res.stderr
+    assert not (tmp_path / "m.pt").exists()
+
+
+def test_target_term_is_the_clamped_distance_in_pixels_at_the_targets_depth() -> None:
+    import torch
+
+    from acesplat.scr.mapping import TARGET_CLAMP_M, TARGET_WEIGHT_PX, target_term
+
+    # Two targets seen by a camera at the origin looking down +z (w2c = [I | 0]), f = 200 px:
+    # one at 2 m missed by 3 cm, one at 4 m missed by 5 m (clamped).
+    w2c = torch.zeros(2, 3, 4)
+    w2c[:, :, :3] = torch.eye(3)
+    K = torch.tensor([[200.0, 0, 64], [0, 200, 48], [0, 0, 1]]).repeat(2, 1, 1)
+    target = torch.tensor([[0.1, 0.0, 2.0], [0.0, -0.2, 4.0]])
+    pred = target + torch.tensor([[0.0, 0.03, 0.0], [5.0, 0.0, 0.0]])
+    expected = TARGET_WEIGHT_PX * (0.03 * 200 / 2.0 + TARGET_CLAMP_M * 200 / 4.0)
+    assert float(target_term(pred, target, w2c, K)) == pytest.approx(expected, rel=1e-5)

@@ -19,6 +19,8 @@ OUTPUT_STRIDE = 8
 
 PNP_METHODS = ("usac_magsac", "usac_default", "usac_accurate", "ransac_p3p", "ransac_ap3p", "ransac_sqpnp", "ransac_epnp")
 DEFAULT_METHOD = "ransac_ap3p"
+FALLBACK_METHOD = "usac_magsac"
+"""Tried when the default's pose fails the inlier gate (MAGSAC's local optimisation recovers from a mirror pose)."""
 DEFAULT_THRESHOLD_PX = 10.0
 """Inlier threshold in pixels of the network input image (ACE uses 10 px)."""
 DEFAULT_MIN_INLIERS = 50
@@ -91,7 +93,30 @@ def solve_pnp(
     n = pixels.shape[0]
     if n < 6:
         return PnPResult(None, 0, n, False)
-    K = intrinsics.K
+    first = _ransac_and_refine(pixels, points, intrinsics.K, method, threshold_px, iterations, confidence, robust_scales)
+    if first[1] >= min_inliers or method == FALLBACK_METHOD:
+        best = first
+    else:
+        # P3P-family RANSAC scores hypotheses without a cheirality check and can return the mirror pose with the
+        # scene behind the camera; the final recount then finds no inliers. Retry once with another solver.
+        second = _ransac_and_refine(pixels, points, intrinsics.K, FALLBACK_METHOD, threshold_px, iterations, confidence,
+                                    robust_scales)
+        best = second if second[1] > first[1] else first
+    T_c2w, inliers = best
+    return PnPResult(T_c2w, inliers, n, T_c2w is not None and inliers >= min_inliers)
+
+
+def _ransac_and_refine(
+    pixels: np.ndarray,
+    points: np.ndarray,
+    K: np.ndarray,
+    method: str,
+    threshold_px: float,
+    iterations: int,
+    confidence: float,
+    robust_scales: tuple[float, ...],
+) -> tuple[np.ndarray | None, int]:
+    """Camera-to-world pose and its inlier count under the final pose, or (None, 0) when the solver fails."""
     dist = np.zeros(5)
     cv2.setRNGSeed(RANSAC_SEED)
     try:
@@ -111,9 +136,9 @@ def solve_pnp(
                 confidence=confidence, flags=flag,
             )
     except cv2.error:
-        return PnPResult(None, 0, n, False)
+        return None, 0
     if not ok or inl is None or len(inl) < 4:
-        return PnPResult(None, 0, n, False)
+        return None, 0
     if robust_scales:
         # The robust refinement starts from RANSAC's pose directly: an LM polish first changed no
         # pose measurably (bench/pnp_choice.md) and cost 1.5 ms at 2700 correspondences.
@@ -125,9 +150,7 @@ def solve_pnp(
     # Recount inliers under the final pose so the gate sees the final solution.
     R = rodrigues_to_matrix(r)
     _, _, err = reprojection(points, pixels, K, R, t)  # inf behind the camera: never an inlier
-    inliers = int(np.count_nonzero(err < threshold_px))
-    T_w2c = make_pose(R, t)
-    return PnPResult(invert_pose(T_w2c), inliers, n, inliers >= min_inliers)
+    return invert_pose(make_pose(R, t)), int(np.count_nonzero(err < threshold_px))
 
 
 def solve_from_grid(

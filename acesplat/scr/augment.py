@@ -1,4 +1,4 @@
-"""ACE's mapping-time augmentation: rescale, in-plane rotation, brightness and contrast.
+"""Mapping-time augmentation: ACE's rescale, in-plane rotation, brightness and contrast.
 
 The rotation is applied as the homography K Rz K^-1, which is exact for any principal point and
 aspect ratio, and the pose is rotated with it so every pixel keeps its true scene coordinate.
@@ -19,6 +19,21 @@ SCALE_MAX = 3.0 / 2.0
 ROTATION_MAX_DEG = 15.0
 BRIGHTNESS = 0.1
 CONTRAST = 0.1
+
+
+@dataclass(frozen=True)
+class AugmentRanges:
+    """Geometric ranges of one augmentation preset; brightness and contrast are always varied."""
+
+    scale_range: tuple[float, float]
+    rotation_deg: float
+
+
+AUGMENT_PRESETS = {
+    "ace": AugmentRanges((SCALE_MIN, SCALE_MAX), ROTATION_MAX_DEG),
+    "photometric": AugmentRanges((1.0, 1.0), 0.0),
+}
+"""ACE's ranges, and brightness/contrast only (the views as the camera took them)."""
 
 
 @dataclass

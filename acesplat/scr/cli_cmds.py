@@ -41,6 +41,11 @@ def map_command(
     precision: str = typer.Option(
         "auto", help="Mapping arithmetic (buffer encoder pass and head): auto (bf16 where the CPU/GPU has it), fp32, bf16."
     ),
+    augment: Optional[str] = typer.Option(
+        None, help="Mapping augmentation: photometric (brightness and contrast) or ace (also ACE's rescale 2/3..3/2 and "
+        "rotation up to 15 deg, for query views much nearer, farther or more tilted than the mapping views) "
+        "[default: photometric]."
+    ),
     seed: int = typer.Option(0),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the numbers here."),
 ) -> None:
@@ -51,7 +56,8 @@ def map_command(
 
     from .encoders import load_encoder
     from .mapfile import SceneMap, save_map
-    from .mapping import IMAGE_SHORT_SIDE, MAP_MINUTES, MappingConfig, map_scene, use_bf16
+    from .augment import AUGMENT_PRESETS
+    from .mapping import AUGMENT, IMAGE_SHORT_SIDE, MAP_MINUTES, MappingConfig, map_scene, use_bf16
     from .network import HeadConfig
 
     minutes = MAP_MINUTES if minutes is None else minutes
@@ -62,6 +68,9 @@ def map_command(
         bf16 = use_bf16(precision, dev)
     except ValueError as e:
         raise InputError(None, f"--{e}") from None
+    augment = AUGMENT if augment is None else augment
+    if augment not in AUGMENT_PRESETS:
+        raise InputError(None, f"--augment must be one of {', '.join(sorted(AUGMENT_PRESETS))}, got {augment!r}")
     if dev == "cpu":
         torch.set_num_threads(max(1, torch.get_num_threads()))
     split = read_split(scene, "train")
@@ -69,12 +78,12 @@ def map_command(
     first = split.frames[0].intrinsics
     side = short_side or min(IMAGE_SHORT_SIDE, first.width, first.height)
     cfg = MappingConfig(minutes=minutes, short_side=side, head=HeadConfig(width=head_width, blocks=1), seed=seed, device=dev,
-                        precision=precision)
+                        precision=precision, augment=augment)
     with PhaseProgress("map ") as bar:
         res = map_scene(split, enc, cfg, bar)
     meta = {"scene": str(Path(scene).resolve()), "train_frames": len(split), "seconds": res.seconds,
             "iterations": res.iterations, "buffer_features": res.buffer_features, "device": dev,
-            "precision": "bf16" if bf16 else "fp32"}
+            "precision": "bf16" if bf16 else "fp32", "augment": augment}
     save_map(out, SceneMap(res.head, ident, res.mean, side, meta))
     console.print(
         f"mapped {len(split)} images in {res.seconds:.1f} s ({res.buffer_seconds:.1f} s buffer, "

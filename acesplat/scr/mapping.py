@@ -1,8 +1,9 @@
 """Stage 1 mapping: train a scene-specific head on a frozen encoder from posed RGB images.
 
 ACE's recipe (Brachmann et al., CVPR 2023), readable top to bottom:
-1. Fill a buffer with encoder features of augmented training images, each feature remembering its
-   pixel, the (augmented) camera's intrinsics and world-to-camera pose.
+1. Fill a buffer with encoder features of augmented training images (brightness and contrast; ACE's
+   rescale and rotation on request), each feature remembering its pixel, the (augmented) camera's
+   intrinsics and world-to-camera pose, and where a triangulated keypoint falls in its cell, a target.
 2. Train the head on random batches of the buffer with the reprojection loss, the circular threshold
    curriculum and AdamW under a one-cycle learning rate, all driven by the fraction of the wall-clock
    budget used (so a shorter budget runs the whole schedule, not the start of it).
@@ -24,8 +25,8 @@ from acesplat.core.pnp import OUTPUT_STRIDE, cell_centers
 from acesplat.core.preprocess import size_for_short_side, to_gray_input
 from acesplat.core.scene import SceneSplit
 
-from .augment import augment
-from .loss import curriculum_threshold, reprojection_loss
+from .augment import AUGMENT_PRESETS, augment
+from .loss import DEPTH_MIN, curriculum_threshold, reprojection_loss
 from .network import Encoder, Head, HeadConfig, normalize_gray
 from .targets import ImageTargets, triangulate_targets
 
@@ -46,19 +47,27 @@ SAMPLES_PER_IMAGE = 1024
 ACE_BUFFER_SIZE = 8_000_000
 BUFFER_SIZE = 1_000_000
 """ACE buffers 8M features; on CPU the head sees ~2000 batches in a few minutes, so 1M already gives ~10 epochs."""
+AUGMENT = "photometric"
+"""Augmentation preset (acesplat.scr.augment.AUGMENT_PRESETS): brightness and contrast only. ACE also rescales
+by 2/3..3/2 and rotates by up to 15 degrees; this project's small encoder is not invariant to that, so the head
+spent its few CPU steps learning features the camera never produces: at fixed head steps on the built-in
+room 96.7% of test frames within 5 cm / 5 deg without it, 81.7% with half the ranges, 73.3% with ACE's;
+herzjesu25 about equal (bench/augment_choice.md). ``acesplat map --augment ace`` keeps ACE's ranges for query
+views much nearer, farther or more tilted than the mapping views."""
 TARGETS_TIME_FRACTION = 0.08
 """At most this share of the budget goes to matching and triangulating targets."""
 BUFFER_TIME_FRACTION = 0.25
 """Targets and buffer together use at most this share of the budget; the rest trains the head."""
 ONE_CYCLE_WARMUP = 0.25
 """Share of training spent rising from LR_MIN to LR_MAX (cosine), then cosine annealing back down."""
-TARGET_WEIGHT = 10.0
-"""Weight of the triangulated-target term (metres) beside the reprojection term (pixels). A valid
-prediction's reprojection gradient is about f / depth pixels per metre, so the right weight depends on the
-scene's depth: at fixed head steps 50 beat 10 on the built-in room (f / depth ~130; 85-87% vs 78% of test
-frames within 5 cm / 5 deg) and lost on herzjesu25 (f / depth ~25; 2/7 vs 6/7 within 10 cm / 5 deg)."""
+TARGET_WEIGHT_PX = 0.4
+"""Weight of the triangulated-target term, whose distance is measured in pixels: metres times f / depth of
+the target in its view. A valid prediction's reprojection gradient is about f / depth pixels per metre, so a
+weight in metres suits one scene depth only: with ACE's augmentation at fixed head steps, 50 m^-1 beat 10 on
+the built-in room (f / depth ~130) and lost on herzjesu25 (f / depth ~25); both winners are about
+0.4 x f / depth, which this weight gives each target by itself."""
 TARGET_CLAMP_M = 2.0
-"""Target distances beyond this stop growing the loss, so a wrong match cannot dominate."""
+"""Target distances beyond this (metres) stop growing the loss, so a wrong match cannot dominate."""
 
 
 @dataclass
@@ -71,6 +80,7 @@ class MappingConfig:
     samples_per_image: int = SAMPLES_PER_IMAGE
     lr_min: float = LR_MIN
     lr_max: float = LR_MAX
+    augment: str = AUGMENT
     triangulate: bool = True
     """Add sparse coordinate targets triangulated from SIFT matches between training images (acesplat.scr.targets)."""
     iterations: int | None = None
@@ -173,6 +183,9 @@ def fill_buffer(
 ) -> dict[str, torch.Tensor]:
     """Encoder features of augmented views: feats (N, C) fp16, pixels (N, 2), view (N,), and per view w2c (V, 3, 4), K (V, 3, 3)."""
     encoder.eval()
+    if cfg.augment not in AUGMENT_PRESETS:
+        raise ValueError(f"augment must be one of {sorted(AUGMENT_PRESETS)}, got {cfg.augment!r}")
+    ranges = AUGMENT_PRESETS[cfg.augment]
     # The encoder runs in bfloat16 where the head trains in it: channels-last convolutions on AMX are about
     # 3-3.7x faster (bench/head_speed.py) for a 0.6% relative feature error, which leaves more of the budget
     # to the head; localization keeps float32 features.
@@ -186,7 +199,7 @@ def fill_buffer(
         if not order:
             order = list(rng.permutation(len(images)))
         im = images[order.pop()]
-        view = augment(im.gray, im.intrinsics, im.c2w, rng)
+        view = augment(im.gray, im.intrinsics, im.c2w, rng, ranges.scale_range, ranges.rotation_deg)
         x = normalize_gray(torch.from_numpy(view.gray)[None, None].to(cfg.device))
         with torch.autocast(x.device.type, dtype=torch.bfloat16, enabled=bf16):
             f = encoder(x.contiguous(memory_format=layout))[0]  # (C, h, w)
@@ -216,6 +229,17 @@ def fill_buffer(
         "K": torch.from_numpy(np.stack(Ks)),
         "target": torch.cat(targets),
     }
+
+
+def target_term(pred: torch.Tensor, target: torch.Tensor, w2c: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """Summed distance of predictions (M, 3) to their triangulated targets (M, 3), in pixels at the target's depth.
+
+    w2c (M, 3, 4) and K (M, 3, 3) of each target's view; the distance is clamped at TARGET_CLAMP_M first.
+    """
+    d = torch.clamp(torch.linalg.vector_norm(pred - target, dim=1), max=TARGET_CLAMP_M)
+    z = torch.einsum("mj,mj->m", w2c[:, 2, :3], target) + w2c[:, 2, 3]
+    px_per_m = K[:, 0, 0] / torch.clamp(z, min=DEPTH_MIN)
+    return TARGET_WEIGHT_PX * (d * px_per_m).sum()
 
 
 def train_head(
@@ -258,8 +282,7 @@ def train_head(
         tgt = target[idx]
         has = torch.isfinite(tgt[:, 0])
         if bool(has.any()):
-            d = torch.linalg.vector_norm(pred[has] - tgt[has], dim=1)
-            loss = loss + TARGET_WEIGHT * torch.clamp(d, max=TARGET_CLAMP_M).sum() / pred.shape[0]
+            loss = loss + target_term(pred[has], tgt[has], w2c_all[v[has]], K_all[v[has]]) / pred.shape[0]
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
