@@ -74,7 +74,7 @@ def main() -> None:
         synthesize(args.scene, seed=0, overwrite=True)
     train, test = read_split(args.scene, "train"), read_split(args.scene, "test")
     print(machine_line())
-    print(f"scene {args.scene}: {len(train)} training frames (all cells), every {args.every}th of {len(test)} test frames")
+    print(f"scene {args.scene}: {len(train)} training frames (all cells), one in {args.every} of {len(test)} test frames")
     for path in args.encoder or [None]:
         t0 = time.perf_counter()
         enc, ident = load_encoder(path)
