@@ -39,7 +39,7 @@ def run_method(method: str, cases: list, repeats: int = 1, iterations: int = 100
     for pix, pts, intr, T in cases:
         for _ in range(repeats):
             t0 = time.perf_counter()
-            r = solve_pnp(pix, pts, intr, method=method, iterations=iterations, **kw)
+            r = solve_pnp(pix, pts, intr, method=method, iterations=iterations, fallback=None, **kw)
             ms.append((time.perf_counter() - t0) * 1000)
         loc += r.localized
         errs.append(pose_error(r.T_c2w, T) if r.T_c2w is not None and r.localized else (np.inf, np.inf))

@@ -122,3 +122,6 @@ def test_a_mirror_pose_from_the_first_solver_falls_back_to_magsac(monkeypatch) -
     assert res.localized
     t, r = pose_error(res.T_c2w, T)
     assert t < 1e-6 and r < 1e-4
+    calls.clear()
+    alone = solve_from_grid(coords, INTR, fallback=None)
+    assert calls == ["p3p"] and not alone.localized

@@ -75,32 +75,35 @@ def solve_pnp(
     iterations: int = DEFAULT_ITERATIONS,
     confidence: float = DEFAULT_CONFIDENCE,
     robust_scales: tuple[float, ...] = ROBUST_SCALES,
+    fallback: str | None = FALLBACK_METHOD,
 ) -> PnPResult:
     """Camera-to-world pose from pixels (N, 2) and scene points (N, 3) of an undistorted pinhole image.
 
     RANSAC finds the pose, then a Cauchy-weighted refinement over all correspondences with the scale
     annealed through ``robust_scales`` (pixels) lets the precise ones decide (acesplat.core.pose_refine);
     with ``robust_scales=()`` Levenberg-Marquardt on RANSAC's inliers refines instead. The frame counts as localized only with
-    at least ``min_inliers`` inliers (the gate that turns a guess into TRACKING or LOST).
+    at least ``min_inliers`` inliers (the gate that turns a guess into TRACKING or LOST); a pose that fails it
+    is retried once with ``fallback`` (None: no retry, for comparing solvers on their own).
     """
     pixels = np.ascontiguousarray(pixels, dtype=np.float64).reshape(-1, 2)
     points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
     if pixels.shape[0] != points.shape[0]:
         raise ValueError(f"pixels {pixels.shape} and points {points.shape} differ in count")
-    if method not in PNP_METHODS:
-        raise ValueError(f"unknown PnP method {method!r}; choose from {PNP_METHODS}")
+    for m in (method, fallback):
+        if m is not None and m not in PNP_METHODS:
+            raise ValueError(f"unknown PnP method {m!r}; choose from {PNP_METHODS}")
     finite = np.isfinite(points).all(axis=1)
     pixels, points = pixels[finite], points[finite]
     n = pixels.shape[0]
     if n < 6:
         return PnPResult(None, 0, n, False)
     first = _ransac_and_refine(pixels, points, intrinsics.K, method, threshold_px, iterations, confidence, robust_scales)
-    if first[1] >= min_inliers or method == FALLBACK_METHOD:
+    if first[1] >= min_inliers or fallback is None or fallback == method:
         best = first
     else:
         # P3P-family RANSAC scores hypotheses without a cheirality check and can return the mirror pose with the
         # scene behind the camera; the final recount then finds no inliers. Retry once with another solver.
-        second = _ransac_and_refine(pixels, points, intrinsics.K, FALLBACK_METHOD, threshold_px, iterations, confidence,
+        second = _ransac_and_refine(pixels, points, intrinsics.K, fallback, threshold_px, iterations, confidence,
                                     robust_scales)
         best = second if second[1] > first[1] else first
     T_c2w, inliers = best
