@@ -147,3 +147,21 @@ def test_target_term_is_the_clamped_distance_in_pixels_at_the_targets_depth() ->
     pred = target + torch.tensor([[0.0, 0.03, 0.0], [5.0, 0.0, 0.0]])
     expected = TARGET_WEIGHT_PX * (0.03 * 200 / 2.0 + TARGET_CLAMP_M * 200 / 4.0)
     assert float(target_term(pred, target, w2c, K)) == pytest.approx(expected, rel=1e-5)
+
+
+def test_buffer_restores_the_encoder_layout_when_the_loop_raises(tiny_scene) -> None:
+    import time
+
+    from acesplat.scr.encoders import load_encoder
+    from acesplat.scr.mapping import MappingConfig, fill_buffer, load_training_images
+
+    images = load_training_images(read_split(tiny_scene, "train"), SIZE[0])[:2]
+    enc, _ = load_encoder(None)
+
+    def interrupted(*_):
+        raise KeyboardInterrupt
+
+    cfg = MappingConfig(short_side=SIZE[0], buffer_size=400, samples_per_image=100, precision="bf16")
+    with pytest.raises(KeyboardInterrupt):
+        fill_buffer(images, enc, cfg, time.monotonic() + 60, np.random.default_rng(0), interrupted)
+    assert all(p.is_contiguous() for p in enc.parameters())

@@ -36,6 +36,13 @@ AUGMENT_PRESETS = {
 """ACE's ranges, and brightness/contrast only (the views as the camera took them)."""
 
 
+def augment_ranges(preset: str) -> AugmentRanges:
+    """The ranges of a preset by name; ValueError naming the choices otherwise."""
+    if preset not in AUGMENT_PRESETS:
+        raise ValueError(f"augment must be one of {', '.join(sorted(AUGMENT_PRESETS))}, got {preset!r}")
+    return AUGMENT_PRESETS[preset]
+
+
 @dataclass
 class AugmentedView:
     """An augmented grayscale image (H, W) with its intrinsics, pose and per-cell validity (H/8, W/8).

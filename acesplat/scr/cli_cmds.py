@@ -56,7 +56,7 @@ def map_command(
 
     from .encoders import load_encoder
     from .mapfile import SceneMap, save_map
-    from .augment import AUGMENT_PRESETS
+    from .augment import augment_ranges
     from .mapping import AUGMENT, IMAGE_SHORT_SIDE, MAP_MINUTES, MappingConfig, map_scene, use_bf16
     from .network import HeadConfig
 
@@ -69,8 +69,10 @@ def map_command(
     except ValueError as e:
         raise InputError(None, f"--{e}") from None
     augment = AUGMENT if augment is None else augment
-    if augment not in AUGMENT_PRESETS:
-        raise InputError(None, f"--augment must be one of {', '.join(sorted(AUGMENT_PRESETS))}, got {augment!r}")
+    try:
+        augment_ranges(augment)
+    except ValueError as e:
+        raise InputError(None, f"--{e}") from None
     if dev == "cpu":
         torch.set_num_threads(max(1, torch.get_num_threads()))
     split = read_split(scene, "train")

@@ -25,7 +25,7 @@ from acesplat.core.pnp import OUTPUT_STRIDE, cell_centers
 from acesplat.core.preprocess import size_for_short_side, to_gray_input
 from acesplat.core.scene import SceneSplit
 
-from .augment import AUGMENT_PRESETS, augment
+from .augment import augment, augment_ranges
 from .loss import DEPTH_MIN, curriculum_threshold, reprojection_loss
 from .network import Encoder, Head, HeadConfig, normalize_gray
 from .targets import ImageTargets, triangulate_targets
@@ -183,44 +183,44 @@ def fill_buffer(
 ) -> dict[str, torch.Tensor]:
     """Encoder features of augmented views: feats (N, C) fp16, pixels (N, 2), view (N,), and per view w2c (V, 3, 4), K (V, 3, 3)."""
     encoder.eval()
-    if cfg.augment not in AUGMENT_PRESETS:
-        raise ValueError(f"augment must be one of {sorted(AUGMENT_PRESETS)}, got {cfg.augment!r}")
-    ranges = AUGMENT_PRESETS[cfg.augment]
+    ranges = augment_ranges(cfg.augment)
     # The encoder runs in bfloat16 where the head trains in it: channels-last convolutions on AMX are about
     # 3-3.7x faster (bench/head_speed.py) for a 0.6% relative feature error, which leaves more of the budget
     # to the head; localization keeps float32 features.
     bf16 = use_bf16(cfg.precision, cfg.device)
     layout = torch.channels_last if bf16 else torch.contiguous_format
-    encoder.to(memory_format=layout)
     feats, pixels, views, w2cs, Ks, targets = [], [], [], [], [], []
     total = 0
     order: list[int] = []
-    while total < cfg.buffer_size:
-        if not order:
-            order = list(rng.permutation(len(images)))
-        im = images[order.pop()]
-        view = augment(im.gray, im.intrinsics, im.c2w, rng, ranges.scale_range, ranges.rotation_deg)
-        x = normalize_gray(torch.from_numpy(view.gray)[None, None].to(cfg.device))
-        with torch.autocast(x.device.type, dtype=torch.bfloat16, enabled=bf16):
-            f = encoder(x.contiguous(memory_format=layout))[0]  # (C, h, w)
-        c, gh, gw = f.shape
-        valid = np.flatnonzero(view.cell_valid[:gh, :gw].reshape(-1))
-        take = rng.choice(valid, size=min(cfg.samples_per_image, valid.size, cfg.buffer_size - total), replace=False)
-        if take.size == 0:
-            continue
-        centers = cell_centers(gh, gw)[take]
-        targets.append(torch.from_numpy(cell_targets(im, view, (gh, gw))[take]))
-        feats.append(f.reshape(c, -1)[:, torch.from_numpy(take).to(f.device)].T.to(torch.float16).cpu())
-        pixels.append(torch.from_numpy(centers.astype(np.float32)))
-        views.append(torch.full((take.size,), len(w2cs), dtype=torch.int64))
-        w2cs.append(invert_pose(view.c2w)[:3].astype(np.float32))
-        Ks.append(view.intrinsics.K.astype(np.float32))
-        total += take.size
-        if progress:
-            progress("buffer", total / cfg.buffer_size, {"features": total})
-        if time.monotonic() > deadline:
-            break
-    encoder.to(memory_format=torch.contiguous_format)
+    encoder.to(memory_format=layout)
+    try:
+        while total < cfg.buffer_size:
+            if not order:
+                order = list(rng.permutation(len(images)))
+            im = images[order.pop()]
+            view = augment(im.gray, im.intrinsics, im.c2w, rng, ranges.scale_range, ranges.rotation_deg)
+            x = normalize_gray(torch.from_numpy(view.gray)[None, None].to(cfg.device))
+            with torch.autocast(x.device.type, dtype=torch.bfloat16, enabled=bf16):
+                f = encoder(x.contiguous(memory_format=layout))[0]  # (C, h, w)
+            c, gh, gw = f.shape
+            valid = np.flatnonzero(view.cell_valid[:gh, :gw].reshape(-1))
+            take = rng.choice(valid, size=min(cfg.samples_per_image, valid.size, cfg.buffer_size - total), replace=False)
+            if take.size == 0:
+                continue
+            centers = cell_centers(gh, gw)[take]
+            targets.append(torch.from_numpy(cell_targets(im, view, (gh, gw))[take]))
+            feats.append(f.reshape(c, -1)[:, torch.from_numpy(take).to(f.device)].T.to(torch.float16).cpu())
+            pixels.append(torch.from_numpy(centers.astype(np.float32)))
+            views.append(torch.full((take.size,), len(w2cs), dtype=torch.int64))
+            w2cs.append(invert_pose(view.c2w)[:3].astype(np.float32))
+            Ks.append(view.intrinsics.K.astype(np.float32))
+            total += take.size
+            if progress:
+                progress("buffer", total / cfg.buffer_size, {"features": total})
+            if time.monotonic() > deadline:
+                break
+    finally:
+        encoder.to(memory_format=torch.contiguous_format)
     return {
         "feats": torch.cat(feats),
         "pixels": torch.cat(pixels),
@@ -276,13 +276,14 @@ def train_head(
         if dev.type == "cuda":
             idx = idx.to(dev)
         v = view[idx]
+        w2c, K = w2c_all[v], K_all[v]
         pred = head.forward_points(feats[idx].float(), autocast_bf16=bf16)  # (B, 3) float32
-        parts = reprojection_loss(pred, w2c_all[v], K_all[v], pixels[idx], tau)
+        parts = reprojection_loss(pred, w2c, K, pixels[idx], tau)
         loss = parts.loss
         tgt = target[idx]
         has = torch.isfinite(tgt[:, 0])
         if bool(has.any()):
-            loss = loss + target_term(pred[has], tgt[has], w2c_all[v[has]], K_all[v[has]]) / pred.shape[0]
+            loss = loss + target_term(pred[has], tgt[has], w2c[has], K[has]) / pred.shape[0]
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
