@@ -142,6 +142,8 @@ def test_commands_arrive_as_events_and_are_acked(peer: PtyPeer) -> None:
                          (12, Command(CommandCode.SET_RATE, 0.0)), (13, Command(99, 1.0)), (14, Command(CommandCode.RESUME))]:
             peer.send(encode_frame(cmd, seq))
         peer.wait(lambda fr: len([f for f in fr if isinstance(f.message, Ack)]) == 6, "six ACKs")
+        # The writer counts an ACK after its write returns, so the peer can read it first.
+        wait_for(lambda: sink.stats().acks == 6, "six ACKs counted")
         events = sink.poll_commands()
         assert sink.poll_commands() == []
         assert sink.rate_hz == 12.5
