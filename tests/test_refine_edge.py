@@ -343,15 +343,49 @@ def test_refinement_runs_blas_on_one_thread_and_restores_it(bundle_with_gaussian
     from edge.refine.cli_hooks import refine_session
     from edge.runtime import EdgeLocalizer
 
-    def blas_threads() -> list[int]:
-        return [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+    def blas_threads() -> dict[str, int]:
+        return {p["filepath"]: p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"}
 
     before = blas_threads()
     b = load_bundle(bundle_with_gaussians)
     loc = EdgeLocalizer(b, "fp32", 1)
     session = refine_session(True, loc, b, 100.0, None, lambda msg: None)
     try:
-        assert blas_threads() and all(n == 1 for n in blas_threads())
+        during = blas_threads()
+        assert during and all(n == 1 for n in during.values())  # also a BLAS the kernels loaded after the start
     finally:
         session.close()
-    assert blas_threads() == before
+    after = blas_threads()
+    assert {k: after[k] for k in before} == before
+
+
+def test_a_session_that_fails_to_start_gives_the_thread_settings_back(bundle_with_gaussians) -> None:
+    """The constructor limits BLAS and the rasterizer's threads first; if a later step raises, both come back."""
+    from threadpoolctl import threadpool_info
+
+    from acesplat.core.bundle import load_bundle
+    from acesplat.core.raster import get_num_threads
+    from edge.refine.bundle_models import bundle_gaussians
+    from edge.refine.session import RefineOptions, RefineSession
+    from edge.runtime import EdgeLocalizer
+
+    def blas_threads() -> dict[str, int]:
+        return {p["filepath"]: p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"}
+
+    class BrokenSeeder:
+        needs_features = False
+
+        def __call__(self, *args, **kwargs):
+            raise AssertionError("not reached")
+
+        def time_once(self, fn) -> float:
+            raise RuntimeError("initializer failed to load")
+
+    before_blas, before_raster = blas_threads(), get_num_threads()
+    b = load_bundle(bundle_with_gaussians)
+    loc = EdgeLocalizer(b, "fp32", 1)
+    opts = RefineOptions(budget_ms=100.0, raster_threads=1)
+    with pytest.raises(RuntimeError, match="initializer failed"):
+        RefineSession(loc, bundle_gaussians(b), opts, seeder=BrokenSeeder())
+    after = blas_threads()
+    assert {k: after[k] for k in before_blas} == before_blas and get_num_threads() == before_raster

@@ -143,14 +143,20 @@ class RefineSession:
         # BLAS on one thread while refining: OpenBLAS's workers busy-wait after each call, so the worker's numpy
         # work left them spinning on both cores into the next localization (demo workdir, 200 ms, two inference
         # threads: localization p95 1.6-1.9x without refinement's; with BLAS on one thread 0.94-1.07x).
-        self._blas_limit = threadpool_limits(limits=1, user_api="blas")
-        self.refiner = Refiner(self.initial.copy(), opts.config, seeder=seeder, clock=clock)
-        h, w = getattr(localizer, "input_size", (3 * opts.max_side // 4, opts.max_side))
-        k_in = Intrinsics.from_focal(float(w), int(w), int(h))
-        self.calibration_ms = self.refiner.warm_up(refine_intrinsics(k_in, opts.max_side), k_in)
-        timing = getattr(seeder, "time_once", None)
-        if timing is not None:  # measure the ONNX initializer (adapter + head) before it competes for a deadline
-            self.calibration_ms["initializer_ms"] = 1000.0 * timing(self.refiner.seed_cost)
+        self._blas_limits = [threadpool_limits(limits=1, user_api="blas")]
+        try:
+            self.refiner = Refiner(self.initial.copy(), opts.config, seeder=seeder, clock=clock)
+            h, w = getattr(localizer, "input_size", (3 * opts.max_side // 4, opts.max_side))
+            k_in = Intrinsics.from_focal(float(w), int(w), int(h))
+            self.calibration_ms = self.refiner.warm_up(refine_intrinsics(k_in, opts.max_side), k_in)
+            # Compiling the kernels can load another BLAS (numba's, through scipy) after the first limit: hold it too.
+            self._blas_limits.append(threadpool_limits(limits=1, user_api="blas"))
+            timing = getattr(seeder, "time_once", None)
+            if timing is not None:  # measure the ONNX initializer (adapter + head) before it competes for a deadline
+                self.calibration_ms["initializer_ms"] = 1000.0 * timing(self.refiner.seed_cost)
+        except BaseException:  # a session that never started must not leave the process on one BLAS thread
+            self._restore_thread_limits()
+            raise
         self.saver = SplatSaver(opts.save_path, opts.save_every_s) if opts.save_path else None
         # Paced: the worker never runs beside localization (parked), so it need not yield the CPU to it.
         self.worker = RefineWorker(self.refiner, KeyframeSelector(opts.policy), self.saver, clock,
@@ -221,17 +227,21 @@ class RefineSession:
             self.wait_ms.append(1000.0 * (self.clock() - t0))
         self.counts_over_time.append((self.frames, self.refiner.count()))
 
+    def _restore_thread_limits(self) -> None:
+        if self._raster_threads_before is not None:
+            from acesplat.core.raster import set_num_threads
+
+            set_num_threads(self._raster_threads_before)
+        for limit in reversed(self._blas_limits):
+            limit.restore_original_limits()
+
     def close(self) -> dict:
         """Stop the worker (saving the map if asked) and return the ``refine`` report."""
         if self._closed:
             return self.summary or {}
         self._closed = True
         self.worker.close()
-        if self._raster_threads_before is not None:
-            from acesplat.core.raster import set_num_threads
-
-            set_num_threads(self._raster_threads_before)
-        self._blas_limit.restore_original_limits()
+        self._restore_thread_limits()
         ws = self.worker.stats
         reps = ws.reports
         steps_ms = [ms for r in reps for ms in r.step_ms]
