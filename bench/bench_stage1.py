@@ -6,12 +6,14 @@ process, one scene after the other, and prints one table plus the machine it ran
     python bench/bench_stage1.py [--herz-minutes 10] [--synth-minutes 4.5] [--out runs/bench_stage1]
     python bench/bench_stage1.py --skip-herz --iterations 1000 --buffer 300000 --threads 1   # fixed work, not time
     python bench/bench_stage1.py --augment photometric,ace   # each scene mapped once per augmentation preset
+    python bench/bench_stage1.py --skip-synth --seeds 0,1,2   # one recipe, several seeds: the spread between runs
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import time
 from pathlib import Path
 
@@ -31,13 +33,13 @@ HERZ = ROOT.parent / "shared" / "data" / "herzjesu25"
 
 def run(scene: Path, minutes: float, triangulate: bool, encoder_path: Path | None,
         iterations: int | None = None, buffer_size: int | None = None, map_out: Path | None = None,
-        precision: str = "auto", augment: str = AUGMENT) -> dict:
+        precision: str = "auto", augment: str = AUGMENT, seed: int = 0) -> dict:
     enc, ident = load_encoder(encoder_path)
     train, test = read_split(scene, "train"), read_split(scene, "test")
     f0 = train.frames[0].intrinsics
     side = min(IMAGE_SHORT_SIDE, f0.width, f0.height)
     cfg = MappingConfig(minutes=minutes, short_side=side, triangulate=triangulate, iterations=iterations,
-                        precision=precision, augment=augment)
+                        precision=precision, augment=augment, seed=seed)
     if buffer_size:
         cfg.buffer_size = buffer_size
     res = map_scene(train, enc, cfg)
@@ -49,7 +51,7 @@ def run(scene: Path, minutes: float, triangulate: bool, encoder_path: Path | Non
                                                                      "augment": augment}))
 
     loc = Localizer(SCRNetwork(enc, res.head).eval(), side, {})
-    out = {"scene": scene.name, "triangulate": triangulate, "augment": augment, "map_seconds": res.seconds, "iterations": res.iterations,
+    out = {"scene": scene.name, "triangulate": triangulate, "augment": augment, "seed": seed, "map_seconds": res.seconds, "iterations": res.iterations,
            "buffer_features": res.buffer_features, "target_features": res.target_features}
     for split in (test, train):
         ev = evaluate(split, loc)
@@ -72,6 +74,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=0, help="Torch threads (0 = all cores).")
     ap.add_argument("--precision", default="auto", help="Mapping arithmetic (buffer encoder pass and head): auto, fp32 or bf16.")
     ap.add_argument("--augment", default=AUGMENT, help="Comma-separated augmentation presets to map each scene with.")
+    ap.add_argument("--seeds", default="0", help="Comma-separated mapping seeds; each scene and preset is mapped once per seed.")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -86,26 +89,38 @@ def main() -> None:
     if not args.skip_herz and HERZ.is_dir():
         scenes.append((HERZ, args.herz_minutes))
     presets = args.augment.split(",")
+    seeds = [int(s) for s in args.seeds.split(",")]
     for scene, minutes in scenes:
-        for tri, aug in [(t, a) for t in ([True, False] if args.ablate_triangulation else [True]) for a in presets]:
+        for tri, aug, seed in [(t, a, s) for t in ([True, False] if args.ablate_triangulation else [True]) for a in presets
+                               for s in seeds]:
             t0 = time.monotonic()
-            suffix = ("" if tri else ".notri") + ("" if aug == AUGMENT else f".{aug}")
+            suffix = ("" if tri else ".notri") + ("" if aug == AUGMENT else f".{aug}") + (f".seed{seed}" if seed else "")
             map_out = args.out / f"{scene.name}{suffix}.map.pt"
-            r = run(scene, minutes, tri, args.encoder, args.iterations, args.buffer, map_out, args.precision, aug)
+            r = run(scene, minutes, tri, args.encoder, args.iterations, args.buffer, map_out, args.precision, aug, seed)
             r["wall_seconds"] = time.monotonic() - t0
             rows.append(r)
             print(json.dumps({k: v for k, v in r.items() if k not in ("test", "train")}))
     print(f"\nmachine: {machine_line()}")
-    hdr = f"{'scene':12s} {'tri':>4s} {'augment':>11s} {'map s':>6s} {'split':>5s} {'loc':>6s} {'med cm':>8s} {'med deg':>8s} {'5cm5d':>6s} {'10cm5d':>7s} {'25cm2d':>7s} {'ms':>6s}"
+    hdr = f"{'scene':12s} {'tri':>4s} {'augment':>11s} {'seed':>4s} {'map s':>6s} {'split':>5s} {'loc':>6s} {'med cm':>8s} {'med deg':>8s} {'5cm5d':>6s} {'10cm5d':>7s} {'25cm2d':>7s} {'ms':>6s}"
     print(hdr)
     for r in rows:
         for split in ("test", "train"):
             e = r[split]
             mt = "-" if e["median_translation_m"] is None else f"{100 * e['median_translation_m']:.2f}"
             mr = "-" if e["median_rotation_deg"] is None else f"{e['median_rotation_deg']:.3f}"
-            print(f"{r['scene']:12s} {str(r['triangulate'])[0]:>4s} {r['augment']:>11s} {r['map_seconds']:6.0f} {split:>5s} "
+            print(f"{r['scene']:12s} {str(r['triangulate'])[0]:>4s} {r['augment']:>11s} {r['seed']:>4d} {r['map_seconds']:6.0f} {split:>5s} "
                   f"{e['localized']:>3d}/{e['frames']:<3d}{mt:>8s} {mr:>8s} {e['recall_5cm_5deg']:6.1f} "
                   f"{e['recall_10cm_5deg']:7.1f} {e['recall_25cm_2deg']:7.1f} {e['mean_ms']:6.0f}")
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["scene"], r["triangulate"], r["augment"]), []).append(r)
+    for (name, tri, aug), rs in groups.items():
+        if len(rs) > 1:  # the same recipe under other seeds: how far one run's median is from the next
+            meds = [r["test"]["median_translation_m"] for r in rs]
+            cm = sorted(100 * m for m in meds if m is not None)
+            spread = (", ".join(f"{c:.2f}" for c in cm) + f" cm (median {statistics.median(cm):.2f})") if cm else "none"
+            print(f"{name} {aug}{'' if tri else ' no-tri'}: test median translation over {len(rs)} seeds: {spread}"
+                  + (f", {len(rs) - len(cm)} with no median" if len(cm) < len(rs) else ""))
     write_json(args.out / "results.json", {"machine": machine_info(), "rows": rows})
 
 
