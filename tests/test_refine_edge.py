@@ -334,17 +334,19 @@ def test_wait_parked_returns_only_after_the_running_piece_and_no_piece_starts_un
     assert any(t > parked + 0.1 for _, t in events)
 
 
+def blas_threads() -> dict[str, int]:
+    """Threads of each loaded BLAS library, by file (a library can load mid-test)."""
+    from threadpoolctl import threadpool_info
+
+    return {p["filepath"]: p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"}
+
+
 def test_refinement_runs_blas_on_one_thread_and_restores_it(bundle_with_gaussians) -> None:
     """OpenBLAS workers busy-wait after a call: left multi-threaded, the worker's numpy work kept both cores
     spinning into the next localization. A session holds BLAS to one thread and gives the setting back."""
-    from threadpoolctl import threadpool_info
-
     from acesplat.core.bundle import load_bundle
     from edge.refine.cli_hooks import refine_session
     from edge.runtime import EdgeLocalizer
-
-    def blas_threads() -> dict[str, int]:
-        return {p["filepath"]: p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"}
 
     before = blas_threads()
     b = load_bundle(bundle_with_gaussians)
@@ -361,16 +363,11 @@ def test_refinement_runs_blas_on_one_thread_and_restores_it(bundle_with_gaussian
 
 def test_a_session_that_fails_to_start_gives_the_thread_settings_back(bundle_with_gaussians) -> None:
     """The constructor limits BLAS and the rasterizer's threads first; if a later step raises, both come back."""
-    from threadpoolctl import threadpool_info
-
     from acesplat.core.bundle import load_bundle
     from acesplat.core.raster import get_num_threads
     from edge.refine.bundle_models import bundle_gaussians
     from edge.refine.session import RefineOptions, RefineSession
     from edge.runtime import EdgeLocalizer
-
-    def blas_threads() -> dict[str, int]:
-        return {p["filepath"]: p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"}
 
     class BrokenSeeder:
         needs_features = False
