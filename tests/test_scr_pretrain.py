@@ -25,4 +25,8 @@ def test_pretraining_resumes_and_records_each_session(tmp_path) -> None:
     ]
     ck = torch.load(tmp_path / "checkpoint.pt", map_location="cpu", weights_only=True)
     assert ck["step"] == 5 and len(ck["sessions"]) == 2
+    third = pretrain(tmp_path, cfg, minutes=2.0, command="third --install")  # finished: trains nothing
+    assert third["step"] == 5 and third["sessions"] == sessions
+    ck = torch.load(tmp_path / "checkpoint.pt", map_location="cpu", weights_only=True)
+    assert len(ck["sessions"]) == 2
     assert (tmp_path / "encoder.pt").is_file()

@@ -195,7 +195,7 @@ def pretrain(
 ) -> dict:
     """Run (or resume) pretraining for at most ``minutes``; returns a summary. Writes encoder.pt when done.
 
-    Each call appends its ``command``, steps and seconds to the checkpoint's ``sessions``: a run that spans
+    Each call that trains appends its ``command``, steps and seconds to the checkpoint's ``sessions``: a run that spans
     several sessions keeps its whole provenance (the schedule follows the ``steps`` of each call).
     """
     out = Path(out_dir)
@@ -264,6 +264,8 @@ def pretrain(
         if time.monotonic() - last_ckpt > CHECKPOINT_EVERY_S:
             save_checkpoint()
             last_ckpt = time.monotonic()
+    if step == this_session["start_step"]:  # nothing trained (a finished run rerun, e.g. to --install): no entry
+        sessions.remove(this_session)
     save_checkpoint()
     finished = step >= cfg.steps
     total_s = elapsed_before + time.monotonic() - t_train
