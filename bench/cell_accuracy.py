@@ -17,8 +17,9 @@ import numpy as np
 import torch
 
 from acesplat.core.atomic import write_json
-from acesplat.core.geometry import invert_pose, pose_error, transform_points
+from acesplat.core.geometry import invert_pose, pose_error
 from acesplat.core.pnp import cell_centers, solve_from_grid
+from acesplat.core.pose_refine import reprojection
 from acesplat.core.scene import read_split
 from acesplat.scr.localize import Localizer
 from acesplat.scr.mapfile import encoder_for_map, load_map
@@ -30,11 +31,8 @@ def cell_errors(coords: np.ndarray, T_c2w: np.ndarray, intr) -> np.ndarray:
     """Pixel distance (h * w,) between each cell centre and its predicted coordinate (h, w, 3) projected with the
     true pose; inf behind the camera."""
     h, w, _ = coords.shape
-    Xc = transform_points(invert_pose(T_c2w), coords.reshape(-1, 3).astype(np.float64))
-    err = np.full(len(Xc), np.inf)
-    front = Xc[:, 2] > 1e-6
-    err[front] = np.linalg.norm(intr.project(Xc[front]) - cell_centers(h, w)[front], axis=1)
-    return err
+    w2c = invert_pose(T_c2w)
+    return reprojection(coords.reshape(-1, 3).astype(np.float64), cell_centers(h, w), intr.K, w2c[:3, :3], w2c[:3, 3])[2]
 
 
 def main() -> None:
