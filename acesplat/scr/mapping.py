@@ -52,8 +52,9 @@ AUGMENT = "photometric"
 by 2/3..3/2 and rotates by up to 15 degrees; this project's small encoder is not invariant to that, so the head
 spent its few CPU steps learning features the camera never produces: at fixed head steps on the built-in
 room 96.7% of test frames within 5 cm / 5 deg without it, 81.7% with half the ranges, 73.3% with ACE's; at
-the wall-clock budgets the room 95.0% vs 71.7% and herzjesu25's median 5.7 vs 8.3 cm (bench/augment_choice.md). ``acesplat map --augment ace`` keeps ACE's ranges for query
-views much nearer, farther or more tilted than the mapping views."""
+the wall-clock budgets the room 95.0% vs 71.7% and herzjesu25's median 5.7 vs 8.3 cm (bench/augment_choice.md).
+``acesplat map --augment ace`` keeps ACE's ranges for query views much nearer, farther or more tilted than the
+mapping views."""
 TARGETS_TIME_FRACTION = 0.08
 """At most this share of the budget goes to matching and triangulating targets."""
 BUFFER_TIME_FRACTION = 0.25
