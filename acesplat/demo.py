@@ -55,15 +55,14 @@ def _stage_map(scene: Path, work: Path, minutes: float, summary: dict) -> Path:
     from acesplat.scr.encoders import load_encoder
     from acesplat.scr.localize import Localizer, evaluate
     from acesplat.scr.mapfile import SceneMap, save_map
-    from acesplat.scr.mapping import IMAGE_SHORT_SIDE, MappingConfig, map_scene
+    from acesplat.scr.mapping import MappingConfig, default_short_side, map_scene
 
     from .scr.cli_cmds import resolve_device
 
     dev = resolve_device("auto")
     train, test = read_split(scene, "train"), read_split(scene, "test")
     enc, ident = load_encoder(None)
-    f0 = train.frames[0].intrinsics
-    side = min(IMAGE_SHORT_SIDE, f0.width, f0.height)
+    side = default_short_side(train)
     cfg = MappingConfig(minutes=minutes, short_side=side, device=dev)
     with PhaseProgress("demo map ") as bar:
         res = map_scene(train, enc, cfg, bar)

@@ -62,12 +62,11 @@ def get_map(name: str, scene: Path, given: str | None, out: Path, minutes: float
         return path
     from acesplat.scr.encoders import load_encoder
     from acesplat.scr.mapfile import SceneMap, save_map
-    from acesplat.scr.mapping import IMAGE_SHORT_SIDE, MappingConfig, map_scene
+    from acesplat.scr.mapping import MappingConfig, default_short_side, map_scene
 
     train = read_split(scene, "train")
     enc, ident = load_encoder(encoder)
-    k = train.frames[0].intrinsics
-    side = min(IMAGE_SHORT_SIDE, k.width, k.height)
+    side = default_short_side(train)
     t0 = time.monotonic()
     res = map_scene(train, enc, MappingConfig(minutes=minutes, short_side=side))
     save_map(path, SceneMap(res.head, ident, res.mean, side, {"scene": str(scene), "seconds": res.seconds}))

@@ -24,7 +24,7 @@ from acesplat.core.machine import machine_info, machine_line
 from acesplat.core.scene import read_split
 from acesplat.scr.encoders import load_encoder
 from acesplat.scr.localize import Localizer, evaluate
-from acesplat.scr.mapping import AUGMENT, IMAGE_SHORT_SIDE, MAP_MINUTES, MappingConfig, map_scene
+from acesplat.scr.mapping import AUGMENT, MAP_MINUTES, MappingConfig, default_short_side, map_scene
 from acesplat.synth import synthesize
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -36,8 +36,7 @@ def run(scene: Path, minutes: float, triangulate: bool, encoder_path: Path | Non
         precision: str = "auto", augment: str = AUGMENT, seed: int = 0) -> dict:
     enc, ident = load_encoder(encoder_path)
     train, test = read_split(scene, "train"), read_split(scene, "test")
-    f0 = train.frames[0].intrinsics
-    side = min(IMAGE_SHORT_SIDE, f0.width, f0.height)
+    side = default_short_side(train)
     cfg = MappingConfig(minutes=minutes, short_side=side, triangulate=triangulate, iterations=iterations,
                         precision=precision, augment=augment, seed=seed)
     if buffer_size:

@@ -57,7 +57,7 @@ def map_command(
     from .encoders import load_encoder
     from .mapfile import SceneMap, save_map
     from .augment import augment_ranges
-    from .mapping import AUGMENT, IMAGE_SHORT_SIDE, MAP_MINUTES, MappingConfig, map_scene, use_bf16
+    from .mapping import AUGMENT, MAP_MINUTES, MappingConfig, default_short_side, map_scene, use_bf16
     from .network import HeadConfig
 
     minutes = MAP_MINUTES if minutes is None else minutes
@@ -77,8 +77,7 @@ def map_command(
         torch.set_num_threads(max(1, torch.get_num_threads()))
     split = read_split(scene, "train")
     enc, ident = load_encoder(encoder)
-    first = split.frames[0].intrinsics
-    side = short_side or min(IMAGE_SHORT_SIDE, first.width, first.height)
+    side = short_side or default_short_side(split)
     cfg = MappingConfig(minutes=minutes, short_side=side, head=HeadConfig(width=head_width, blocks=1), seed=seed, device=dev,
                         precision=precision, augment=augment)
     with PhaseProgress("map ") as bar:

@@ -71,6 +71,12 @@ TARGET_CLAMP_M = 2.0
 """Target distances beyond this (metres) stop growing the loss, so a wrong match cannot dominate."""
 
 
+def default_short_side(split: SceneSplit) -> int:
+    """IMAGE_SHORT_SIDE, or the images' own shorter side when they are smaller (never upsample to map)."""
+    first = split.frames[0].intrinsics
+    return min(IMAGE_SHORT_SIDE, first.width, first.height)
+
+
 @dataclass
 class MappingConfig:
     minutes: float = MAP_MINUTES
