@@ -7,6 +7,9 @@ process, one scene after the other, and prints one table plus the machine it ran
     python bench/bench_stage1.py --skip-herz --iterations 1000 --buffer 300000 --threads 1   # fixed work, not time
     python bench/bench_stage1.py --augment photometric,ace   # each scene mapped once per augmentation preset
     python bench/bench_stage1.py --skip-synth --seeds 0,1,2   # one recipe, several seeds: the spread between runs
+
+The test split is localized twice: as `acesplat eval` does by default (a prediction every 8th pixel) and as
+`acesplat eval --dense` does (every 4th pixel, row "dense").
 """
 
 from __future__ import annotations
@@ -15,12 +18,14 @@ import argparse
 import json
 import statistics
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import torch
 
 from acesplat.core.atomic import write_json
 from acesplat.core.machine import machine_info, machine_line
+from acesplat.core.pnp import DENSE_OUTPUT_STRIDE
 from acesplat.core.scene import read_split
 from acesplat.scr.encoders import load_encoder
 from acesplat.scr.localize import Localizer, evaluate
@@ -52,10 +57,11 @@ def run(scene: Path, minutes: float, triangulate: bool, encoder_path: Path | Non
     loc = Localizer(SCRNetwork(enc, res.head).eval(), side, {})
     out = {"scene": scene.name, "triangulate": triangulate, "augment": augment, "seed": seed, "map_seconds": res.seconds, "iterations": res.iterations,
            "buffer_features": res.buffer_features, "target_features": res.target_features}
-    for split in (test, train):
-        ev = evaluate(split, loc)
+    for key, split, localizer in (("test", test, loc), ("dense", test, replace(loc, output_stride=DENSE_OUTPUT_STRIDE)),
+                                  ("train", train, loc)):
+        ev = evaluate(split, localizer)
         ev.pop("estimates")
-        out[split.split] = ev
+        out[key] = ev
     return out
 
 
@@ -98,12 +104,12 @@ def main() -> None:
             r = run(scene, minutes, tri, args.encoder, args.iterations, args.buffer, map_out, args.precision, aug, seed)
             r["wall_seconds"] = time.monotonic() - t0
             rows.append(r)
-            print(json.dumps({k: v for k, v in r.items() if k not in ("test", "train")}))
+            print(json.dumps({k: v for k, v in r.items() if k not in ("test", "dense", "train")}))
     print(f"\nmachine: {machine_line()}")
     hdr = f"{'scene':12s} {'tri':>4s} {'augment':>11s} {'seed':>4s} {'map s':>6s} {'split':>5s} {'loc':>6s} {'med cm':>8s} {'med deg':>8s} {'5cm5d':>6s} {'10cm5d':>7s} {'25cm2d':>7s} {'ms':>6s}"
     print(hdr)
     for r in rows:
-        for split in ("test", "train"):
+        for split in ("test", "dense", "train"):
             e = r[split]
             mt = "-" if e["median_translation_m"] is None else f"{100 * e['median_translation_m']:.2f}"
             mr = "-" if e["median_rotation_deg"] is None else f"{e['median_rotation_deg']:.3f}"
@@ -114,11 +120,13 @@ def main() -> None:
     for r in rows:
         groups.setdefault((r["scene"], r["triangulate"], r["augment"]), []).append(r)
     for (name, tri, aug), rs in groups.items():
-        if len(rs) > 1:  # the same recipe under other seeds: how far one run's median is from the next
-            meds = [r["test"]["median_translation_m"] for r in rs]
+        if len(rs) < 2:
+            continue
+        for split in ("test", "dense"):  # the same recipe under other seeds: how far one run's median is from the next
+            meds = [r[split]["median_translation_m"] for r in rs]
             cm = sorted(100 * m for m in meds if m is not None)
             spread = (", ".join(f"{c:.2f}" for c in cm) + f" cm (median {statistics.median(cm):.2f})") if cm else "none"
-            print(f"{name} {aug}{'' if tri else ' no-tri'}: test median translation over {len(rs)} seeds: {spread}"
+            print(f"{name} {aug}{'' if tri else ' no-tri'}: {split} median translation over {len(rs)} seeds: {spread}"
                   + (f", {len(rs) - len(cm)} with no median" if len(cm) < len(rs) else ""))
     write_json(args.out / "results.json", {"machine": machine_info(), "rows": rows})
 

@@ -29,6 +29,14 @@ def test_cell_centres_follow_stride_8() -> None:
     np.testing.assert_array_equal(c, [[4, 4], [12, 4], [20, 4], [4, 12], [12, 12], [20, 12]])
 
 
+def test_dense_cell_centres_interleave_the_stride_8_ones() -> None:
+    dense = cell_centers(4, 6, stride=4)
+    np.testing.assert_array_equal(dense[:3], [[4, 4], [8, 4], [12, 4]])
+    np.testing.assert_array_equal(dense.reshape(4, 6, 2)[::2, ::2].reshape(-1, 2), cell_centers(2, 3))
+    with pytest.raises(ValueError, match="stride"):
+        cell_centers(2, 3, stride=2)
+
+
 @pytest.mark.parametrize("method", PNP_METHODS)
 def test_methods_recover_exact_pose_with_outliers(method: str) -> None:
     coords, T = _grid_scene(np.random.default_rng(1), outliers=0.4)

@@ -87,6 +87,10 @@ def test_tiny_scene_maps_and_localizes_most_test_frames(tmp_path) -> None:
     within = [f for f in s["per_frame"] if f["localized"] and f["translation_m"] < 0.25 and f["rotation_deg"] < 10]
     assert len(within) >= E2E_MIN_WITHIN, s["per_frame"]
     assert s["median_translation_m"] < 0.25
+    # The dense prediction (every 4th pixel) uses the same map and must localize at least as well here.
+    d = evaluate(read_split(scene, "test"), Localizer(SCRNetwork(enc, res.head).eval(), E2E_SIZE[0], {}, output_stride=4))
+    within_dense = [f for f in d["per_frame"] if f["localized"] and f["translation_m"] < 0.25 and f["rotation_deg"] < 10]
+    assert len(within_dense) >= E2E_MIN_WITHIN, d["per_frame"]
 
 
 def test_map_command_rejects_a_bad_precision(tmp_path) -> None:
@@ -165,3 +169,29 @@ def test_buffer_restores_the_encoder_layout_when_the_loop_raises(tiny_scene) -> 
     with pytest.raises(KeyboardInterrupt):
         fill_buffer(images, enc, cfg, time.monotonic() + 60, np.random.default_rng(0), interrupted)
     assert all(p.is_contiguous() for p in enc.parameters())
+
+
+def test_eval_command_dense_reports_its_output_stride(tiny_scene, tmp_path) -> None:
+    import json
+
+    import torch
+    from typer.testing import CliRunner
+
+    from acesplat.cli import app
+    from acesplat.scr.encoders import load_encoder
+    from acesplat.scr.mapfile import SceneMap, save_map
+    from acesplat.scr.network import Encoder, EncoderConfig, Head, HeadConfig
+
+    torch.manual_seed(0)
+    enc_path = tmp_path / "enc.pt"
+    torch.save(Encoder(EncoderConfig(4, 8, 8, 16, 16, 32)).state_dict(), enc_path)
+    _, ident = load_encoder(enc_path)
+    mean = np.mean([f.pose[:3, 3] for f in read_split(tiny_scene, "train").frames], axis=0)
+    save_map(tmp_path / "m.pt", SceneMap(Head(torch.from_numpy(mean).float(), 32, HeadConfig(16, 1)), ident, mean,
+                                         SIZE[0]))
+    for flag, stride in (([], 8), (["--dense"], 4)):
+        out = tmp_path / f"eval{stride}.json"
+        res = CliRunner().invoke(app, ["eval", str(tmp_path / "m.pt"), str(tiny_scene), "--json", str(out), *flag])
+        assert res.exit_code == 0, res.output
+        report = json.loads(out.read_text())
+        assert report["output_stride"] == stride and report["frames"] == 12 and len(report["per_frame"]) == 12

@@ -20,6 +20,25 @@ def test_output_stride_and_shape() -> None:
     assert out.shape == (2, 3, 6, 8)
 
 
+def test_dense_output_holds_the_stride_8_cells_and_those_of_the_half_cell_shifted_image() -> None:
+    torch.manual_seed(0)
+    enc = Encoder(TINY).eval()
+    x = torch.randn(1, 1, 160, 224)
+    with torch.no_grad():
+        sparse, dense, shifted = enc(x), enc(x, output_stride=4), enc(x[:, :, 4:, 4:])
+    assert dense.shape == (1, 32, 40, 56) and sparse.shape == (1, 32, 20, 28)
+    torch.testing.assert_close(dense[:, :, ::2, ::2], sparse, rtol=1e-5, atol=1e-5)
+    # Odd cells are the cells of the image cropped by 4 px, away from the borders whose zero padding differs.
+    m = 6
+    odd = dense[:, :, 1::2, 1::2]
+    torch.testing.assert_close(odd[:, :, m:-m, m:-m], shifted[:, :, m:odd.shape[2] - m, m:odd.shape[3] - m],
+                               rtol=1e-5, atol=1e-5)
+    net = SCRNetwork(enc, Head(torch.zeros(3), 32, HeadConfig(16, 1))).eval()
+    assert net(torch.zeros(1, 1, 48, 64), output_stride=4).shape == (1, 3, 12, 16)
+    with pytest.raises(ValueError, match="output_stride"):
+        enc(x, output_stride=2)
+
+
 def test_homogeneous_output_divides_by_softplus_scale_and_adds_mean() -> None:
     mean = torch.tensor([1.0, -2.0, 3.0])
     head = Head(mean, 32, HeadConfig(16, 0, homogeneous=True))

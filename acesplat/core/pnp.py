@@ -16,6 +16,9 @@ from .pose_refine import ROBUST_SCALES, refine_pose_robust, reprojection
 
 OUTPUT_STRIDE = 8
 """SCR predictions are made for every 8th pixel; cell (i, j) belongs to pixel (8 j + 4, 8 i + 4)."""
+DENSE_OUTPUT_STRIDE = 4
+"""A dense prediction (half the cell spacing) has cell (i, j) at pixel (4 j + 4, 4 i + 4): its even cells are the
+stride-8 cells, its odd ones those of the image shifted by half a cell."""
 
 PNP_METHODS = ("usac_magsac", "usac_default", "usac_accurate", "ransac_p3p", "ransac_ap3p", "ransac_sqpnp", "ransac_epnp")
 DEFAULT_METHOD = "ransac_ap3p"
@@ -47,9 +50,13 @@ class PnPResult:
 
 
 def cell_centers(grid_h: int, grid_w: int, stride: int = OUTPUT_STRIDE) -> np.ndarray:
-    """Pixel coordinates (grid_h * grid_w, 2) of the centres of the prediction cells, row-major."""
+    """Pixel coordinates (grid_h * grid_w, 2) of the prediction cells, row-major, for a grid spaced ``stride``
+    pixels apart (OUTPUT_STRIDE or DENSE_OUTPUT_STRIDE): cell k at stride * k + OUTPUT_STRIDE / 2."""
+    if stride not in (OUTPUT_STRIDE, DENSE_OUTPUT_STRIDE):
+        raise ValueError(f"stride must be {OUTPUT_STRIDE} or {DENSE_OUTPUT_STRIDE}, got {stride}")
     ys, xs = np.mgrid[0:grid_h, 0:grid_w]
-    return np.stack([xs.ravel() * stride + stride / 2.0, ys.ravel() * stride + stride / 2.0], axis=1).astype(np.float64)
+    half = OUTPUT_STRIDE / 2.0
+    return np.stack([xs.ravel() * stride + half, ys.ravel() * stride + half], axis=1).astype(np.float64)
 
 
 def _usac_params(method: str, threshold: float, iterations: int, confidence: float) -> "cv2.UsacParams":

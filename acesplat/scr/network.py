@@ -15,7 +15,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-OUTPUT_STRIDE = 8
+from acesplat.core.pnp import DENSE_OUTPUT_STRIDE, OUTPUT_STRIDE
+
 GRAY_MEAN = 0.4
 GRAY_STD = 0.25
 """ACE's grayscale normalisation (torchvision Normalize(mean=0.4, std=0.25) on [0, 1] intensities)."""
@@ -89,20 +90,37 @@ class Encoder(nn.Module):
                 nn.init.kaiming_normal_(m.weight, nonlinearity="relu")
                 nn.init.zeros_(m.bias)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """(B, 1, H, W) normalised grayscale -> (B, out, H/8, W/8) features."""
+    def forward(self, x: torch.Tensor, output_stride: int = OUTPUT_STRIDE) -> torch.Tensor:
+        """(B, 1, H, W) normalised grayscale -> (B, out, H/s, W/s) features, s = ``output_stride`` (8 or 4).
+
+        At 4 the same weights run the last stage densely (conv4 without its stride, the 3x3 layers after it
+        dilated by 2: "a trous"), which gives the features of the image shifted by half a cell in x, y and
+        both in one pass: four times the cells at about four times the cost. Cell k of the dense grid is
+        the pixel 4 k + 4, so its even cells are the stride-8 cells (8 j + 4).
+        """
+        if output_stride not in (OUTPUT_STRIDE, DENSE_OUTPUT_STRIDE):
+            raise ValueError(f"output_stride must be {OUTPUT_STRIDE} or {DENSE_OUTPUT_STRIDE}, got {output_stride}")
+        d = OUTPUT_STRIDE // output_stride
+
+        def conv(m: nn.Conv2d, x: torch.Tensor) -> torch.Tensor:
+            """A layer after conv4: as built at stride 8, dilated by d at stride 4."""
+            if d == 1:
+                return m(x)
+            k = m.kernel_size[0]
+            return F.conv2d(x, m.weight, m.bias, padding=d * (k // 2), dilation=d)
+
         x = F.relu(self.conv1(x))
         x = F.relu(self.conv2(x))
         x = F.relu(self.conv3(x))
-        res = F.relu(self.conv4(x))
-        x = F.relu(self.res1_conv1(res))
-        x = F.relu(self.res1_conv2(x))
-        x = F.relu(self.res1_conv3(x))
+        res = F.relu(self.conv4(x) if d == 1 else F.conv2d(x, self.conv4.weight, self.conv4.bias, padding=1))
+        x = F.relu(conv(self.res1_conv1, res))
+        x = F.relu(conv(self.res1_conv2, x))
+        x = F.relu(conv(self.res1_conv3, x))
         res = res + x
-        x = F.relu(self.res2_conv1(res))
-        x = F.relu(self.res2_conv2(x))
-        x = F.relu(self.res2_conv3(x))
-        return self.res2_skip(res) + x
+        x = F.relu(conv(self.res2_conv1, res))
+        x = F.relu(conv(self.res2_conv2, x))
+        x = F.relu(conv(self.res2_conv3, x))
+        return conv(self.res2_skip, res) + x
 
     @classmethod
     def from_state_dict(cls, sd: dict[str, torch.Tensor]) -> "Encoder":
@@ -208,8 +226,9 @@ class SCRNetwork(nn.Module):
         self.encoder = encoder
         self.head = head
 
-    def forward(self, gray: torch.Tensor) -> torch.Tensor:
-        return self.head(self.encoder(normalize_gray(gray)))
+    def forward(self, gray: torch.Tensor, output_stride: int = OUTPUT_STRIDE) -> torch.Tensor:
+        """(B, 1, H, W) -> (B, 3, H/s, W/s) scene coordinates; ``output_stride`` as in Encoder.forward."""
+        return self.head(self.encoder(normalize_gray(gray), output_stride))
 
 
 def count_macs(encoder_cfg: EncoderConfig, head_cfg: HeadConfig, height: int, width: int) -> dict[str, float]:
