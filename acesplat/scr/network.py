@@ -112,7 +112,10 @@ class Encoder(nn.Module):
         x = F.relu(self.conv1(x))
         x = F.relu(self.conv2(x))
         x = F.relu(self.conv3(x))
-        res = F.relu(self.conv4(x) if d == 1 else F.conv2d(x, self.conv4.weight, self.conv4.bias, padding=1))
+        if d == 1:
+            res = F.relu(self.conv4(x))
+        else:  # conv4 without its stride: the grid stays at stride 4
+            res = F.relu(F.conv2d(x, self.conv4.weight, self.conv4.bias, padding=self.conv4.padding))
         x = F.relu(conv(self.res1_conv1, res))
         x = F.relu(conv(self.res1_conv2, x))
         x = F.relu(conv(self.res1_conv3, x))

@@ -16,9 +16,10 @@ from scipy.ndimage import distance_transform_edt
 
 from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import invert_pose
+from acesplat.core.pnp import OUTPUT_STRIDE
 
-STRIDE = 8
-"""SCR output stride (acesplat.scr.network.OUTPUT_STRIDE; repeated so this module needs no torch)."""
+STRIDE = OUTPUT_STRIDE
+"""Stage 2 lifts the SCR's stride-8 cells (never the dense grid of `acesplat eval --dense`)."""
 MIN_VALID_WEIGHT = 0.5
 """A pixel needs valid cells to carry at least this share of its bilinear interpolation weight."""
 
