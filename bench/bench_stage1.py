@@ -38,10 +38,10 @@ HERZ = ROOT.parent / "shared" / "data" / "herzjesu25"
 
 def run(scene: Path, minutes: float, triangulate: bool, encoder_path: Path | None,
         iterations: int | None = None, buffer_size: int | None = None, map_out: Path | None = None,
-        precision: str = "auto", augment: str = AUGMENT, seed: int = 0) -> dict:
+        precision: str = "auto", augment: str = AUGMENT, seed: int = 0, short_side: int | None = None) -> dict:
     enc, ident = load_encoder(encoder_path)
     train, test = read_split(scene, "train"), read_split(scene, "test")
-    side = default_short_side(train)
+    side = short_side or default_short_side(train)
     cfg = MappingConfig(minutes=minutes, short_side=side, triangulate=triangulate, iterations=iterations,
                         precision=precision, augment=augment, seed=seed)
     if buffer_size:
@@ -80,6 +80,7 @@ def main() -> None:
     ap.add_argument("--precision", default="auto", help="Mapping arithmetic (buffer encoder pass and head): auto, fp32 or bf16.")
     ap.add_argument("--augment", default=AUGMENT, help="Comma-separated augmentation presets to map each scene with.")
     ap.add_argument("--seeds", default="0", help="Comma-separated mapping seeds; each scene and preset is mapped once per seed.")
+    ap.add_argument("--short-side", type=int, default=None, help="Mapping and localization resolution (default: the map command's).")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -101,7 +102,8 @@ def main() -> None:
             t0 = time.monotonic()
             suffix = ("" if tri else ".notri") + ("" if aug == AUGMENT else f".{aug}") + (f".seed{seed}" if seed else "")
             map_out = args.out / f"{scene.name}{suffix}.map.pt"
-            r = run(scene, minutes, tri, args.encoder, args.iterations, args.buffer, map_out, args.precision, aug, seed)
+            r = run(scene, minutes, tri, args.encoder, args.iterations, args.buffer, map_out, args.precision, aug, seed,
+                    args.short_side)
             r["wall_seconds"] = time.monotonic() - t0
             rows.append(r)
             print(json.dumps({k: v for k, v in r.items() if k not in ("test", "dense", "train")}))

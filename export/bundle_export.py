@@ -22,7 +22,7 @@ from acesplat.core.bundle import (
 )
 from acesplat.core.camera import Intrinsics
 from acesplat.core.errors import InputError
-from acesplat.core.pnp import OUTPUT_STRIDE
+from acesplat.core.pnp import DENSE_OUTPUT_STRIDE, OUTPUT_STRIDE
 from acesplat.core.preprocess import size_for_short_side
 from acesplat.core.scene import IMAGE_SUFFIXES, SceneSplit, image_size, read_split
 from acesplat.scr.mapfile import encoder_for_map, load_map
@@ -48,6 +48,8 @@ class ExportOptions:
     encoder_path: Path | None = None
     scene_path: Path | None = None
     calibration_frames: int = CALIBRATION_FRAMES
+    dense: bool = False
+    """Coordinates every 4th pixel (acesplat eval --dense): more accurate poses at about 3.5x the SCR time."""
 
 
 @dataclass
@@ -122,6 +124,7 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
         size = (h, w)
     else:
         size = default_size(scene, m.short_side, map_path)
+    stride = DENSE_OUTPUT_STRIDE if opts.dense else OUTPUT_STRIDE
     train = _try_split(scene, "train")
     test = _try_split(scene, "test")
     if opts.int8 and train is None:
@@ -138,7 +141,7 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
         t0 = time.monotonic()
         if progress:
             progress("export fp32", 0.0, {})
-        export_scr_onnx(net, size, tmp / FP32_FILE)
+        export_scr_onnx(net, size, tmp / FP32_FILE, stride)
         timings["export_fp32_s"] = time.monotonic() - t0
         if progress:
             progress("export fp32", 1.0, {})
@@ -147,12 +150,12 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
         parity_src = test or train
         if parity_src is not None:
             parity_frames = prepare_frames(evenly(parity_src.frames, PARITY_FRAMES), size)
-            checks["fp32_vs_torch"] = fp32_parity(net, tmp / FP32_FILE, parity_frames, progress)
+            checks["fp32_vs_torch"] = fp32_parity(net, tmp / FP32_FILE, parity_frames, progress, stride)
         else:
             rng = np.random.default_rng(0)
             noise = [CheckFrame(f"noise{i}", rng.integers(0, 256, size, dtype=np.uint8),
                                 Intrinsics.from_focal(max(size), size[1], size[0]), np.eye(4)) for i in range(2)]
-            checks["fp32_vs_torch"] = fp32_parity(net, tmp / FP32_FILE, noise, progress)
+            checks["fp32_vs_torch"] = fp32_parity(net, tmp / FP32_FILE, noise, progress, stride)
             checks["fp32_vs_torch"]["note"] = "scene not found: compared on random images"
 
         if opts.int8:
@@ -170,8 +173,8 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
                 t0 = time.monotonic()
                 test_frames = prepare_frames(test.frames, size)
                 acc = {
-                    "fp32": localization_accuracy(tmp / FP32_FILE, test_frames, "fp32", progress),
-                    "int8": localization_accuracy(tmp / INT8_FILE, test_frames, "int8", progress),
+                    "fp32": localization_accuracy(tmp / FP32_FILE, test_frames, "fp32", progress, stride),
+                    "int8": localization_accuracy(tmp / INT8_FILE, test_frames, "int8", progress, stride),
                 }
                 acc["recall_drop_points"] = {
                     k: acc["fp32"][k] - acc["int8"][k]
@@ -190,14 +193,15 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
             "source_map": {"path": str(map_path.resolve()), "sha256": sha256_of(map_path)},
             "scr": {
                 "input_size": [size[0], size[1]],
-                "output_stride": OUTPUT_STRIDE,
-                "output_size": [size[0] // OUTPUT_STRIDE, size[1] // OUTPUT_STRIDE],
+                "output_stride": stride,
+                "output_size": [size[0] // stride, size[1] // stride],
                 "input": {"name": INPUT_NAME, "shape": [1, 1, size[0], size[1]], "dtype": "float32",
                           "content": "grayscale intensities in [0, 255] (uint8 values as float)"},
-                "output": {"name": OUTPUT_NAME, "shape": [1, 3, size[0] // OUTPUT_STRIDE, size[1] // OUTPUT_STRIDE],
-                           "content": "scene coordinates (x, y, z) in scene units per cell; cell (i, j) is pixel (8j+4, 8i+4)"},
+                "output": {"name": OUTPUT_NAME, "shape": [1, 3, size[0] // stride, size[1] // stride],
+                           "content": "scene coordinates (x, y, z) in scene units per cell; "
+                                      f"cell (i, j) is pixel ({stride}j+4, {stride}i+4)"},
                 "features": {"name": FEATURES_NAME,
-                             "shape": [1, net.encoder.cfg.out, size[0] // OUTPUT_STRIDE, size[1] // OUTPUT_STRIDE],
+                             "shape": [1, net.encoder.cfg.out, size[0] // stride, size[1] // stride],
                              "content": "the encoder's features per cell (the head's input; the splat initializer's input)"},
                 "normalization": {"formula": "(x / 255 - mean) / std", "mean": GRAY_MEAN, "std": GRAY_STD,
                                   "inside_graph": True},

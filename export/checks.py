@@ -18,7 +18,7 @@ from acesplat.core.bundle import SCR_COORDS_OUTPUT, SCR_FEATURES_OUTPUT
 from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import pose_error
 from acesplat.core.metrics import FrameResult, accuracy_summary
-from acesplat.core.pnp import solve_from_grid
+from acesplat.core.pnp import OUTPUT_STRIDE, solve_from_grid
 from acesplat.core.preprocess import to_gray_input
 from acesplat.core.scene import Frame
 from acesplat.scr.network import SCRNetwork, normalize_gray
@@ -67,14 +67,14 @@ def onnx_coords(sess: ort.InferenceSession, gray: np.ndarray) -> np.ndarray:
 
 
 @torch.no_grad()
-def torch_coords(net: SCRNetwork, gray: np.ndarray) -> np.ndarray:
-    return net(torch.from_numpy(gray).float()[None, None])[0].permute(1, 2, 0).numpy()
+def torch_coords(net: SCRNetwork, gray: np.ndarray, stride: int = OUTPUT_STRIDE) -> np.ndarray:
+    return net(torch.from_numpy(gray).float()[None, None], stride)[0].permute(1, 2, 0).numpy()
 
 
 @torch.no_grad()
-def torch_features(net: SCRNetwork, gray: np.ndarray) -> np.ndarray:
+def torch_features(net: SCRNetwork, gray: np.ndarray, stride: int = OUTPUT_STRIDE) -> np.ndarray:
     """The encoder's (C, h, w) features for a grayscale (H, W) image."""
-    return net.encoder(normalize_gray(torch.from_numpy(gray).float()[None, None]))[0].numpy()
+    return net.encoder(normalize_gray(torch.from_numpy(gray).float()[None, None]), stride)[0].numpy()
 
 
 def coordinate_extent(coords: Sequence[np.ndarray]) -> float:
@@ -87,7 +87,8 @@ def coordinate_extent(coords: Sequence[np.ndarray]) -> float:
     return float(np.linalg.norm(hi - lo))
 
 
-def fp32_parity(net: SCRNetwork, fp32_path: Path, frames: Sequence[CheckFrame], progress: ProgressFn | None = None) -> dict:
+def fp32_parity(net: SCRNetwork, fp32_path: Path, frames: Sequence[CheckFrame], progress: ProgressFn | None = None,
+                stride: int = OUTPUT_STRIDE) -> dict:
     """Max |ONNX - torch| over the frames' coordinates, as metres and as a fraction of the scene extent; pose
     differences; and the same for the encoder features output (relative to their largest magnitude)."""
     sess = onnx_session(fp32_path)
@@ -96,16 +97,16 @@ def fp32_parity(net: SCRNetwork, fp32_path: Path, frames: Sequence[CheckFrame], 
     refs = []
     dt, dr = [], []
     for i, f in enumerate(frames):
-        a = torch_coords(net, f.gray)
+        a = torch_coords(net, f.gray, stride)
         b, feats = onnx_outputs(sess, f.gray, features=True)
         refs.append(a)
         max_diff = max(max_diff, float(np.abs(a - b).max()))
         if feats is not None:
-            ref_feats = torch_features(net, f.gray)
+            ref_feats = torch_features(net, f.gray, stride)
             has_features = True
             feat_diff = max(feat_diff, float(np.abs(feats - ref_feats).max()))
             feat_scale = max(feat_scale, float(np.abs(ref_feats).max()))
-        pa, pb = solve_from_grid(a, f.intrinsics), solve_from_grid(b, f.intrinsics)
+        pa, pb = solve_from_grid(a, f.intrinsics, stride), solve_from_grid(b, f.intrinsics, stride)
         if pa.T_c2w is not None and pb.T_c2w is not None:
             t, r = pose_error(pb.T_c2w, pa.T_c2w)
             dt.append(t)
@@ -126,13 +127,14 @@ def fp32_parity(net: SCRNetwork, fp32_path: Path, frames: Sequence[CheckFrame], 
     }
 
 
-def localization_accuracy(model_path: Path, frames: Sequence[CheckFrame], label: str, progress: ProgressFn | None = None) -> dict:
+def localization_accuracy(model_path: Path, frames: Sequence[CheckFrame], label: str, progress: ProgressFn | None = None,
+                          stride: int = OUTPUT_STRIDE) -> dict:
     """accuracy_summary (without per-frame rows) of one ONNX model on posed frames."""
     sess = onnx_session(model_path)
     results = []
     for i, f in enumerate(frames):
         t0 = time.perf_counter()
-        res = solve_from_grid(onnx_coords(sess, f.gray), f.intrinsics)
+        res = solve_from_grid(onnx_coords(sess, f.gray), f.intrinsics, stride)
         ms = (time.perf_counter() - t0) * 1000.0
         t_err, r_err = pose_error(res.T_c2w, f.pose) if res.T_c2w is not None else (float("inf"), float("inf"))
         results.append(FrameResult(f.name, res.localized, t_err, r_err, res.inliers, ms))

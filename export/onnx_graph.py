@@ -1,5 +1,5 @@
 """SCR network -> one static-shape ONNX graph: grayscale image (1, 1, H, W) in [0, 255] in; coordinates
-(1, 3, H/8, W/8) and the encoder's features (1, C, H/8, W/8) out.
+(1, 3, H/s, W/s) and the encoder's features (1, C, H/s, W/s) out, s the output stride (8, or 4 for a dense bundle).
 
 Normalisation and the mean offset live inside the network, so the graph needs nothing but pixels. The
 features are the head's input, a second output at no extra compute: the edge's splat initializer takes
@@ -16,6 +16,7 @@ import torch
 
 from acesplat.core.atomic import atomic_path
 from acesplat.core.bundle import SCR_COORDS_OUTPUT, SCR_FEATURES_OUTPUT
+from acesplat.core.pnp import OUTPUT_STRIDE
 from acesplat.scr.network import SCRNetwork, normalize_gray
 
 INPUT_NAME = "gray"
@@ -28,21 +29,24 @@ OPSET = 18
 class ScrWithFeatures(torch.nn.Module):
     """``net`` returning (coordinates, encoder features): the graph the bundle ships."""
 
-    def __init__(self, net: SCRNetwork) -> None:
+    def __init__(self, net: SCRNetwork, output_stride: int = OUTPUT_STRIDE) -> None:
         super().__init__()
         self.net = net
+        self.output_stride = output_stride
 
     def forward(self, gray: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        feats = self.net.encoder(normalize_gray(gray))
+        feats = self.net.encoder(normalize_gray(gray), self.output_stride)
         return self.net.head(feats), feats
 
 
-def export_scr_onnx(net: SCRNetwork, size_hw: tuple[int, int], out_path: str | Path) -> Path:
-    """Write ``net`` at the fixed input size ``size_hw`` (H, W) to ``out_path`` as a single-file ONNX model."""
+def export_scr_onnx(net: SCRNetwork, size_hw: tuple[int, int], out_path: str | Path,
+                    output_stride: int = OUTPUT_STRIDE) -> Path:
+    """Write ``net`` at the fixed input size ``size_hw`` (H, W) and ``output_stride`` to ``out_path`` as a
+    single-file ONNX model."""
     h, w = size_hw
     if h % 8 or w % 8:
         raise ValueError(f"input size must be a multiple of 8 in both sides, got {h}x{w}")
-    model = ScrWithFeatures(net).eval()
+    model = ScrWithFeatures(net, output_stride).eval()
     example = torch.full((1, 1, h, w), 128.0)
     out_path = Path(out_path)
     with atomic_path(out_path) as tmp, warnings.catch_warnings():

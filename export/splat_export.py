@@ -169,6 +169,9 @@ def _check_bundle_takes_features(root: Path, b, splat_dir: Path, sm: dict, init,
     if not isinstance(feats, dict) or "shape" not in feats:
         raise InputError(root / "manifest.json", f"bundle format {b.format_version}: its SCR graph has no features "
                          "output for the initializer; re-export the bundle (acesplat export MAP --splat SPLAT)")
+    if b.output_stride != OUTPUT_STRIDE:
+        raise InputError(root / "manifest.json", f"the bundle's SCR graph predicts every {b.output_stride}th pixel; the "
+                         f"initializer takes stride-{OUTPUT_STRIDE} features: export without --dense to add Gaussians")
     channels = int(feats["shape"][1])
     if channels != init.adapter.cfg.in_channels or net.encoder.cfg.out != init.adapter.cfg.in_channels:
         raise InputError(splat_dir, f"adapter takes {init.adapter.cfg.in_channels} channels, the bundle's SCR graph "

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -131,3 +132,34 @@ def test_int8_keeps_the_heads_last_layers_float(tiny) -> None:
     dequantized = [produced_by.get(c.input[1]) == "DequantizeLinear" for c in convs]
     assert dequantized[:-FLOAT_HEAD_CONVS] == [True] * (len(convs) - FLOAT_HEAD_CONVS)
     assert dequantized[-FLOAT_HEAD_CONVS:] == [False] * FLOAT_HEAD_CONVS
+
+
+def test_dense_bundle_predicts_every_4th_pixel_and_the_edge_localizes_with_it(tiny, tmp_path: Path) -> None:
+    from edge.replay import replay_split
+    from edge.runtime import EdgeLocalizer
+    from export.bundle_export import ExportOptions, export_bundle
+
+    rep = export_bundle(tiny["map"], tmp_path / "dense", ExportOptions(dense=True))
+    scr = rep.manifest["scr"]
+    assert scr["output_stride"] == 4 and scr["output_size"] == [16, 20] and scr["output"]["shape"] == [1, 3, 16, 20]
+    assert scr["features"]["shape"] == [1, 32, 16, 20] and "(4j+4, 4i+4)" in scr["output"]["content"]
+    assert rep.manifest["checks"]["fp32_vs_torch"]["max_abs_diff_fraction"] < 1e-3
+    b = load_bundle(tmp_path / "dense")
+    s = replay_split(EdgeLocalizer(b, "fp32", 1), tiny["scene"], "test")
+    assert s["frames"] == 4 and s["localized"] == 4 and s["median_translation_m"] < 0.25
+
+
+def test_dense_bundles_carry_no_gaussians_and_other_strides_are_refused(tiny, tmp_path: Path) -> None:
+    from acesplat.cli import app
+
+    r = CliRunner().invoke(app, ["export", str(tiny["map"]), "-o", str(tmp_path / "b"), "--dense", "--splat",
+                                 str(tmp_path / "splat")])
+    assert r.exit_code == 2 and "drop --dense" in r.output and "Traceback" not in r.output
+    assert not (tmp_path / "b").exists()
+    bad = tmp_path / "bad"
+    shutil.copytree(tiny["bundle"], bad)
+    m = json.loads((bad / "manifest.json").read_text())
+    m["scr"]["output_stride"] = 2
+    (bad / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(InputError, match="output_stride must be 8 or 4"):
+        load_bundle(bad, verify=False)

@@ -18,6 +18,7 @@ from typing import Any
 
 from .atomic import write_json
 from .errors import InputError
+from .pnp import DENSE_OUTPUT_STRIDE, OUTPUT_STRIDE
 
 BUNDLE_FORMAT = "acesplat-bundle"
 BUNDLE_VERSION = 2
@@ -221,6 +222,9 @@ def load_bundle(bundle_dir: str | Path, verify: bool = True, roles: list[str] | 
             raise InputError(mpath, "scr section needs input_size [H, W] and output_stride") from None
         if h <= 0 or w <= 0:
             raise InputError(mpath, f"scr input_size must be positive, got {scr['input_size']}")
+        if int(scr["output_stride"]) not in (OUTPUT_STRIDE, DENSE_OUTPUT_STRIDE):
+            raise InputError(mpath, f"scr output_stride must be {OUTPUT_STRIDE} or {DENSE_OUTPUT_STRIDE}, "
+                             f"got {scr['output_stride']}")
     if verify:
         for f in files.values():
             if roles is None or f.role in roles:
