@@ -2,7 +2,7 @@
 
 State-dict names follow ACE's so a user's ``ace_encoder_pretrained.pt`` loads into ``Encoder``
 (its widths are read from the tensors' shapes). Input: grayscale normalised as ACE does
-((x / 255 - 0.4) / 0.25); output: scene coordinates at 1/8 resolution.
+((x / 255 - 0.4) / 0.25); output: scene coordinates at 1/8 resolution (1/4 with ``output_stride=4``).
 """
 
 from __future__ import annotations
