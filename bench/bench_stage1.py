@@ -30,6 +30,7 @@ from acesplat.core.scene import read_split
 from acesplat.scr.encoders import load_encoder
 from acesplat.scr.localize import Localizer, evaluate
 from acesplat.scr.mapping import AUGMENT, MAP_MINUTES, MappingConfig, default_short_side, map_scene
+from acesplat.scr.novel_views import NOVEL_VIEWS
 from acesplat.synth import synthesize
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -38,12 +39,13 @@ HERZ = ROOT.parent / "shared" / "data" / "herzjesu25"
 
 def run(scene: Path, minutes: float, triangulate: bool, encoder_path: Path | None,
         iterations: int | None = None, buffer_size: int | None = None, map_out: Path | None = None,
-        precision: str = "auto", augment: str = AUGMENT, seed: int = 0, short_side: int | None = None) -> dict:
+        precision: str = "auto", augment: str = AUGMENT, seed: int = 0, short_side: int | None = None,
+        novel_views: int = NOVEL_VIEWS) -> dict:
     enc, ident = load_encoder(encoder_path)
     train, test = read_split(scene, "train"), read_split(scene, "test")
     side = short_side or default_short_side(train)
     cfg = MappingConfig(minutes=minutes, short_side=side, triangulate=triangulate, iterations=iterations,
-                        precision=precision, augment=augment, seed=seed)
+                        precision=precision, augment=augment, seed=seed, novel_views=novel_views)
     if buffer_size:
         cfg.buffer_size = buffer_size
     res = map_scene(train, enc, cfg)
@@ -52,11 +54,12 @@ def run(scene: Path, minutes: float, triangulate: bool, encoder_path: Path | Non
 
     if map_out is not None:  # kept for bench_export.py and acesplat export
         save_map(map_out, SceneMap(res.head, ident, res.mean, side, {"scene": str(scene), "iterations": res.iterations,
-                                                                     "augment": augment}))
+                                                                     "augment": augment, "novel_views": novel_views}))
 
     loc = Localizer(SCRNetwork(enc, res.head).eval(), side, {})
     out = {"scene": scene.name, "triangulate": triangulate, "augment": augment, "seed": seed, "map_seconds": res.seconds, "iterations": res.iterations,
-           "buffer_features": res.buffer_features, "target_features": res.target_features}
+           "buffer_features": res.buffer_features, "target_features": res.target_features,
+           "novel_views": novel_views, "novel_view_features": res.novel_view_features}
     for key, split, localizer in (("test", test, loc), ("dense", test, replace(loc, output_stride=DENSE_OUTPUT_STRIDE)),
                                   ("train", train, loc)):
         ev = evaluate(split, localizer)
@@ -80,6 +83,7 @@ def main() -> None:
     ap.add_argument("--precision", default="auto", help="Mapping arithmetic (buffer encoder pass and head): auto, fp32 or bf16.")
     ap.add_argument("--augment", default=AUGMENT, help="Comma-separated augmentation presets to map each scene with.")
     ap.add_argument("--seeds", default="0", help="Comma-separated mapping seeds; each scene and preset is mapped once per seed.")
+    ap.add_argument("--novel-views", type=int, default=NOVEL_VIEWS, help="Warped in-between views added to the buffer (0 = off).")
     ap.add_argument("--short-side", type=int, default=None, help="Mapping and localization resolution (default: the map command's).")
     args = ap.parse_args()
     if args.threads:
@@ -103,7 +107,7 @@ def main() -> None:
             suffix = ("" if tri else ".notri") + ("" if aug == AUGMENT else f".{aug}") + (f".seed{seed}" if seed else "")
             map_out = args.out / f"{scene.name}{suffix}.map.pt"
             r = run(scene, minutes, tri, args.encoder, args.iterations, args.buffer, map_out, args.precision, aug, seed,
-                    args.short_side)
+                    args.short_side, args.novel_views)
             r["wall_seconds"] = time.monotonic() - t0
             rows.append(r)
             print(json.dumps({k: v for k, v in r.items() if k not in ("test", "dense", "train")}))

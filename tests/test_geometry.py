@@ -11,6 +11,7 @@ import pytest
 from acesplat.core.geometry import (
     OPENGL_TO_OPENCV,
     RIGID_TOL,
+    interpolate_pose,
     invert_pose,
     look_at,
     make_pose,
@@ -219,3 +220,22 @@ def test_rigidity_problem_cases() -> None:
     # Tolerance edge: a stretch of (1 + e) gives |R^T R - I| = 2e + e^2.
     assert rigidity_problem(make_pose(np.diag([1 + 0.49 * RIGID_TOL, 1, 1]), [0, 0, 0])) is None
     assert rigidity_problem(make_pose(np.diag([1 + 0.51 * RIGID_TOL, 1, 1]), [0, 0, 0])) is not None
+
+
+def test_interpolated_pose_runs_the_straight_line_at_constant_angular_speed() -> None:
+    rng = np.random.default_rng(5)
+    T0 = make_pose(rodrigues_to_matrix(rng.normal(size=3)), rng.normal(size=3))
+    T1 = make_pose(rodrigues_to_matrix(rng.normal(size=3)) @ T0[:3, :3], rng.normal(size=3))
+    np.testing.assert_allclose(interpolate_pose(T0, T1, 0.0), T0, atol=1e-12)
+    np.testing.assert_allclose(interpolate_pose(T0, T1, 1.0), T1, atol=1e-12)
+    total = rotation_angle_deg(T0[:3, :3].T @ T1[:3, :3])
+    for t in (0.25, 0.5, 0.8):
+        T = interpolate_pose(T0, T1, t)
+        assert rigidity_problem(T) is None
+        np.testing.assert_allclose(T[:3, 3], (1 - t) * T0[:3, 3] + t * T1[:3, 3], atol=1e-12)
+        assert rotation_angle_deg(T0[:3, :3].T @ T[:3, :3]) == pytest.approx(t * total, abs=1e-6)
+        assert rotation_angle_deg(T[:3, :3].T @ T1[:3, :3]) == pytest.approx((1 - t) * total, abs=1e-6)
+    # The short way round, whichever sign the quaternions come with.
+    Rz = rodrigues_to_matrix([0.0, 0.0, np.radians(170.0)])
+    mid = interpolate_pose(np.eye(4), make_pose(Rz, np.zeros(3)), 0.5)
+    assert rotation_angle_deg(mid[:3, :3]) == pytest.approx(85.0, abs=1e-6)

@@ -102,6 +102,21 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     return q if q[0] >= 0 else -q
 
 
+def interpolate_pose(T0: np.ndarray, T1: np.ndarray, t: float) -> np.ndarray:
+    """Camera-to-world pose (4, 4) a fraction ``t`` of the way from T0 to T1 (4, 4): centres on the straight
+    line, orientation by spherical interpolation (constant angular speed)."""
+    q0, q1 = matrix_to_quat(T0[:3, :3]), matrix_to_quat(T1[:3, :3])
+    dot = float(np.dot(q0, q1))
+    if dot < 0.0:
+        q1, dot = -q1, -dot
+    angle = np.arccos(min(dot, 1.0))
+    if angle < 1e-9:
+        q = q0
+    else:
+        q = (np.sin((1 - t) * angle) * q0 + np.sin(t * angle) * q1) / np.sin(angle)
+    return make_pose(quat_to_matrix(q), (1 - t) * T0[:3, 3] + t * T1[:3, 3])
+
+
 def rotation_angle_deg(R: np.ndarray) -> float:
     """Angle of rotation ``R`` (3, 3) in degrees, via atan2 (no arccos noise floor near 0)."""
     R = np.asarray(R, dtype=np.float64)

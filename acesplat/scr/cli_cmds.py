@@ -46,6 +46,10 @@ def map_command(
         "rotation up to 15 deg, for query views much nearer, farther or more tilted than the mapping views) "
         "[default: photometric]."
     ),
+    novel_views: Optional[int] = typer.Option(
+        None, help="Training images warped to cameras between neighbouring ones and added to the buffer halfway "
+        "through training, 0 for none [default: 300]."
+    ),
     seed: int = typer.Option(0),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the numbers here."),
 ) -> None:
@@ -59,8 +63,12 @@ def map_command(
     from .augment import augment_ranges
     from .mapping import AUGMENT, MAP_MINUTES, MappingConfig, default_short_side, map_scene, use_bf16
     from .network import HeadConfig
+    from .novel_views import NOVEL_VIEWS
 
     minutes = MAP_MINUTES if minutes is None else minutes
+    novel_views = NOVEL_VIEWS if novel_views is None else novel_views
+    if novel_views < 0:
+        raise InputError(None, f"--novel-views must be 0 or more, got {novel_views}")
     if minutes <= 0:
         raise InputError(None, f"--minutes must be positive, got {minutes}")
     dev = resolve_device(device)
@@ -79,12 +87,13 @@ def map_command(
     enc, ident = load_encoder(encoder)
     side = short_side or default_short_side(split)
     cfg = MappingConfig(minutes=minutes, short_side=side, head=HeadConfig(width=head_width, blocks=1), seed=seed, device=dev,
-                        precision=precision, augment=augment)
+                        precision=precision, augment=augment, novel_views=novel_views)
     with PhaseProgress("map ") as bar:
         res = map_scene(split, enc, cfg, bar)
     meta = {"scene": str(Path(scene).resolve()), "train_frames": len(split), "seconds": res.seconds,
             "iterations": res.iterations, "buffer_features": res.buffer_features, "device": dev,
-            "precision": "bf16" if bf16 else "fp32", "augment": augment}
+            "precision": "bf16" if bf16 else "fp32", "augment": augment,
+            "novel_views": novel_views, "novel_view_features": res.novel_view_features}
     save_map(out, SceneMap(res.head, ident, res.mean, side, meta))
     console.print(
         f"mapped {len(split)} images in {res.seconds:.1f} s ({res.buffer_seconds:.1f} s buffer, "

@@ -7,6 +7,9 @@ ACE's recipe (Brachmann et al., CVPR 2023), readable top to bottom:
 2. Train the head on random batches of the buffer with the reprojection loss, the circular threshold
    curriculum and AdamW under a one-cycle learning rate, all driven by the fraction of the wall-clock
    budget used (so a shorter budget runs the whole schedule, not the start of it).
+3. Halfway through (this project's addition, acesplat.scr.novel_views), warp the training images with the
+   head's own depth to cameras between neighbouring ones and add their features, with those cameras'
+   poses, to the buffer: the head then also learns the in-between views a query will come from.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ from acesplat.core.scene import SceneSplit
 from .augment import augment, augment_ranges
 from .loss import DEPTH_MIN, curriculum_threshold, reprojection_loss
 from .network import Encoder, Head, HeadConfig, normalize_gray
+from .novel_views import NOVEL_VIEWS, NOVEL_VIEWS_AT, NOVEL_VIEWS_TIME_FRACTION, novel_view_buffer
 from .targets import ImageTargets, triangulate_targets
 
 # ACE's defaults, and where this project departs from them for a CPU budget.
@@ -90,6 +94,9 @@ class MappingConfig:
     augment: str = AUGMENT
     triangulate: bool = True
     """Add sparse coordinate targets triangulated from SIFT matches between training images (acesplat.scr.targets)."""
+    novel_views: int = NOVEL_VIEWS
+    """Training images warped to cameras between neighbouring ones, added to the buffer halfway through
+    training (acesplat.scr.novel_views); 0 turns it off."""
     iterations: int | None = None
     """Fixed iteration count instead of the wall-clock budget (tests, reproducible runs)."""
     seed: int = 0
@@ -122,6 +129,7 @@ class MappingResult:
     target_features: int
     final_loss: float
     final_valid_fraction: float
+    novel_view_features: int = 0
     history: list[dict] = field(default_factory=list)
 
 
@@ -249,22 +257,40 @@ def target_term(pred: torch.Tensor, target: torch.Tensor, w2c: torch.Tensor, K: 
     return TARGET_WEIGHT_PX * (d * px_per_m).sum()
 
 
+def merge_buffers(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """One buffer holding the entries of both; b's view indices are shifted past a's views."""
+    out = {k: torch.cat([a[k], b[k].to(a[k].device)]) for k in ("feats", "pixels", "target", "w2c", "K")}
+    out["view"] = torch.cat([a["view"], b["view"].to(a["view"].device) + a["w2c"].shape[0]])
+    return out
+
+
+BufferExtension = Callable[[Head], "dict[str, torch.Tensor] | None"]
+"""Called once, with the head, when training passes ``extend_at``; returns entries to add to the buffer."""
+
+
 def train_head(
     head: Head,
     buffer: dict[str, torch.Tensor],
     cfg: MappingConfig,
     seconds: float,
     progress: ProgressFn | None = None,
+    extend: BufferExtension | None = None,
+    extend_at: float = NOVEL_VIEWS_AT,
 ) -> tuple[int, float, float, list[dict]]:
-    """Train ``head`` on the buffer until the budget (or ``cfg.iterations``) is spent."""
+    """Train ``head`` on the buffer until the budget (or ``cfg.iterations``) is spent.
+
+    The time ``extend`` takes counts against the budget, so a wall-clock run still ends on time.
+    """
     dev = torch.device(cfg.device)
     head.to(dev).train()
     opt = torch.optim.AdamW(head.parameters(), lr=cfg.lr_min, weight_decay=WEIGHT_DECAY)
     bf16 = use_bf16(cfg.precision, cfg.device)
-    feats, pixels, view, target = buffer["feats"], buffer["pixels"], buffer["view"], buffer["target"]
-    w2c_all, K_all = buffer["w2c"].to(dev), buffer["K"].to(dev)
-    if dev.type == "cuda":
-        feats, pixels, view, target = feats.to(dev), pixels.to(dev), view.to(dev), target.to(dev)
+
+    def on_device(buf: dict[str, torch.Tensor]) -> tuple[torch.Tensor, ...]:
+        keys = ("feats", "pixels", "view", "target", "w2c", "K")
+        return tuple(buf[k].to(dev) if dev.type == "cuda" or k in ("w2c", "K") else buf[k] for k in keys)
+
+    feats, pixels, view, target, w2c_all, K_all = on_device(buffer)
     n = feats.shape[0]
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
     start = time.monotonic()
@@ -275,6 +301,14 @@ def train_head(
         p = it / cfg.iterations if cfg.iterations else (time.monotonic() - start) / seconds
         if p >= 1.0:
             break
+        if extend is not None and p >= extend_at:
+            extra = extend(head)
+            extend = None
+            if extra is not None:
+                buffer = merge_buffers(buffer, extra)
+                feats, pixels, view, target, w2c_all, K_all = on_device(buffer)
+                n = feats.shape[0]
+            continue
         lr = one_cycle_lr(p, cfg.lr_min, cfg.lr_max)
         for g in opt.param_groups:
             g["lr"] = lr
@@ -334,7 +368,19 @@ def map_scene(
     mean = np.mean([im.c2w[:3, 3] for im in images], axis=0)
     head = Head(torch.from_numpy(mean).float(), in_channels=encoder.cfg.out, cfg=cfg.head)
     remaining = max(budget - (time.monotonic() - t0), 1.0)
-    its, loss_v, valid, history = train_head(head, buffer, cfg, remaining, progress)
+    extend = None
+    novel_features = [0]
+    if cfg.novel_views > 0 and len(images) > 1:
+        def extend(h: Head) -> dict[str, torch.Tensor] | None:
+            if progress:
+                progress("novel views", 0.0, {"views": cfg.novel_views})
+            deadline = time.monotonic() + NOVEL_VIEWS_TIME_FRACTION * budget
+            extra = novel_view_buffer(images, encoder, h, cfg.novel_views, rng, deadline, use_bf16(cfg.precision, cfg.device))
+            novel_features[0] = 0 if extra is None else int(extra["feats"].shape[0])
+            if progress:
+                progress("novel views", 1.0, {"features": novel_features[0]})
+            return extra
+    its, loss_v, valid, history = train_head(head, buffer, cfg, remaining, progress, extend)
     return MappingResult(
         head=head.cpu(),
         mean=mean,
@@ -344,6 +390,7 @@ def map_scene(
         iterations=its,
         buffer_features=int(buffer["feats"].shape[0]),
         target_features=int(torch.isfinite(buffer["target"][:, 0]).sum()),
+        novel_view_features=novel_features[0],
         final_loss=loss_v,
         final_valid_fraction=valid,
         history=history,

@@ -1,0 +1,94 @@
+"""Re-render an image from another camera with a coarse depth map (torch-free).
+
+Mapping uses it to make views between neighbouring training cameras: the head learns what the
+encoder sees of a surface from in-between viewpoints, which 18 photographs alone do not show it.
+The depth is a grid of z-values sampled every ``stride`` pixels (cell centres at stride * k + stride / 2,
+as the SCR network predicts them); the warp is the exact reprojection of each source pixel at its
+interpolated depth, inverted by fixed-point iteration, so it needs no mesh and no z-buffer. Where the
+inverse does not close (folds at occluding edges, outside the source) the pixel is marked invalid.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from .camera import Intrinsics
+from .geometry import invert_pose
+
+FIXED_POINT_STEPS = 12
+"""Iterations of s <- v - D(s); the displacement field of a smooth surface contracts in a few."""
+CLOSE_TOLERANCE_PX = 0.5
+"""A warped pixel is valid if its source pixel maps back to it within this distance."""
+
+
+def _check(gray: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, stride: int) -> None:
+    if gray.ndim != 2 or gray.dtype != np.uint8:
+        raise ValueError(f"gray must be (H, W) uint8, got {gray.shape} {gray.dtype}")
+    if gray.shape != (intrinsics.height, intrinsics.width):
+        raise ValueError(f"gray is {gray.shape}, intrinsics are for {(intrinsics.height, intrinsics.width)}")
+    if depth.ndim != 2 or stride < 1:
+        raise ValueError(f"depth must be a (h, w) grid and stride positive, got {depth.shape}, {stride}")
+    if depth.shape[0] * stride < gray.shape[0] - stride or depth.shape[1] * stride < gray.shape[1] - stride:
+        raise ValueError(f"a depth grid of {depth.shape} at stride {stride} does not cover an image of {gray.shape}")
+
+
+def forward_map(
+    depth: np.ndarray, intrinsics: Intrinsics, stride: int, c2w_src: np.ndarray, c2w_dst: np.ndarray
+) -> np.ndarray:
+    """Where each source pixel lands in the destination camera: (H, W, 2) float32, NaN where it cannot.
+
+    ``depth`` (h, w) holds source z-depths at the cell centres; 0 or non-finite means unknown.
+    """
+    gh, gw = depth.shape
+    ys, xs = np.mgrid[0:gh, 0:gw]
+    centres = np.stack([xs.ravel(), ys.ravel()], 1) * stride + stride / 2.0
+    z = depth.reshape(-1).astype(np.float64)
+    X_src = intrinsics.unproject(centres, z)
+    T = invert_pose(c2w_dst) @ c2w_src
+    X_dst = X_src @ T[:3, :3].T + T[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = intrinsics.project(X_dst)
+    uv[~((z > 0) & np.isfinite(z) & (X_dst[:, 2] > 1e-6))] = np.nan
+    grid = uv.reshape(gh, gw, 2)
+    # One cell of linear extrapolation on every side, so that pixels between the outermost cell centres and
+    # the image border get positions too (replicating the border would pin them to the outer centres).
+    grid = np.concatenate([2 * grid[:1] - grid[1:2], grid, 2 * grid[-1:] - grid[-2:-1]], axis=0)
+    grid = np.concatenate([2 * grid[:, :1] - grid[:, 1:2], grid, 2 * grid[:, -1:] - grid[:, -2:-1]], axis=1)
+    h, w = intrinsics.height, intrinsics.width
+    py, px = np.mgrid[0:h, 0:w].astype(np.float32)
+    nan = float("nan")
+    # Bilinear between cell centres; NaN spreads to every pixel next to an unknown cell.
+    return cv2.remap(grid.astype(np.float32), (px - stride / 2.0) / stride + 1, (py - stride / 2.0) / stride + 1,
+                     cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=(nan, nan))
+
+
+def warp_to_camera(
+    gray: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, stride: int, c2w_src: np.ndarray, c2w_dst: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The source image (H, W) uint8 as the destination camera (same intrinsics) would see it, and a validity
+    mask (H, W) bool.
+
+    ``depth`` (h, w): source z-depth at the cells spaced ``stride`` px apart; c2w_* (4, 4) camera-to-world.
+    """
+    _check(gray, depth, intrinsics, stride)
+    h, w = gray.shape
+    F = forward_map(depth, intrinsics, stride, c2w_src, c2w_dst)
+    py, px = np.mgrid[0:h, 0:w].astype(np.float32)
+    v = np.stack([px, py], -1)
+    D = F - v
+    finite = np.isfinite(D).all(-1)
+    if not finite.any():
+        return np.zeros_like(gray), np.zeros(gray.shape, bool)
+    s = v - np.median(D[finite], axis=0)
+    # Replicated borders keep the last row and column (bilinear reads one past them); leaving the source
+    # image is tested explicitly instead.
+    for _ in range(FIXED_POINT_STEPS):
+        s = v - cv2.remap(D, s[..., 0], s[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    back = cv2.remap(F, s[..., 0], s[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    err = np.linalg.norm(back - v, axis=-1)
+    inside = (s[..., 0] >= 0) & (s[..., 0] <= w - 1) & (s[..., 1] >= 0) & (s[..., 1] <= h - 1)
+    valid = inside & np.isfinite(err) & (err < CLOSE_TOLERANCE_PX)
+    s = np.where(valid[..., None], s, -1.0).astype(np.float32)
+    out = cv2.remap(gray, s[..., 0], s[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return out, valid
