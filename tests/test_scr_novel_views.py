@@ -70,7 +70,7 @@ def test_novel_view_buffer_holds_cells_of_novel_cameras_and_leaves_the_head_as_i
     import torch
 
     from acesplat.core.scene import read_split
-    from acesplat.scr.mapping import load_training_images
+    from acesplat.scr.mapping import MappingConfig, buffer_encoding, load_training_images
     from acesplat.scr.network import Encoder, EncoderConfig, Head
     from acesplat.scr.novel_views import novel_view_buffer
     from acesplat.synth import synthesize
@@ -82,7 +82,9 @@ def test_novel_view_buffer_holds_cells_of_novel_cameras_and_leaves_the_head_as_i
     enc = Encoder(EncoderConfig(c1=4, c2=4, c3=8, c4=8, res2=8, out=8)).eval()
     centre = np.mean([im.c2w[:3, 3] for im in images], axis=0)
     head = Head(torch.from_numpy(centre).float(), in_channels=8).train()
-    buf = novel_view_buffer(images, enc, head, 20, np.random.default_rng(1), deadline=float("inf"))
+    with buffer_encoding(enc, MappingConfig(precision="fp32")) as encode:
+        buf = novel_view_buffer(images, enc, encode, head, 20, np.random.default_rng(1), deadline=float("inf"))
+        spent = novel_view_buffer(images, enc, encode, head, 20, np.random.default_rng(1), deadline=time.monotonic() - 1)
     assert head.training
     assert buf is not None
     n = buf["pixels"].shape[0]
@@ -94,5 +96,4 @@ def test_novel_view_buffer_holds_cells_of_novel_cameras_and_leaves_the_head_as_i
     for w2c in buf["w2c"].numpy().astype(np.float64):
         c2w = invert_pose(np.vstack([w2c, [0, 0, 0, 1]]))
         assert np.linalg.norm(centres - c2w[:3, 3], axis=1).min() > 1e-3  # a new camera, not a training one
-    # A spent budget makes nothing.
-    assert novel_view_buffer(images, enc, head, 20, np.random.default_rng(1), deadline=time.monotonic() - 1) is None
+    assert spent is None  # a spent budget makes nothing

@@ -16,8 +16,9 @@ from __future__ import annotations
 
 import math
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 import torch
@@ -187,6 +188,31 @@ def load_training_images(split: SceneSplit, short_side: int) -> list[TrainingIma
     return images
 
 
+@contextmanager
+def buffer_encoding(encoder: Encoder, cfg: MappingConfig) -> Iterator[Callable[[np.ndarray], torch.Tensor]]:
+    """A function from a grayscale image (H, W) uint8 to the features (C, h, w) the buffer stores.
+
+    The encoder runs in bfloat16 where the head trains in it: channels-last convolutions on AMX are about
+    3-3.7x faster (bench/head_speed.py) for a 0.6% relative feature error, which leaves more of the budget
+    to the head; localization keeps float32 features. The encoder's layout is restored on the way out.
+    """
+    encoder.eval()
+    bf16 = use_bf16(cfg.precision, cfg.device)
+    layout = torch.channels_last if bf16 else torch.contiguous_format
+
+    @torch.no_grad()
+    def encode(gray: np.ndarray) -> torch.Tensor:
+        x = normalize_gray(torch.from_numpy(gray)[None, None].to(cfg.device))
+        with torch.autocast(x.device.type, dtype=torch.bfloat16, enabled=bf16):
+            return encoder(x.contiguous(memory_format=layout))[0]
+
+    encoder.to(memory_format=layout)
+    try:
+        yield encode
+    finally:
+        encoder.to(memory_format=torch.contiguous_format)
+
+
 @torch.no_grad()
 def fill_buffer(
     images: list[TrainingImage],
@@ -197,26 +223,17 @@ def fill_buffer(
     progress: ProgressFn | None = None,
 ) -> dict[str, torch.Tensor]:
     """Encoder features of augmented views: feats (N, C) fp16, pixels (N, 2), view (N,), and per view w2c (V, 3, 4), K (V, 3, 3)."""
-    encoder.eval()
     ranges = augment_ranges(cfg.augment)
-    # The encoder runs in bfloat16 where the head trains in it: channels-last convolutions on AMX are about
-    # 3-3.7x faster (bench/head_speed.py) for a 0.6% relative feature error, which leaves more of the budget
-    # to the head; localization keeps float32 features.
-    bf16 = use_bf16(cfg.precision, cfg.device)
-    layout = torch.channels_last if bf16 else torch.contiguous_format
     feats, pixels, views, w2cs, Ks, targets = [], [], [], [], [], []
     total = 0
     order: list[int] = []
-    encoder.to(memory_format=layout)
-    try:
+    with buffer_encoding(encoder, cfg) as encode:
         while total < cfg.buffer_size:
             if not order:
                 order = list(rng.permutation(len(images)))
             im = images[order.pop()]
             view = augment(im.gray, im.intrinsics, im.c2w, rng, ranges.scale_range, ranges.rotation_deg)
-            x = normalize_gray(torch.from_numpy(view.gray)[None, None].to(cfg.device))
-            with torch.autocast(x.device.type, dtype=torch.bfloat16, enabled=bf16):
-                f = encoder(x.contiguous(memory_format=layout))[0]  # (C, h, w)
+            f = encode(view.gray)  # (C, h, w)
             c, gh, gw = f.shape
             valid = np.flatnonzero(view.cell_valid[:gh, :gw].reshape(-1))
             take = rng.choice(valid, size=min(cfg.samples_per_image, valid.size, cfg.buffer_size - total), replace=False)
@@ -234,8 +251,6 @@ def fill_buffer(
                 progress("buffer", total / cfg.buffer_size, {"features": total})
             if time.monotonic() > deadline:
                 break
-    finally:
-        encoder.to(memory_format=torch.contiguous_format)
     return {
         "feats": torch.cat(feats),
         "pixels": torch.cat(pixels),
@@ -375,7 +390,8 @@ def map_scene(
             if progress:
                 progress("novel views", 0.0, {"views": cfg.novel_views})
             deadline = time.monotonic() + NOVEL_VIEWS_TIME_FRACTION * budget
-            extra = novel_view_buffer(images, encoder, h, cfg.novel_views, rng, deadline, use_bf16(cfg.precision, cfg.device))
+            with buffer_encoding(encoder, cfg) as encode:
+                extra = novel_view_buffer(images, encoder, encode, h, cfg.novel_views, rng, deadline)
             novel_features[0] = 0 if extra is None else int(extra["feats"].shape[0])
             if progress:
                 progress("novel views", 1.0, {"features": novel_features[0]})

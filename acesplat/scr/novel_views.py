@@ -16,7 +16,7 @@ Measured on herzjesu25 (continuing two saved maps for 1,500 head steps, session 
 from __future__ import annotations
 
 import time
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable
 
 import cv2
 import numpy as np
@@ -27,7 +27,7 @@ from acesplat.core.geometry import interpolate_pose, invert_pose, rotation_angle
 from acesplat.core.pnp import DENSE_OUTPUT_STRIDE, OUTPUT_STRIDE, cell_centers
 
 from .loss import DEPTH_MIN
-from .network import Encoder, Head, SCRNetwork, normalize_gray
+from .network import Encoder, Head, SCRNetwork
 
 if TYPE_CHECKING:
     from .mapping import TrainingImage
@@ -95,17 +95,19 @@ def head_depth(network: SCRNetwork, image: "TrainingImage") -> np.ndarray:
 def novel_view_buffer(
     images: list["TrainingImage"],
     encoder: Encoder,
+    encode: Callable[[np.ndarray], torch.Tensor],
     head: Head,
     n: int,
     rng: np.random.Generator,
     deadline: float,
-    bf16: bool = False,
 ) -> dict[str, torch.Tensor] | None:
-    """Buffer entries (the keys of mapping.fill_buffer) for up to ``n`` novel views; None if none could be made."""
+    """Buffer entries (the keys of mapping.fill_buffer) for up to ``n`` novel views; None if none could be made.
+
+    ``encode`` is the buffer's encoder pass (mapping.buffer_encoding); ``encoder`` with ``head`` gives the depth.
+    """
     was_training = head.training
     head.eval()
     network = SCRNetwork(encoder, head)
-    device = next(head.parameters()).device
     depths: dict[int, np.ndarray] = {}
     feats, pixels, views, w2cs, Ks = [], [], [], [], []
     kernel = np.ones((2 * EDGE_MARGIN_PX + 1,) * 2, np.uint8)
@@ -118,9 +120,7 @@ def novel_view_buffer(
                 depths[src] = head_depth(network, im)
             gray, valid = warp_to_camera(im.gray, depths[src], im.intrinsics, DENSE_OUTPUT_STRIDE, im.c2w, c2w)
             valid = cv2.erode(valid.astype(np.uint8), kernel).astype(bool)
-            x = normalize_gray(torch.from_numpy(gray)[None, None].to(device))
-            with torch.autocast(x.device.type, dtype=torch.bfloat16, enabled=bf16):
-                f = encoder(x)[0]
+            f = encode(gray)
             c, gh, gw = f.shape
             centres = cell_centers(gh, gw, OUTPUT_STRIDE)
             h, w = gray.shape
