@@ -40,7 +40,7 @@ HERZ = ROOT.parent / "shared" / "data" / "herzjesu25"
 def run(scene: Path, minutes: float, triangulate: bool, encoder_path: Path | None,
         iterations: int | None = None, buffer_size: int | None = None, map_out: Path | None = None,
         precision: str = "auto", augment: str = AUGMENT, seed: int = 0, short_side: int | None = None,
-        novel_views: int = NOVEL_VIEWS) -> dict:
+        novel_views: int = 0) -> dict:
     enc, ident = load_encoder(encoder_path)
     train, test = read_split(scene, "train"), read_split(scene, "test")
     side = short_side or default_short_side(train)
@@ -83,7 +83,7 @@ def main() -> None:
     ap.add_argument("--precision", default="auto", help="Mapping arithmetic (buffer encoder pass and head): auto, fp32 or bf16.")
     ap.add_argument("--augment", default=AUGMENT, help="Comma-separated augmentation presets to map each scene with.")
     ap.add_argument("--seeds", default="0", help="Comma-separated mapping seeds; each scene and preset is mapped once per seed.")
-    ap.add_argument("--novel-views", type=int, default=NOVEL_VIEWS, help="Warped in-between views added to the buffer (0 = off).")
+    ap.add_argument("--novel-views", type=int, default=0, help=f"Warped in-between views added to the buffer (measured: {NOVEL_VIEWS}).")
     ap.add_argument("--short-side", type=int, default=None, help="Mapping and localization resolution (default: the map command's).")
     args = ap.parse_args()
     if args.threads:

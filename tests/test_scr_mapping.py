@@ -197,3 +197,29 @@ def test_eval_command_dense_reports_its_output_stride(tiny_scene, tmp_path) -> N
         assert res.exit_code == 0, res.output
         report = json.loads(out.read_text())
         assert report["output_stride"] == stride and report["frames"] == 12 and len(report["per_frame"]) == 12
+
+
+def test_novel_views_join_the_buffer_halfway_and_the_run_keeps_its_iteration_count(tiny_scene) -> None:
+    import torch
+
+    from acesplat.scr.encoders import load_encoder
+    from acesplat.scr.mapping import MappingConfig, map_scene
+
+    enc, _ = load_encoder(None)
+    cfg = MappingConfig(iterations=40, short_side=SIZE[0], batch_size=256, buffer_size=4000, samples_per_image=200,
+                        precision="fp32", novel_views=6)
+    torch.manual_seed(0)
+    res = map_scene(read_split(tiny_scene, "train"), enc, cfg)
+    assert res.iterations == 40 and res.buffer_features == 4000
+    assert res.novel_view_features > 6 * 20  # a 96x128 view has 192 cells; most survive the warp
+    assert all(p.is_contiguous() for p in enc.parameters())  # the encoder's layout is back
+
+
+def test_map_command_rejects_a_negative_novel_view_count(tmp_path) -> None:
+    from typer.testing import CliRunner
+
+    from acesplat.cli import app
+
+    r = CliRunner().invoke(app, ["map", str(tmp_path), "-o", str(tmp_path / "m.pt"), "--novel-views", "-1"])
+    assert r.exit_code == 2 and "--novel-views" in r.output and "Traceback" not in r.output
+    assert not (tmp_path / "m.pt").exists()

@@ -8,9 +8,12 @@ the depth of every training pixel, so each training image can be warped to a cam
 neighbour (acesplat.core.depth_warp) and its features, with that camera's pose, join the buffer. Nothing
 but the training images and their poses is used.
 
-Measured on herzjesu25 (continuing two saved maps for 1,500 head steps, session 9): test cells within 4 px
-0.362 with the real buffer alone vs 0.399-0.400 with 300 warped views added; dense-evaluation medians
-5.49 / 4.65 cm vs 3.16 / 3.50 cm.
+Measured on herzjesu25 (bench/herz_gap.md, session 9). Continuing two saved maps for 1,500 head steps at a
+low learning rate: test cells within 4 px 0.362 with the real buffer alone vs 0.399-0.400 with 300 warped
+views added; dense-evaluation medians 5.49 / 4.65 cm vs 3.16 / 3.50 cm. Inside mapping, added halfway
+through a 4,000-step schedule, three seeds paired with and without: test cells within 4 px 0.356-0.373 vs
+0.317-0.351 and stride-8 poses better on every seed (mean 5.59 vs 6.08 cm), but dense poses not (5.18 vs
+4.84 cm) and training cells fit worse. So it is not on by default yet: ``acesplat map --novel-views 300``.
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ if TYPE_CHECKING:
     from .mapping import TrainingImage
 
 NOVEL_VIEWS = 300
-"""Warped views added to the buffer (about 2,000 cells each at 360 px)."""
+"""Warped views to add when asked for (about 2,000 cells each at 360 px); mapping's default is none."""
 NOVEL_VIEWS_AT = 0.5
 """Share of the head's schedule after which they are made: the head's depth is good enough by then, and
 half the schedule, at its highest learning rates, is left to learn them."""
