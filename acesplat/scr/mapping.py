@@ -24,12 +24,12 @@ import numpy as np
 import torch
 
 from acesplat.core.camera import Intrinsics
-from acesplat.core.geometry import invert_pose
 from acesplat.core.pnp import OUTPUT_STRIDE, cell_centers
 from acesplat.core.preprocess import size_for_short_side, to_gray_input
 from acesplat.core.scene import SceneSplit
 
 from .augment import augment, augment_ranges
+from .buffer import Buffer, BufferBuilder, merge_buffers
 from .loss import DEPTH_MIN, curriculum_threshold, reprojection_loss
 from .network import Encoder, Head, HeadConfig, normalize_gray
 from .novel_views import NOVEL_VIEWS_AT, NOVEL_VIEWS_TIME_FRACTION, novel_view_buffer
@@ -222,44 +222,34 @@ def fill_buffer(
     deadline: float,
     rng: np.random.Generator,
     progress: ProgressFn | None = None,
-) -> dict[str, torch.Tensor]:
+) -> Buffer:
     """Encoder features of augmented views: feats (N, C) fp16, pixels (N, 2), view (N,), and per view w2c (V, 3, 4), K (V, 3, 3)."""
     ranges = augment_ranges(cfg.augment)
-    feats, pixels, views, w2cs, Ks, targets = [], [], [], [], [], []
-    total = 0
+    builder = BufferBuilder()
     order: list[int] = []
     with buffer_encoding(encoder, cfg) as encode:
-        while total < cfg.buffer_size:
+        while builder.features < cfg.buffer_size:
             if not order:
                 order = list(rng.permutation(len(images)))
             im = images[order.pop()]
             view = augment(im.gray, im.intrinsics, im.c2w, rng, ranges.scale_range, ranges.rotation_deg)
             f = encode(view.gray)  # (C, h, w)
-            c, gh, gw = f.shape
+            _, gh, gw = f.shape
             valid = np.flatnonzero(view.cell_valid[:gh, :gw].reshape(-1))
-            take = rng.choice(valid, size=min(cfg.samples_per_image, valid.size, cfg.buffer_size - total), replace=False)
+            room = cfg.buffer_size - builder.features
+            take = rng.choice(valid, size=min(cfg.samples_per_image, valid.size, room), replace=False)
             if take.size == 0:
                 continue
-            centers = cell_centers(gh, gw)[take]
-            targets.append(torch.from_numpy(cell_targets(im, view, (gh, gw))[take]))
-            feats.append(f.reshape(c, -1)[:, torch.from_numpy(take).to(f.device)].T.to(torch.float16).cpu())
-            pixels.append(torch.from_numpy(centers.astype(np.float32)))
-            views.append(torch.full((take.size,), len(w2cs), dtype=torch.int64))
-            w2cs.append(invert_pose(view.c2w)[:3].astype(np.float32))
-            Ks.append(view.intrinsics.K.astype(np.float32))
-            total += take.size
+            builder.add_view(f, take, cell_centers(gh, gw)[take], view.c2w, view.intrinsics.K,
+                             cell_targets(im, view, (gh, gw))[take])
             if progress:
-                progress("buffer", total / cfg.buffer_size, {"features": total})
+                progress("buffer", builder.features / cfg.buffer_size, {"features": builder.features})
             if time.monotonic() > deadline:
                 break
-    return {
-        "feats": torch.cat(feats),
-        "pixels": torch.cat(pixels),
-        "view": torch.cat(views),
-        "w2c": torch.from_numpy(np.stack(w2cs)),
-        "K": torch.from_numpy(np.stack(Ks)),
-        "target": torch.cat(targets),
-    }
+    buffer = builder.build()
+    if buffer is None:
+        raise ValueError("no training image had a valid cell to buffer")
+    return buffer
 
 
 def target_term(pred: torch.Tensor, target: torch.Tensor, w2c: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
@@ -273,20 +263,13 @@ def target_term(pred: torch.Tensor, target: torch.Tensor, w2c: torch.Tensor, K: 
     return TARGET_WEIGHT_PX * (d * px_per_m).sum()
 
 
-def merge_buffers(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """One buffer holding the entries of both; b's view indices are shifted past a's views."""
-    out = {k: torch.cat([a[k], b[k].to(a[k].device)]) for k in ("feats", "pixels", "target", "w2c", "K")}
-    out["view"] = torch.cat([a["view"], b["view"].to(a["view"].device) + a["w2c"].shape[0]])
-    return out
-
-
-BufferExtension = Callable[[Head], "dict[str, torch.Tensor] | None"]
+BufferExtension = Callable[[Head], "Buffer | None"]
 """Called once, with the head, when training passes ``extend_at``; returns entries to add to the buffer."""
 
 
 def train_head(
     head: Head,
-    buffer: dict[str, torch.Tensor],
+    buffer: Buffer,
     cfg: MappingConfig,
     seconds: float,
     progress: ProgressFn | None = None,
@@ -302,7 +285,7 @@ def train_head(
     opt = torch.optim.AdamW(head.parameters(), lr=cfg.lr_min, weight_decay=WEIGHT_DECAY)
     bf16 = use_bf16(cfg.precision, cfg.device)
 
-    def on_device(buf: dict[str, torch.Tensor]) -> tuple[torch.Tensor, ...]:
+    def on_device(buf: Buffer) -> tuple[torch.Tensor, ...]:
         keys = ("feats", "pixels", "view", "target", "w2c", "K")
         return tuple(buf[k].to(dev) if dev.type == "cuda" or k in ("w2c", "K") else buf[k] for k in keys)
 
@@ -387,7 +370,7 @@ def map_scene(
     extend = None
     novel_features = [0]
     if cfg.novel_views > 0 and len(images) > 1:
-        def extend(h: Head) -> dict[str, torch.Tensor] | None:
+        def extend(h: Head) -> Buffer | None:
             if progress:
                 progress("novel views", 0.0, {"views": cfg.novel_views})
             deadline = time.monotonic() + NOVEL_VIEWS_TIME_FRACTION * budget

@@ -29,6 +29,7 @@ from acesplat.core.depth_warp import warp_to_camera
 from acesplat.core.geometry import interpolate_pose, invert_pose, rotation_angle_deg
 from acesplat.core.pnp import DENSE_OUTPUT_STRIDE, OUTPUT_STRIDE, cell_centers
 
+from .buffer import Buffer, BufferBuilder
 from .loss import DEPTH_MIN
 from .network import Encoder, Head, SCRNetwork
 
@@ -103,8 +104,8 @@ def novel_view_buffer(
     n: int,
     rng: np.random.Generator,
     deadline: float,
-) -> dict[str, torch.Tensor] | None:
-    """Buffer entries (the keys of mapping.fill_buffer) for up to ``n`` novel views; None if none could be made.
+) -> Buffer | None:
+    """Buffer entries for up to ``n`` novel views; None if none could be made.
 
     ``encode`` is the buffer's encoder pass (mapping.buffer_encoding); ``encoder`` with ``head`` gives the depth.
     """
@@ -112,7 +113,7 @@ def novel_view_buffer(
     head.eval()
     network = SCRNetwork(encoder, head)
     depths: dict[int, np.ndarray] = {}
-    feats, pixels, views, w2cs, Ks = [], [], [], [], []
+    builder = BufferBuilder()
     kernel = np.ones((2 * EDGE_MARGIN_PX + 1,) * 2, np.uint8)
     try:
         for src, c2w in sample_novel_cameras(np.stack([im.c2w for im in images]), n, rng):
@@ -124,28 +125,13 @@ def novel_view_buffer(
             gray, valid = warp_to_camera(im.gray, depths[src], im.intrinsics, DENSE_OUTPUT_STRIDE, im.c2w, c2w)
             valid = cv2.erode(valid.astype(np.uint8), kernel).astype(bool)
             f = encode(gray)
-            c, gh, gw = f.shape
+            _, gh, gw = f.shape
             centres = cell_centers(gh, gw, OUTPUT_STRIDE)
             h, w = gray.shape
             ok = valid[np.minimum(centres[:, 1].astype(int), h - 1), np.minimum(centres[:, 0].astype(int), w - 1)]
             take = np.flatnonzero(ok)
-            if take.size == 0:
-                continue
-            feats.append(f.reshape(c, -1)[:, torch.from_numpy(take).to(f.device)].T.to(torch.float16).cpu())
-            pixels.append(torch.from_numpy(centres[take].astype(np.float32)))
-            views.append(torch.full((take.size,), len(w2cs), dtype=torch.int64))
-            w2cs.append(invert_pose(c2w)[:3].astype(np.float32))
-            Ks.append(im.intrinsics.K.astype(np.float32))
+            if take.size:
+                builder.add_view(f, take, centres[take], c2w, im.intrinsics.K)
     finally:
         head.train(was_training)
-    if not feats:
-        return None
-    total = sum(p.shape[0] for p in pixels)
-    return {
-        "feats": torch.cat(feats),
-        "pixels": torch.cat(pixels),
-        "view": torch.cat(views),
-        "w2c": torch.from_numpy(np.stack(w2cs)),
-        "K": torch.from_numpy(np.stack(Ks)),
-        "target": torch.full((total, 3), float("nan")),
-    }
+    return builder.build()
