@@ -199,7 +199,7 @@ def test_eval_command_dense_reports_its_output_stride(tiny_scene, tmp_path) -> N
         assert report["output_stride"] == stride and report["frames"] == 12 and len(report["per_frame"]) == 12
 
 
-def test_novel_views_join_the_buffer_halfway_and_the_run_keeps_its_iteration_count(tiny_scene) -> None:
+def test_novel_views_join_the_buffer_late_and_the_run_keeps_its_iteration_count(tiny_scene) -> None:
     import torch
 
     from acesplat.scr.encoders import load_encoder

@@ -47,7 +47,7 @@ def map_command(
         "[default: photometric]."
     ),
     novel_views: int = typer.Option(
-        0, help="Training images to warp to cameras between neighbouring ones and add to the buffer halfway through "
+        0, help="Training images to warp to cameras between neighbouring ones and add to the buffer late in "
         "training (300 measured: better cells on sparse wide-baseline photographs; bench/herz_gap.md)."
     ),
     seed: int = typer.Option(0),

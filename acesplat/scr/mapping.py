@@ -7,7 +7,7 @@ ACE's recipe (Brachmann et al., CVPR 2023), readable top to bottom:
 2. Train the head on random batches of the buffer with the reprojection loss, the circular threshold
    curriculum and AdamW under a one-cycle learning rate, all driven by the fraction of the wall-clock
    budget used (so a shorter budget runs the whole schedule, not the start of it).
-3. On request (this project's addition, acesplat.scr.novel_views), halfway through, warp the training images
+3. On request (this project's addition, acesplat.scr.novel_views), late in training, warp the training images
    with the head's own depth to cameras between neighbouring ones and add their features, with those
    cameras' poses, to the buffer: the head then also learns the in-between views a query will come from.
 """
@@ -96,7 +96,7 @@ class MappingConfig:
     triangulate: bool = True
     """Add sparse coordinate targets triangulated from SIFT matches between training images (acesplat.scr.targets)."""
     novel_views: int = 0
-    """Training images warped to cameras between neighbouring ones, added to the buffer halfway through
+    """Training images warped to cameras between neighbouring ones, added to the buffer late in
     training (acesplat.scr.novel_views; NOVEL_VIEWS is the measured count). Off by default: it made the test
     cells better but not yet the dense poses."""
     iterations: int | None = None
