@@ -9,6 +9,7 @@ import pytest
 from acesplat.core.camera import Intrinsics
 from acesplat.core.depth_warp import warp_to_camera
 from acesplat.core.geometry import make_pose, rodrigues_to_matrix
+from acesplat.core.pnp import cell_centers
 
 H, W = 96, 128
 INTR = Intrinsics(110.0, 110.0, 63.5, 47.5, W, H)
@@ -24,9 +25,8 @@ def texture(seed: int = 0) -> np.ndarray:
 
 def plane_depth(n_cam: np.ndarray, d: float) -> np.ndarray:
     """z-depth at the cell centres of the plane n . X = d (camera frame), a (h, w) grid."""
-    gh, gw = (H + STRIDE - 1) // STRIDE, (W + STRIDE - 1) // STRIDE
-    ys, xs = np.mgrid[0:gh, 0:gw]
-    uv = np.stack([xs.ravel(), ys.ravel()], 1) * STRIDE + STRIDE / 2
+    gh, gw = H // STRIDE, W // STRIDE
+    uv = cell_centers(gh, gw, STRIDE)  # the SCR network's dense cells, where head_depth samples depth
     rays = INTR.unproject(uv, np.ones(len(uv)))
     return (d / (rays @ n_cam)).reshape(gh, gw)
 

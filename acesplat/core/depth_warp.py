@@ -2,8 +2,8 @@
 
 Mapping uses it to make views between neighbouring training cameras: the head learns what the
 encoder sees of a surface from in-between viewpoints, which 18 photographs alone do not show it.
-The depth is a grid of z-values sampled every ``stride`` pixels (cell centres at stride * k + stride / 2,
-as the SCR network predicts them); the warp is the exact reprojection of each source pixel at its
+The depth is a grid of z-values at the SCR network's prediction cells (acesplat.core.pnp.cell_centers,
+stride 8 or 4); the warp is the exact reprojection of each source pixel at its
 interpolated depth, inverted by fixed-point iteration, so it needs no mesh and no z-buffer. Where the
 inverse does not close (folds at occluding edges, outside the source) the pixel is marked invalid.
 """
@@ -15,6 +15,7 @@ import numpy as np
 
 from .camera import Intrinsics
 from .geometry import invert_pose
+from .pnp import cell_centers
 
 FIXED_POINT_STEPS = 12
 """Iterations of s <- v - D(s); the displacement field of a smooth surface contracts in a few."""
@@ -41,8 +42,8 @@ def forward_map(
     ``depth`` (h, w) holds source z-depths at the cell centres; 0 or non-finite means unknown.
     """
     gh, gw = depth.shape
-    ys, xs = np.mgrid[0:gh, 0:gw]
-    centres = np.stack([xs.ravel(), ys.ravel()], 1) * stride + stride / 2.0
+    centres = cell_centers(gh, gw, stride)
+    first = float(centres[0, 0])  # pixel of cell 0 on either axis
     z = depth.reshape(-1).astype(np.float64)
     X_src = intrinsics.unproject(centres, z)
     T = invert_pose(c2w_dst) @ c2w_src
@@ -51,15 +52,15 @@ def forward_map(
         uv = intrinsics.project(X_dst)
     uv[~((z > 0) & np.isfinite(z) & (X_dst[:, 2] > 1e-6))] = np.nan
     grid = uv.reshape(gh, gw, 2)
-    # One cell of linear extrapolation on every side, so that pixels between the outermost cell centres and
-    # the image border get positions too (replicating the border would pin them to the outer centres).
-    grid = np.concatenate([2 * grid[:1] - grid[1:2], grid, 2 * grid[-1:] - grid[-2:-1]], axis=0)
-    grid = np.concatenate([2 * grid[:, :1] - grid[:, 1:2], grid, 2 * grid[:, -1:] - grid[:, -2:-1]], axis=1)
+    # Two cells of linear extrapolation on every side (odd reflection), so that pixels between the outermost
+    # cell centres and the image border get positions too (replicating the border would pin them there).
+    pad = 2
+    grid = np.pad(grid, ((pad, pad), (pad, pad), (0, 0)), mode="reflect", reflect_type="odd")
     h, w = intrinsics.height, intrinsics.width
     py, px = np.mgrid[0:h, 0:w].astype(np.float32)
     nan = float("nan")
     # Bilinear between cell centres; NaN spreads to every pixel next to an unknown cell.
-    return cv2.remap(grid.astype(np.float32), (px - stride / 2.0) / stride + 1, (py - stride / 2.0) / stride + 1,
+    return cv2.remap(grid.astype(np.float32), (px - first) / stride + pad, (py - first) / stride + pad,
                      cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=(nan, nan))
 
 
@@ -87,7 +88,8 @@ def warp_to_camera(
         s = v - cv2.remap(D, s[..., 0], s[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     back = cv2.remap(F, s[..., 0], s[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     err = np.linalg.norm(back - v, axis=-1)
-    inside = (s[..., 0] >= 0) & (s[..., 0] <= w - 1) & (s[..., 1] >= 0) & (s[..., 1] <= h - 1)
+    eps = 1e-3  # the iteration lands on the border only up to rounding
+    inside = (s[..., 0] >= -eps) & (s[..., 0] <= w - 1 + eps) & (s[..., 1] >= -eps) & (s[..., 1] <= h - 1 + eps)
     valid = inside & np.isfinite(err) & (err < CLOSE_TOLERANCE_PX)
     s = np.where(valid[..., None], s, -1.0).astype(np.float32)
     out = cv2.remap(gray, s[..., 0], s[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)

@@ -89,7 +89,8 @@ def sample_novel_cameras(
 @torch.no_grad()
 def head_depth(network: SCRNetwork, image: "TrainingImage") -> np.ndarray:
     """z-depth (h, w) of the image's dense cells (stride DENSE_OUTPUT_STRIDE) as the head predicts them."""
-    coords = network(torch.from_numpy(image.gray)[None, None], DENSE_OUTPUT_STRIDE)[0]
+    device = next(network.parameters()).device
+    coords = network(torch.from_numpy(image.gray)[None, None].to(device), DENSE_OUTPUT_STRIDE)[0].cpu()
     X = coords.permute(1, 2, 0).reshape(-1, 3).double().numpy()
     w2c = invert_pose(image.c2w)
     z = (X @ w2c[2, :3] + w2c[2, 3]).reshape(coords.shape[1:]).astype(np.float32)
