@@ -7,9 +7,12 @@ process, one scene after the other, and prints one table plus the machine it ran
     python bench/bench_stage1.py --skip-herz --iterations 1000 --buffer 300000 --threads 1   # fixed work, not time
     python bench/bench_stage1.py --augment photometric,ace   # each scene mapped once per augmentation preset
     python bench/bench_stage1.py --skip-synth --seeds 0,1,2   # one recipe, several seeds: the spread between runs
+    python bench/bench_stage1.py --encoder default,runs/pretrain2/encoder.pt --seeds 0,1   # encoders paired by seed
 
 The test split is localized twice: as `acesplat eval` does by default (a prediction every 8th pixel) and as
-`acesplat eval --dense` does (every 4th pixel, row "dense").
+`acesplat eval --dense` does (every 4th pixel, row "dense"). Each map's cell accuracy (bench/cell_accuracy.py:
+the share of test cells within 4 px under the true pose, and of 7 training frames' cells within 1 px) is printed
+too, because it is a far steadier signal than a 7-frame median.
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ from acesplat.scr.localize import Localizer, evaluate
 from acesplat.scr.mapping import AUGMENT, MAP_MINUTES, MappingConfig, default_short_side, map_scene
 from acesplat.scr.novel_views import NOVEL_VIEWS
 from acesplat.synth import synthesize
+from cell_accuracy import split_cell_accuracy
 
 ROOT = Path(__file__).resolve().parents[1]
 HERZ = ROOT.parent / "shared" / "data" / "herzjesu25"
@@ -41,7 +45,7 @@ def run(scene: Path, minutes: float, triangulate: bool, encoder_path: Path | Non
         iterations: int | None = None, buffer_size: int | None = None, map_out: Path | None = None,
         precision: str = "auto", augment: str = AUGMENT, seed: int = 0, short_side: int | None = None,
         novel_views: int = 0) -> dict:
-    enc, ident = load_encoder(encoder_path)
+    enc, ident = load_encoder(None if encoder_path in (None, "default") else encoder_path)
     train, test = read_split(scene, "train"), read_split(scene, "test")
     side = short_side or default_short_side(train)
     cfg = MappingConfig(minutes=minutes, short_side=side, triangulate=triangulate, iterations=iterations,
@@ -57,7 +61,8 @@ def run(scene: Path, minutes: float, triangulate: bool, encoder_path: Path | Non
                                                                      "augment": augment, "novel_views": novel_views}))
 
     loc = Localizer(SCRNetwork(enc, res.head).eval(), side, {})
-    out = {"scene": scene.name, "triangulate": triangulate, "augment": augment, "seed": seed, "map_seconds": res.seconds, "iterations": res.iterations,
+    out = {"scene": scene.name, "encoder": str(encoder_path or "default"), "encoder_sha256": ident.sha256,
+           "triangulate": triangulate, "augment": augment, "seed": seed, "map_seconds": res.seconds, "iterations": res.iterations,
            "buffer_features": res.buffer_features, "target_features": res.target_features,
            "novel_views": novel_views, "novel_view_features": res.novel_view_features}
     for key, split, localizer in (("test", test, loc), ("dense", test, replace(loc, output_stride=DENSE_OUTPUT_STRIDE)),
@@ -65,6 +70,10 @@ def run(scene: Path, minutes: float, triangulate: bool, encoder_path: Path | Non
         ev = evaluate(split, localizer)
         ev.pop("estimates")
         out[key] = ev
+    test_cells = split_cell_accuracy(test, loc)
+    train_cells = split_cell_accuracy(train, loc, 7)
+    out["cells"] = {"test_within_4px": float(statistics.mean(r["within_px"][2] for r in test_cells)),
+                    "train_within_1px": float(statistics.mean(r["within_px"][0] for r in train_cells))}
     return out
 
 
@@ -73,7 +82,9 @@ def main() -> None:
     ap.add_argument("--synth-minutes", type=float, default=MAP_MINUTES)
     ap.add_argument("--herz-minutes", type=float, default=10.0)
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "bench_stage1")
-    ap.add_argument("--encoder", type=Path, default=None)
+    ap.add_argument("--encoder", default="default",
+                    help="Encoder weights, or several comma-separated (each scene and seed mapped once per encoder); "
+                         "'default' is the shipped one.")
     ap.add_argument("--ablate-triangulation", action="store_true", help="Also map without triangulated targets.")
     ap.add_argument("--skip-synth", action="store_true")
     ap.add_argument("--skip-herz", action="store_true")
@@ -100,39 +111,55 @@ def main() -> None:
         scenes.append((HERZ, args.herz_minutes))
     presets = args.augment.split(",")
     seeds = [int(s) for s in args.seeds.split(",")]
+    encoders = args.encoder.split(",")
     for scene, minutes in scenes:
-        for tri, aug, seed in [(t, a, s) for t in ([True, False] if args.ablate_triangulation else [True]) for a in presets
-                               for s in seeds]:
+        for tri, aug, seed, ei in [(t, a, s, e) for t in ([True, False] if args.ablate_triangulation else [True])
+                                   for a in presets for s in seeds for e in range(len(encoders))]:
             t0 = time.monotonic()
             suffix = ("" if tri else ".notri") + ("" if aug == AUGMENT else f".{aug}") + (f".seed{seed}" if seed else "")
+            suffix += f".enc{ei}" if len(encoders) > 1 else ""
             map_out = args.out / f"{scene.name}{suffix}.map.pt"
-            r = run(scene, minutes, tri, args.encoder, args.iterations, args.buffer, map_out, args.precision, aug, seed,
+            r = run(scene, minutes, tri, encoders[ei], args.iterations, args.buffer, map_out, args.precision, aug, seed,
                     args.short_side, args.novel_views)
             r["wall_seconds"] = time.monotonic() - t0
             rows.append(r)
-            print(json.dumps({k: v for k, v in r.items() if k not in ("test", "dense", "train")}))
+            print(json.dumps({k: v for k, v in r.items() if k not in ("test", "dense", "train")}), flush=True)
     print(f"\nmachine: {machine_line()}")
-    hdr = f"{'scene':12s} {'tri':>4s} {'augment':>11s} {'seed':>4s} {'map s':>6s} {'split':>5s} {'loc':>6s} {'med cm':>8s} {'med deg':>8s} {'5cm5d':>6s} {'10cm5d':>7s} {'25cm2d':>7s} {'ms':>6s}"
+    for i, e in enumerate(encoders):
+        print(f"encoder {i}: {e}")
+    hdr = (f"{'scene':12s} {'enc':>3s} {'tri':>4s} {'augment':>11s} {'seed':>4s} {'map s':>6s} {'steps':>6s} {'split':>5s} "
+           f"{'loc':>6s} {'med cm':>8s} {'med deg':>8s} {'5cm5d':>6s} {'10cm5d':>7s} {'25cm2d':>7s} {'ms':>6s} {'cells':>6s}")
     print(hdr)
     for r in rows:
+        ei = encoders.index(r["encoder"])
         for split in ("test", "dense", "train"):
             e = r[split]
             mt = "-" if e["median_translation_m"] is None else f"{100 * e['median_translation_m']:.2f}"
             mr = "-" if e["median_rotation_deg"] is None else f"{e['median_rotation_deg']:.3f}"
-            print(f"{r['scene']:12s} {str(r['triangulate'])[0]:>4s} {r['augment']:>11s} {r['seed']:>4d} {r['map_seconds']:6.0f} {split:>5s} "
+            cells = {"test": r["cells"]["test_within_4px"], "train": r["cells"]["train_within_1px"]}.get(split)
+            print(f"{r['scene']:12s} {ei:>3d} {str(r['triangulate'])[0]:>4s} {r['augment']:>11s} {r['seed']:>4d} "
+                  f"{r['map_seconds']:6.0f} {r['iterations']:>6d} {split:>5s} "
                   f"{e['localized']:>3d}/{e['frames']:<3d}{mt:>8s} {mr:>8s} {e['recall_5cm_5deg']:6.1f} "
-                  f"{e['recall_10cm_5deg']:7.1f} {e['recall_25cm_2deg']:7.1f} {e['mean_ms']:6.0f}")
+                  f"{e['recall_10cm_5deg']:7.1f} {e['recall_25cm_2deg']:7.1f} {e['mean_ms']:6.0f} "
+                  + ("" if cells is None else f"{cells:6.3f}"))
+    print("cells: test rows, share of test cells within 4 px; train rows, share of 7 training frames' cells within 1 px")
     groups: dict[tuple, list[dict]] = {}
     for r in rows:
-        groups.setdefault((r["scene"], r["triangulate"], r["augment"]), []).append(r)
-    for (name, tri, aug), rs in groups.items():
+        groups.setdefault((r["scene"], r["triangulate"], r["augment"], r["encoder"]), []).append(r)
+    for (name, tri, aug, enc), rs in groups.items():
+        if len(encoders) > 1:
+            cells = statistics.mean(r["cells"]["test_within_4px"] for r in rs)
+            dense = [r["dense"]["median_translation_m"] for r in rs]
+            dense_cm = statistics.mean(100 * d for d in dense) if None not in dense else float("nan")
+            print(f"{name} encoder {encoders.index(enc)}: over {len(rs)} seeds, test cells within 4 px {cells:.3f}, "
+                  f"mean dense median {dense_cm:.2f} cm")
         if len(rs) < 2:
             continue
         for split in ("test", "dense"):  # the same recipe under other seeds: how far one run's median is from the next
             meds = [r[split]["median_translation_m"] for r in rs]
             cm = sorted(100 * m for m in meds if m is not None)
             spread = (", ".join(f"{c:.2f}" for c in cm) + f" cm (median {statistics.median(cm):.2f})") if cm else "none"
-            print(f"{name} {aug}{'' if tri else ' no-tri'}: {split} median translation over {len(rs)} seeds: {spread}"
+            print(f"{name} {aug}{'' if tri else ' no-tri'} encoder {encoders.index(enc)}: {split} median translation over {len(rs)} seeds: {spread}"
                   + (f", {len(rs) - len(cm)} with no median" if len(cm) < len(rs) else ""))
     write_json(args.out / "results.json", {"machine": machine_info(), "rows": rows})
 

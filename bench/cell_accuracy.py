@@ -35,6 +35,23 @@ def cell_errors(coords: np.ndarray, T_c2w: np.ndarray, intr) -> np.ndarray:
     return reprojection(coords.reshape(-1, 3).astype(np.float64), cell_centers(h, w), intr.K, w2c[:3, :3], w2c[:3, 3])[2]
 
 
+def split_cell_accuracy(split, loc: Localizer, max_frames: int = 0) -> list[dict]:
+    """Per frame of ``split`` (at most ``max_frames``, evenly spaced; 0 = all): the share of cells within each of
+    THRESHOLDS_PX under the true pose, and the stride-8 pose's translation error (cm; inf when not solved)."""
+    frames = split.frames
+    if max_frames and len(frames) > max_frames:
+        frames = [frames[i] for i in np.linspace(0, len(frames) - 1, max_frames).round().astype(int)]
+    rows = []
+    for f in frames:
+        coords, intr = loc.predict(f.load_rgb(), f.intrinsics)
+        err = cell_errors(coords, f.pose, intr)
+        res = solve_from_grid(coords, intr)
+        t_cm = 100.0 * pose_error(res.T_c2w, f.pose)[0] if res.T_c2w is not None else float("inf")
+        rows.append({"frame": f.name, "within_px": [float(np.mean(err < t)) for t in THRESHOLDS_PX],
+                     "pose_translation_cm": t_cm})
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("map", type=Path)
@@ -50,19 +67,10 @@ def main() -> None:
     print(f"{'split':>5s} {'frame':>16s} " + " ".join(f"{'<' + format(t, 'g') + ' px':>7s}" for t in THRESHOLDS_PX)
           + f" {'pose cm':>8s}")
     for name in args.splits.split(","):
-        split = read_split(args.scene, name)
-        frames = split.frames
-        if args.frames and len(frames) > args.frames:
-            frames = [frames[i] for i in np.linspace(0, len(frames) - 1, args.frames).round().astype(int)]
-        rows = []
-        for f in frames:
-            coords, intr = loc.predict(f.load_rgb(), f.intrinsics)
-            err = cell_errors(coords, f.pose, intr)
-            shares = [float(np.mean(err < t)) for t in THRESHOLDS_PX]
-            res = solve_from_grid(coords, intr)
-            t_cm = 100.0 * pose_error(res.T_c2w, f.pose)[0] if res.T_c2w is not None else float("inf")
-            rows.append({"frame": f.name, "within_px": shares, "pose_translation_cm": t_cm})
-            print(f"{name:>5s} {f.name[-16:]:>16s} " + " ".join(f"{s:7.3f}" for s in shares) + f" {t_cm:8.2f}")
+        rows = split_cell_accuracy(read_split(args.scene, name), loc, args.frames)
+        for r in rows:
+            print(f"{name:>5s} {r['frame'][-16:]:>16s} " + " ".join(f"{s:7.3f}" for s in r["within_px"])
+                  + f" {r['pose_translation_cm']:8.2f}")
         mean = np.mean([r["within_px"] for r in rows], axis=0)
         print(f"{name:>5s} {'mean':>16s} " + " ".join(f"{s:7.3f}" for s in mean)
               + f" {np.mean([r['pose_translation_cm'] for r in rows]):8.2f}")

@@ -368,17 +368,18 @@ def map_scene(
     head = Head(torch.from_numpy(mean).float(), in_channels=encoder.cfg.out, cfg=cfg.head)
     remaining = max(budget - (time.monotonic() - t0), 1.0)
     extend = None
-    novel_features = [0]
+    novel_features = 0
     if cfg.novel_views > 0 and len(images) > 1:
         def extend(h: Head) -> Buffer | None:
+            nonlocal novel_features
             if progress:
                 progress("novel views", 0.0, {"views": cfg.novel_views})
             deadline = time.monotonic() + NOVEL_VIEWS_TIME_FRACTION * budget
             with buffer_encoding(encoder, cfg) as encode:
                 extra = novel_view_buffer(images, encoder, encode, h, cfg.novel_views, rng, deadline)
-            novel_features[0] = 0 if extra is None else int(extra["feats"].shape[0])
+            novel_features = 0 if extra is None else int(extra["feats"].shape[0])
             if progress:
-                progress("novel views", 1.0, {"features": novel_features[0]})
+                progress("novel views", 1.0, {"features": novel_features})
             return extra
     its, loss_v, valid, history = train_head(head, buffer, cfg, remaining, progress, extend)
     return MappingResult(
@@ -390,7 +391,7 @@ def map_scene(
         iterations=its,
         buffer_features=int(buffer["feats"].shape[0]),
         target_features=int(torch.isfinite(buffer["target"][:, 0]).sum()),
-        novel_view_features=novel_features[0],
+        novel_view_features=novel_features,
         final_loss=loss_v,
         final_valid_fraction=valid,
         history=history,

@@ -16,6 +16,7 @@ import numpy as np
 
 from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import invert_pose
+from acesplat.core.pnp import cell_centers
 
 from .pixel_coords import STRIDE
 
@@ -57,9 +58,9 @@ class CellValidity:
 
 
 def cell_pixels(h: int, w: int) -> np.ndarray:
-    """Pixel (u, v) (h, w, 2) each cell's coordinate is trained to reproject to: (8j + 4, 8i + 4)."""
-    ys, xs = np.mgrid[0:h, 0:w]
-    return np.stack([xs * STRIDE + STRIDE / 2.0, ys * STRIDE + STRIDE / 2.0], axis=-1).astype(np.float64)
+    """Pixel (u, v) (h, w, 2) each cell's coordinate is trained to reproject to: (8j + 4, 8i + 4), the layout of
+    the PnP's own cell centres."""
+    return cell_centers(h, w).reshape(h, w, 2)
 
 
 def cell_validity(
