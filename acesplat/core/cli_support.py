@@ -80,3 +80,30 @@ class PhaseProgress:
             self._tasks[phase] = self._progress.add_task(f"{self._prefix}{phase}", total=1.0, info="")
         text = "  ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in (info or {}).items())
         self._progress.update(self._tasks[phase], completed=min(max(fraction, 0.0), 1.0), info=text)
+
+
+class CountProgress:
+    """A rich bar driven by (done, total) callbacks that appears only at the first item, so an input error raised
+    before any work stays one clean line on stderr; hidden when stderr is not a terminal."""
+
+    def __init__(self, description: str) -> None:
+        from rich.console import Console
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+        console = Console(stderr=True)
+        self._progress = Progress(
+            TextColumn(description), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+            console=console, transient=True, disable=not console.is_terminal,
+        )  # fmt: skip
+        self._task = self._progress.add_task(description, total=None)
+
+    def __enter__(self) -> "CountProgress":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._progress.stop()
+
+    def __call__(self, done: int, total: int) -> None:
+        if done == 1:
+            self._progress.start()
+        self._progress.update(self._task, completed=done, total=total)

@@ -7,10 +7,8 @@ from pathlib import Path
 from typing import Optional
 
 import typer
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-from ..core.cli_support import one_line_errors, report_json
+from ..core.cli_support import CountProgress, one_line_errors, report_json
 from .common import DEFAULT_TEST_EVERY
 from .dispatch import import_scene
 
@@ -37,22 +35,8 @@ def import_command(
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the summary (counts, split rule, notes) as JSON."),
 ) -> None:
     """Import a scene into the ACE layout (OpenCV poses, undistorted images, train/test split)."""
-    console = Console(stderr=True)
-    bar = Progress(
-        TextColumn("importing"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-        console=console, transient=True, disable=not console.is_terminal,
-    )  # fmt: skip
-    task = bar.add_task("import", total=None)
-
-    def progress(done: int, total: int) -> None:
-        if done == 1:  # start only once input validation passed, so early errors stay one clean line
-            bar.start()
-        bar.update(task, completed=done, total=total)
-
-    try:
+    with CountProgress("importing") as progress:
         summary = import_scene(src, out, fmt=fmt.value, images_dir=images, test_every=test_every, progress=progress)
-    finally:
-        bar.stop()
     print(f"imported {summary.train + summary.test} frames ({summary.format}) from {summary.source} -> {summary.scene}")
     print(f"  train {summary.train}, test {summary.test}: {summary.split_rule}")
     if summary.undistorted:

@@ -6,10 +6,8 @@ from pathlib import Path
 from typing import Optional
 
 import typer
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-from ..core.cli_support import one_line_errors, parse_size, report_json
+from ..core.cli_support import CountProgress, one_line_errors, parse_size, report_json
 from ..core.errors import InputError
 from .dataset import DEFAULT_SUPERSAMPLE, DEFAULT_TEST_FRAMES, DEFAULT_TRAIN_FRAMES, synthesize
 
@@ -38,25 +36,11 @@ def synth_command(
     for flag, n in (("--frames", frames), ("--test-frames", test_frames)):
         if n < 1:
             raise InputError(None, f"{flag} must be at least 1, got {n}")
-    console = Console(stderr=True)
-    bar = Progress(
-        TextColumn("rendering"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-        console=console, transient=True, disable=not console.is_terminal,
-    )  # fmt: skip
-    task = bar.add_task("synth", total=None)
-
-    def progress(done: int, total: int) -> None:
-        if done == 1:  # start only once input validation passed, so early errors stay one clean line
-            bar.start()
-        bar.update(task, completed=done, total=total)
-
-    try:
+    with CountProgress("rendering") as progress:
         summary = synthesize(
             out, seed=seed, train_frames=frames, test_frames=test_frames, size=hw, supersample=supersample,
             overwrite=overwrite, progress=progress,
         )  # fmt: skip
-    finally:
-        bar.stop()
     h, w = summary["size"]
     print(
         f"synthesized {summary['train_frames']} train + {summary['test_frames']} test frames ({h}x{w}, seed {seed}) "
