@@ -44,7 +44,7 @@ HERZ = ROOT.parent / "shared" / "data" / "herzjesu25"
 def run(scene: Path, minutes: float, triangulate: bool, encoder_path: Path | None,
         iterations: int | None = None, buffer_size: int | None = None, map_out: Path | None = None,
         precision: str = "auto", augment: str = AUGMENT, seed: int = 0, short_side: int | None = None,
-        novel_views: int = 0) -> dict:
+        novel_views: int = 0, head_width: int | None = None) -> dict:
     enc, ident = load_encoder(None if encoder_path in (None, "default") else encoder_path)
     train, test = read_split(scene, "train"), read_split(scene, "test")
     side = short_side or default_short_side(train)
@@ -52,6 +52,8 @@ def run(scene: Path, minutes: float, triangulate: bool, encoder_path: Path | Non
                         precision=precision, augment=augment, seed=seed, novel_views=novel_views)
     if buffer_size:
         cfg.buffer_size = buffer_size
+    if head_width:
+        cfg.head = replace(cfg.head, width=head_width)
     res = map_scene(train, enc, cfg)
     from acesplat.scr.mapfile import SceneMap, save_map
     from acesplat.scr.network import SCRNetwork
@@ -64,7 +66,7 @@ def run(scene: Path, minutes: float, triangulate: bool, encoder_path: Path | Non
     out = {"scene": scene.name, "encoder": str(encoder_path or "default"), "encoder_sha256": ident.sha256,
            "triangulate": triangulate, "augment": augment, "seed": seed, "map_seconds": res.seconds, "iterations": res.iterations,
            "buffer_features": res.buffer_features, "target_features": res.target_features,
-           "novel_views": novel_views, "novel_view_features": res.novel_view_features}
+           "novel_views": novel_views, "novel_view_features": res.novel_view_features, "head_width": cfg.head.width}
     for key, split, localizer in (("test", test, loc), ("dense", test, replace(loc, output_stride=DENSE_OUTPUT_STRIDE)),
                                   ("train", train, loc)):
         ev = evaluate(split, localizer)
@@ -95,6 +97,7 @@ def main() -> None:
     ap.add_argument("--augment", default=AUGMENT, help="Comma-separated augmentation presets to map each scene with.")
     ap.add_argument("--seeds", default="0", help="Comma-separated mapping seeds; each scene and preset is mapped once per seed.")
     ap.add_argument("--novel-views", type=int, default=0, help=f"Warped in-between views added to the buffer (measured: {NOVEL_VIEWS}).")
+    ap.add_argument("--head-width", type=int, default=None, help="Width of the head's 1x1 layers (default: the map command's).")
     ap.add_argument("--short-side", type=int, default=None, help="Mapping and localization resolution (default: the map command's).")
     args = ap.parse_args()
     if args.threads:
@@ -120,7 +123,7 @@ def main() -> None:
             suffix += f".enc{ei}" if len(encoders) > 1 else ""
             map_out = args.out / f"{scene.name}{suffix}.map.pt"
             r = run(scene, minutes, tri, encoders[ei], args.iterations, args.buffer, map_out, args.precision, aug, seed,
-                    args.short_side, args.novel_views)
+                    args.short_side, args.novel_views, args.head_width)
             r["wall_seconds"] = time.monotonic() - t0
             rows.append(r)
             print(json.dumps({k: v for k, v in r.items() if k not in ("test", "dense", "train")}), flush=True)
