@@ -9,8 +9,9 @@ process, one scene after the other, and prints one table plus the machine it ran
     python bench/bench_stage1.py --skip-synth --seeds 0,1,2   # one recipe, several seeds: the spread between runs
     python bench/bench_stage1.py --encoder default,runs/pretrain2/encoder.pt --seeds 0,1   # encoders paired by seed
 
-The test split is localized twice: as `acesplat eval` does by default (a prediction every 8th pixel) and as
-`acesplat eval --dense` does (every 4th pixel, row "dense"). Each map's cell accuracy (bench/cell_accuracy.py:
+The test split is localized three times: as `acesplat eval` does by default (a prediction every 8th pixel), as
+`acesplat eval --dense` does (every 4th pixel, row "dense") and as `acesplat eval --align` does (the default's
+poses refined against the nearest training images, row "align"; keyframe depths are predicted before, untimed). Each map's cell accuracy (bench/cell_accuracy.py:
 the share of test cells within 4 px under the true pose, and of 7 training frames' cells within 1 px) is printed
 too, because it is a far steadier signal than a 7-frame median.
 """
@@ -31,6 +32,7 @@ from acesplat.core.machine import machine_info, machine_line
 from acesplat.core.pnp import DENSE_OUTPUT_STRIDE
 from acesplat.core.scene import read_split
 from acesplat.scr.encoders import load_encoder
+from acesplat.scr.keyframes import MapKeyframes
 from acesplat.scr.localize import Localizer, evaluate
 from acesplat.scr.mapping import AUGMENT, MAP_MINUTES, MappingConfig, default_short_side, map_scene
 from acesplat.scr.novel_views import NOVEL_VIEWS
@@ -67,8 +69,10 @@ def run(scene: Path, minutes: float, triangulate: bool, encoder_path: Path | Non
            "triangulate": triangulate, "augment": augment, "seed": seed, "map_seconds": res.seconds, "iterations": res.iterations,
            "buffer_features": res.buffer_features, "target_features": res.target_features,
            "novel_views": novel_views, "novel_view_features": res.novel_view_features, "head_width": cfg.head.width}
+    keyframes = MapKeyframes(train, loc.network, side)
+    keyframes.prepare()
     for key, split, localizer in (("test", test, loc), ("dense", test, replace(loc, output_stride=DENSE_OUTPUT_STRIDE)),
-                                  ("train", train, loc)):
+                                  ("align", test, replace(loc, keyframes=keyframes)), ("train", train, loc)):
         ev = evaluate(split, localizer)
         ev.pop("estimates")
         out[key] = ev
@@ -126,7 +130,7 @@ def main() -> None:
                     args.short_side, args.novel_views, args.head_width)
             r["wall_seconds"] = time.monotonic() - t0
             rows.append(r)
-            print(json.dumps({k: v for k, v in r.items() if k not in ("test", "dense", "train")}), flush=True)
+            print(json.dumps({k: v for k, v in r.items() if k not in ("test", "dense", "align", "train")}), flush=True)
     print(f"\nmachine: {machine_line()}")
     for i, e in enumerate(encoders):
         print(f"encoder {i}: {e}")
@@ -135,7 +139,7 @@ def main() -> None:
     print(hdr)
     for r in rows:
         ei = encoders.index(r["encoder"])
-        for split in ("test", "dense", "train"):
+        for split in ("test", "dense", "align", "train"):
             e = r[split]
             mt = "-" if e["median_translation_m"] is None else f"{100 * e['median_translation_m']:.2f}"
             mr = "-" if e["median_rotation_deg"] is None else f"{e['median_rotation_deg']:.3f}"
@@ -158,7 +162,7 @@ def main() -> None:
                   f"mean dense median {dense_cm:.2f} cm")
         if len(rs) < 2:
             continue
-        for split in ("test", "dense"):  # the same recipe under other seeds: how far one run's median is from the next
+        for split in ("test", "dense", "align"):  # the same recipe under other seeds: how far one run's median is from the next
             meds = [r[split]["median_translation_m"] for r in rs]
             cm = sorted(100 * m for m in meds if m is not None)
             spread = (", ".join(f"{c:.2f}" for c in cm) + f" cm (median {statistics.median(cm):.2f})") if cm else "none"

@@ -153,6 +153,9 @@ def eval_command(
     dense: bool = typer.Option(
         False, help="Predict every 4th pixel instead of every 8th: 4x the correspondences at about 3.5x the time "
         "(bench/herz_gap.md)."),
+    align: bool = typer.Option(
+        False, help="Refine each localized pose against the nearest training images of SCENE (warped with the "
+        "head's depth, dense flow, PnP): centimetre poses where the head alone is a few cm off (bench/herz_gap.md)."),
 ) -> None:
     """Localize a split against a map and report pose accuracy."""
     import torch
@@ -168,11 +171,20 @@ def eval_command(
     enc = encoder_for_map(m, map_path, encoder)
     data = read_split(scene, split)
     stride = DENSE_OUTPUT_STRIDE if dense else OUTPUT_STRIDE
-    loc = Localizer(m.network(enc), m.short_side, {}, output_stride=stride)
+    network = m.network(enc)
+    keyframes = None
+    if align:
+        from .keyframes import MapKeyframes
+
+        keyframes = MapKeyframes(read_split(scene, "train"), network, m.short_side)
+    loc = Localizer(network, m.short_side, {}, output_stride=stride, keyframes=keyframes)
     with PhaseProgress("eval ") as bar:
+        if keyframes is not None:
+            keyframes.prepare(lambda i, n: bar("keyframe depth", i / n, {"image": i}))
         s = evaluate(data, loc, lambda i, n: bar("localize", i / n, {"frame": i}))
     estimates = s.pop("estimates")
     s["output_stride"] = stride
+    s["aligned_to_keyframes"] = align
     console.print(results_table(f"{Path(scene).name} / {split}", s))
     if plot is not None:
         plot_positions(plot, data, estimates)

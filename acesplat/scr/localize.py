@@ -3,20 +3,24 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
-from typing import Callable
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 import torch
 
 from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import pose_error
+from acesplat.core.keyframe_align import KeyframeAlignment, align_to_keyframes
 from acesplat.core.metrics import FrameResult, accuracy_summary
 from acesplat.core.pnp import OUTPUT_STRIDE, PnPResult, solve_from_grid
 from acesplat.core.preprocess import size_for_short_side, to_gray_input
 from acesplat.core.scene import SceneSplit
 
 from .network import SCRNetwork
+
+if TYPE_CHECKING:
+    from .keyframes import MapKeyframes
 
 
 @dataclass
@@ -31,20 +35,36 @@ class Localizer:
     output_stride: int = OUTPUT_STRIDE
     """DENSE_OUTPUT_STRIDE predicts four times the cells (half-cell shifts) at about four times the network's
     cost; the errors of shifted cells are partly independent, so PnP averages more of them out."""
+    keyframes: "MapKeyframes | None" = None
+    """The mapping images: a localized pose is then refined against its nearest ones (acesplat.core.keyframe_align)."""
+
+    def network_input(self, rgb: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, Intrinsics]:
+        """The grayscale network input (H', W') uint8 of an RGB image (H, W, 3), and its intrinsics."""
+        size = self.input_size or size_for_short_side(rgb.shape[0], rgb.shape[1], self.short_side)
+        return to_gray_input(rgb, intrinsics, size)
 
     @torch.no_grad()
+    def coordinates(self, gray: np.ndarray) -> np.ndarray:
+        """Scene coordinates (h, w, 3), spaced ``output_stride`` pixels apart, of a network input (H', W') uint8."""
+        return self.network(torch.from_numpy(gray)[None, None], self.output_stride)[0].permute(1, 2, 0).numpy()
+
     def predict(self, rgb: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, Intrinsics]:
-        """Scene coordinates (h, w, 3), spaced ``output_stride`` pixels apart, for an RGB image (H, W, 3), and
-        the intrinsics of the network input."""
-        size = self.input_size or size_for_short_side(rgb.shape[0], rgb.shape[1], self.short_side)
-        gray, intr = to_gray_input(rgb, intrinsics, size)
-        x = torch.from_numpy(gray)[None, None]
-        coords = self.network(x, self.output_stride)[0].permute(1, 2, 0).numpy()
-        return coords, intr
+        """Scene coordinates (h, w, 3) for an RGB image (H, W, 3), and the intrinsics of the network input."""
+        gray, intr = self.network_input(rgb, intrinsics)
+        return self.coordinates(gray), intr
 
     def localize(self, rgb: np.ndarray, intrinsics: Intrinsics) -> PnPResult:
-        coords, intr = self.predict(rgb, intrinsics)
-        return solve_from_grid(coords, intr, stride=self.output_stride, **self.pnp)
+        return self.localize_and_align(rgb, intrinsics)[0]
+
+    def localize_and_align(self, rgb: np.ndarray, intrinsics: Intrinsics) -> tuple[PnPResult, KeyframeAlignment | None]:
+        """The pose, refined against the keyframes when there are any and the frame localized; and the
+        alignment's record (None when none was tried)."""
+        gray, intr = self.network_input(rgb, intrinsics)
+        res = solve_from_grid(self.coordinates(gray), intr, stride=self.output_stride, **self.pnp)
+        if self.keyframes is None or not res.localized or res.T_c2w is None:
+            return res, None
+        al = align_to_keyframes(gray, intr, res.T_c2w, self.keyframes.near(res.T_c2w))
+        return replace(res, T_c2w=al.pose), al
 
 
 def evaluate(
@@ -53,11 +73,14 @@ def evaluate(
     """Localize every frame of a split and compare with its pose; the `acesplat eval` JSON."""
     results = []
     estimates = []
+    statuses: dict[str, int] = {}
     for i, frame in enumerate(split.frames):
         rgb = frame.load_rgb()
         t0 = time.perf_counter()
-        res = localizer.localize(rgb, frame.intrinsics)
+        res, al = localizer.localize_and_align(rgb, frame.intrinsics)
         ms = (time.perf_counter() - t0) * 1000.0
+        if al is not None:
+            statuses[al.status] = statuses.get(al.status, 0) + 1
         if res.T_c2w is not None:
             t_err, r_err = pose_error(res.T_c2w, frame.pose)
         else:
@@ -67,5 +90,7 @@ def evaluate(
         if progress:
             progress(i + 1, len(split.frames))
     summary = accuracy_summary(results)
+    if localizer.keyframes is not None:
+        summary["keyframe_alignment"] = statuses
     summary["estimates"] = estimates
     return summary

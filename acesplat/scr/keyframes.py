@@ -1,0 +1,51 @@
+"""The mapping images as keyframes for pose refinement (acesplat.core.keyframe_align), depth from the head.
+
+Depth is predicted once per training image, on its first use, on the dense grid (half the cell spacing) and
+median-filtered as the novel views use it (acesplat.scr.novel_views.head_depth): a query needs only its
+few nearest training images, so a long mapping sequence costs only what is used.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from acesplat.core.keyframe_align import KEYFRAMES, Keyframe, nearest_keyframes
+from acesplat.core.pnp import DENSE_OUTPUT_STRIDE
+from acesplat.core.scene import SceneSplit
+
+from .mapping import load_training_images
+from .network import SCRNetwork
+from .novel_views import head_depth
+
+
+class MapKeyframes:
+    """The training split of a scene at the map's resolution; ``near(pose)`` gives the keyframes to align to."""
+
+    def __init__(self, split: SceneSplit, network: SCRNetwork, short_side: int, k: int = KEYFRAMES):
+        self.images = load_training_images(split, short_side)
+        self.c2ws = np.stack([im.c2w for im in self.images])
+        self.network = network
+        self.k = k
+        self._depth: dict[int, np.ndarray] = {}
+
+    def depth(self, i: int) -> np.ndarray:
+        if i not in self._depth:
+            self._depth[i] = head_depth(self.network, self.images[i])
+        return self._depth[i]
+
+    def prepare(self, progress: Callable[[int, int], None] | None = None) -> None:
+        """Predict every keyframe's depth now (so per-frame timings measure localization alone)."""
+        for i in range(len(self.images)):
+            self.depth(i)
+            if progress:
+                progress(i + 1, len(self.images))
+
+    def near(self, pose_c2w: np.ndarray) -> list[Keyframe]:
+        """Up to ``k`` keyframes nearest the camera-to-world ``pose_c2w`` (4, 4) and looking the same way."""
+        out = []
+        for i in nearest_keyframes(self.c2ws, pose_c2w, self.k):
+            im = self.images[i]
+            out.append(Keyframe(im.gray, im.intrinsics, im.c2w, self.depth(i), DENSE_OUTPUT_STRIDE))
+        return out
