@@ -93,6 +93,14 @@ def test_tiny_scene_maps_and_localizes_most_test_frames(tmp_path) -> None:
     within_dense = [f for f in d["per_frame"]
                     if f["localized"] and f["translation_m"] < 0.25 and f["rotation_deg"] < 10]
     assert len(within_dense) >= E2E_MIN_WITHIN, d["per_frame"]
+    # Refined against the nearest training images (warped with this map's own depth), poses get better.
+    from acesplat.scr.keyframes import MapKeyframes
+
+    net = SCRNetwork(enc, res.head).eval()
+    keyframes = MapKeyframes(read_split(scene, "train"), net, E2E_SIZE[0])
+    a = evaluate(read_split(scene, "test"), Localizer(net, E2E_SIZE[0], {}, keyframes=keyframes))
+    assert a["keyframe_alignment"].get("aligned", 0) >= E2E_MIN_WITHIN, a["keyframe_alignment"]
+    assert a["median_translation_m"] < 0.5 * s["median_translation_m"], (a["per_frame"], s["per_frame"])
 
 
 def test_map_command_rejects_a_bad_precision(tmp_path) -> None:
@@ -191,12 +199,15 @@ def test_eval_command_dense_reports_its_output_stride(tiny_scene, tmp_path) -> N
     mean = np.mean([f.pose[:3, 3] for f in read_split(tiny_scene, "train").frames], axis=0)
     save_map(tmp_path / "m.pt", SceneMap(Head(torch.from_numpy(mean).float(), 32, HeadConfig(16, 1)), ident, mean,
                                          SIZE[0]))
-    for flag, stride in (([], 8), (["--dense"], 4)):
-        out = tmp_path / f"eval{stride}.json"
+    for flag, stride in (([], 8), (["--dense"], 4), (["--align"], 8)):
+        out = tmp_path / f"eval{stride}{flag}.json"
         res = CliRunner().invoke(app, ["eval", str(tmp_path / "m.pt"), str(tiny_scene), "--json", str(out), *flag])
         assert res.exit_code == 0, res.output
         report = json.loads(out.read_text())
         assert report["output_stride"] == stride and report["frames"] == 12 and len(report["per_frame"]) == 12
+        assert report["aligned_to_keyframes"] == (flag == ["--align"])
+        # an untrained head localizes nothing, so no alignment is tried; the count says so
+        assert ("keyframe_alignment" in report) == (flag == ["--align"])
 
 
 def test_novel_views_join_the_buffer_late_and_the_run_keeps_its_iteration_count(tiny_scene) -> None:
