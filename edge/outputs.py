@@ -47,6 +47,7 @@ def outcome_line(out: FrameOutcome) -> dict:
         "quality": rec.quality,
         "state": TrackingState(rec.state).name,
         "ms": {k: round(v, 3) for k, v in out.times_ms.items()},
+        "alignment": out.alignment,
     })
 
 

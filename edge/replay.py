@@ -34,6 +34,9 @@ def summarize(outcomes: Sequence[FrameOutcome], stats: RunStats | None = None) -
     """The replay JSON: accuracy_summary keys, timing_ms per stage, and the loop's counters."""
     s = accuracy_summary([frame_result(o) for o in outcomes])
     s["timing_ms"] = timing_summary(outcomes)
+    tried = [o.alignment for o in outcomes if o.alignment is not None]
+    if tried:
+        s["keyframe_alignment"] = {k: tried.count(k) for k in sorted(set(tried))}
     if stats is not None:
         s["skipped"] = stats.skipped
         s["skipped_frames"] = stats.skipped_frames

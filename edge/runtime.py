@@ -1,20 +1,22 @@
 """Per-frame localization on the edge: prepare, infer, PnP, gate; with a timing for every stage.
 
 Stages (milliseconds): capture (source read and decode), preprocess (gray, undistort, crop,
-resize), inference (onnxruntime), pnp (RANSAC + LM + gate) and total (from the start of the
+resize), inference (onnxruntime), pnp (RANSAC + LM + gate), align (with --align: the pose refined against
+the bundle's keyframes, acesplat.core.keyframe_align; 0 otherwise) and total (from the start of the
 capture to the pose, including any wait between capture and processing).
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from acesplat.core.bundle import Bundle
 from acesplat.core.camera import Intrinsics
 from acesplat.core.errors import InputError
+from acesplat.core.keyframe_align import align_to_keyframes
 from acesplat.core.pnp import DEFAULT_MIN_INLIERS, PnPResult, solve_from_grid
 from acesplat.core.pose import PoseRecord, TrackingState
 
@@ -22,7 +24,7 @@ from .frame_prep import FramePrep
 from .inference import ScrSession
 from .sources import SourceFrame
 
-STAGES = ("capture", "preprocess", "inference", "pnp", "total")
+STAGES = ("capture", "preprocess", "inference", "pnp", "align", "total")
 
 DEFAULT_PNP_METHOD = "ransac_ap3p"
 """Chosen by measurement on real predictions (bench/pnp_choice.md)."""
@@ -41,6 +43,8 @@ class FrameOutcome:
     name: str = ""
     gt_pose: np.ndarray | None = None
     intrinsics: Intrinsics | None = None
+    alignment: str | None = None
+    """With --align: the keyframe alignment's status ('aligned' or why the PnP pose was kept); None if not tried."""
 
 
 @dataclass
@@ -58,7 +62,7 @@ class EdgeLocalizer:
     """A bundle's SCR model (FP32 or INT8) plus frame preparation and the shared PnP solver."""
 
     def __init__(self, bundle: Bundle, precision: str = "fp32", threads: int | None = None,
-                 pnp: PnPSettings | None = None) -> None:
+                 pnp: PnPSettings | None = None, align: bool = False) -> None:
         self.bundle = bundle
         self.precision = precision
         self.input_size = bundle.input_size
@@ -66,6 +70,8 @@ class EdgeLocalizer:
         self.session = ScrSession(bundle.scr_model(precision), self.input_size, threads)
         self.prep = FramePrep(self.input_size)
         self.pnp = pnp or PnPSettings()
+        self.keyframes = bundle.keyframes() if align else None
+        """The bundle's keyframes when poses are refined against them (InputError at start if it has none)."""
 
     def localize(self, frame: SourceFrame, capture_ms: float = 0.0, t_start: float | None = None) -> FrameOutcome:
         """Pose of one frame; ``t_start`` (perf_counter seconds) is when its capture began, for the total."""
@@ -79,14 +85,20 @@ class EdgeLocalizer:
         t2 = time.perf_counter()
         res = solve_from_grid(coords, intr, stride=self.stride, **self.pnp.kwargs())
         t3 = time.perf_counter()
+        status = None
+        if self.keyframes is not None and res.localized and res.T_c2w is not None:
+            al = align_to_keyframes(gray, intr, res.T_c2w, self.keyframes.near(res.T_c2w))
+            res, status = replace(res, T_c2w=al.pose), al.status
+        t4 = time.perf_counter()
         times = {
             "capture": capture_ms,
             "preprocess": (t1 - t0) * 1000.0,
             "inference": (t2 - t1) * 1000.0,
             "pnp": (t3 - t2) * 1000.0,
-            "total": (t3 - t_start) * 1000.0,
+            "align": (t4 - t3) * 1000.0,
+            "total": (t4 - t_start) * 1000.0,
         }
-        return FrameOutcome(to_record(frame, res), res, times, frame.name, frame.gt_pose, intr)
+        return FrameOutcome(to_record(frame, res), res, times, frame.name, frame.gt_pose, intr, status)
 
 
 def to_record(frame: SourceFrame, res: PnPResult | None) -> PoseRecord:

@@ -18,8 +18,9 @@ import numpy as np
 
 from acesplat import __version__
 from acesplat.core.bundle import (
-    MANIFEST_NAME, ROLE_SCR_FP32, ROLE_SCR_INT8, BundleFile, describe_file, sha256_of, write_manifest,
+    MANIFEST_NAME, ROLE_KEYFRAMES, ROLE_SCR_FP32, ROLE_SCR_INT8, BundleFile, describe_file, sha256_of, write_manifest,
 )
+from acesplat.core.keyframe_set import save_keyframes
 from acesplat.core.camera import Intrinsics
 from acesplat.core.errors import InputError
 from acesplat.core.pnp import DENSE_OUTPUT_STRIDE, OUTPUT_STRIDE
@@ -33,6 +34,7 @@ from .onnx_graph import FEATURES_NAME, INPUT_NAME, OPSET, OUTPUT_NAME, export_sc
 from .quantize import quantize_int8
 
 FP32_FILE = "scr.onnx"
+KEYFRAMES_FILE = "keyframes.npz"
 INT8_FILE = "scr.int8.onnx"
 CALIBRATION_FRAMES = 32
 """Training images used to calibrate INT8 ranges (evenly spaced); more barely moves MinMax ranges."""
@@ -50,6 +52,8 @@ class ExportOptions:
     calibration_frames: int = CALIBRATION_FRAMES
     dense: bool = False
     """Coordinates every 4th pixel (acesplat eval --dense): more accurate poses at about 3.5x the SCR time."""
+    keyframes: bool = False
+    """Carry the training images with the head's depth, for pose refinement on the edge (acesplat-edge --align)."""
 
 
 @dataclass
@@ -129,6 +133,8 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
     test = _try_split(scene, "test")
     if opts.int8 and train is None:
         raise InputError(map_path, f"--int8 calibrates on the map's training images, but {scene}/train was not found; pass --scene")
+    if opts.keyframes and train is None:
+        raise InputError(map_path, f"--keyframes takes the map's training images, but {scene}/train was not found; pass --scene")
     timings: dict[str, float] = {}
     checks: dict = {}
 
@@ -186,6 +192,22 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
                 checks["test_split"] = None
                 checks["test_split_note"] = "scene has no test split: INT8 accuracy not checked"
 
+        keyframes_info = None
+        if opts.keyframes:
+            t0 = time.monotonic()
+            if progress:
+                progress("keyframes", 0.0, {"images": len(train.frames)})
+            from acesplat.scr.keyframes import MapKeyframes
+
+            ks = MapKeyframes(train, net, m.short_side, input_size=size).to_set()
+            save_keyframes(tmp / KEYFRAMES_FILE, ks)
+            files.append(describe_file(tmp, KEYFRAMES_FILE, ROLE_KEYFRAMES))
+            keyframes_info = {"count": len(ks), "image_size": list(ks.gray.shape[1:]), "depth_stride": ks.stride,
+                              "depth_from": "the map's head (dense grid, median-filtered)"}
+            timings["keyframes_s"] = time.monotonic() - t0
+            if progress:
+                progress("keyframes", 1.0, {"images": len(ks)})
+
         manifest = {
             "created_by": f"acesplat-edge {__version__}",
             "created_unix": time.time(),
@@ -215,6 +237,8 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
             },
             "checks": checks,
         }
+        if keyframes_info:
+            manifest["keyframes"] = keyframes_info
         written = write_manifest(tmp, manifest, files)
         _swap_into_place(tmp, out)
     except BaseException:

@@ -72,6 +72,8 @@ def export_command(
     splat: Optional[Path] = typer.Option(None, "--splat", help="Splat folder from `acesplat splat`: add its Gaussians and initializer (edge refinement)."),
     dense: bool = typer.Option(False, help="Coordinates every 4th pixel instead of every 8th (as `acesplat eval --dense`): "
                                "more accurate poses at about 3.5x the SCR time; no --splat."),
+    keyframes: bool = typer.Option(False, help="Carry the training images with the head's depth, so the edge can "
+                                   "refine poses against them (acesplat-edge replay/localize --align)."),
 ) -> None:
     """Export a map to an ONNX bundle (FP32, optionally INT8) that checks itself."""
     import torch
@@ -84,7 +86,7 @@ def export_command(
         raise InputError(splat, "--splat needs the stride-8 SCR graph its initializer was trained on; drop --dense")
     torch.set_num_threads(max(1, torch.get_num_threads()))
     opts = ExportOptions(int8=int8, size_hw=parse_size(size) if size else None, encoder_path=encoder, scene_path=scene,
-                         dense=dense)
+                         dense=dense, keyframes=keyframes)
     with PhaseProgress() as bar:
         rep = export_bundle(map_path, out, opts, bar)
         if splat is not None:

@@ -163,3 +163,28 @@ def test_dense_bundles_carry_no_gaussians_and_other_strides_are_refused(tiny, tm
     (bad / "manifest.json").write_text(json.dumps(m))
     with pytest.raises(InputError, match="output_stride must be 8 or 4"):
         load_bundle(bad, verify=False)
+
+
+def test_keyframes_ride_in_the_bundle_and_the_edge_aligns_to_them(tiny, tmp_path: Path) -> None:
+    from edge.cli import app as edge_app
+    from export.bundle_export import ExportOptions, export_bundle
+
+    rep = export_bundle(tiny["map"], tmp_path / "kf", ExportOptions(keyframes=True))
+    assert rep.manifest["keyframes"]["count"] == 12 and rep.manifest["keyframes"]["image_size"] == [64, 80]
+    b = load_bundle(tmp_path / "kf")
+    ks = b.keyframes()
+    assert len(ks) == 12 and ks.gray.shape == (12, 64, 80) and ks.stride == 4 and np.mean(ks.depth > 0) > 0.5
+    out = tmp_path / "replay.json"
+    r = CliRunner().invoke(edge_app, ["replay", str(tmp_path / "kf"), str(tiny["scene"]), "--align", "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    s = json.loads(out.read_text())
+    assert sum(s["keyframe_alignment"].values()) == s["localized"] == 4
+    assert s["timing_ms"]["align"]["mean"] > 0.0 and s["median_translation_m"] < 0.25
+    # a bundle without keyframes, and one whose keyframes were altered, are refused in one line
+    r = CliRunner().invoke(edge_app, ["replay", str(tiny["bundle"]), str(tiny["scene"]), "--align"])
+    assert r.exit_code == 2 and "re-export with --keyframes" in r.output and "Traceback" not in r.output
+    data = bytearray((tmp_path / "kf" / "keyframes.npz").read_bytes())
+    data[len(data) // 2] ^= 0x01
+    (tmp_path / "kf" / "keyframes.npz").write_bytes(bytes(data))
+    r = CliRunner().invoke(edge_app, ["replay", str(tmp_path / "kf"), str(tiny["scene"]), "--align"])
+    assert r.exit_code == 2 and "does not match the manifest" in r.output

@@ -18,6 +18,7 @@ from typing import Any
 
 from .atomic import write_json
 from .errors import InputError
+from .keyframe_set import KeyframeSet, load_keyframes
 from .pnp import DENSE_OUTPUT_STRIDE, OUTPUT_STRIDE
 
 BUNDLE_FORMAT = "acesplat-bundle"
@@ -35,6 +36,8 @@ SCR_FEATURES_OUTPUT = "features"
 
 ROLE_SCR_FP32 = "scr_fp32"
 ROLE_SCR_INT8 = "scr_int8"
+ROLE_KEYFRAMES = "keyframes"
+"""Mapping images with their poses and the head's depth (acesplat.core.keyframe_set), for pose refinement."""
 PRECISION_ROLES = {"fp32": ROLE_SCR_FP32, "int8": ROLE_SCR_INT8}
 
 
@@ -106,6 +109,12 @@ class Bundle:
     @property
     def output_stride(self) -> int:
         return int(self.scr["output_stride"])
+
+    def keyframes(self) -> KeyframeSet:
+        """The keyframes for pose refinement (acesplat.core.keyframe_align); InputError if the bundle has none."""
+        if ROLE_KEYFRAMES not in self.files:
+            raise InputError(self.root / MANIFEST_NAME, "bundle has no keyframes to align to; re-export with --keyframes")
+        return load_keyframes(self.path(ROLE_KEYFRAMES))
 
     def scr_model(self, precision: str) -> Path:
         """Path of the SCR model for 'fp32' or 'int8'."""

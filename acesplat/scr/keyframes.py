@@ -12,10 +12,12 @@ from typing import Callable
 import numpy as np
 
 from acesplat.core.keyframe_align import KEYFRAMES, Keyframe, nearest_keyframes
+from acesplat.core.keyframe_set import KeyframeSet
 from acesplat.core.pnp import DENSE_OUTPUT_STRIDE
+from acesplat.core.preprocess import to_gray_input
 from acesplat.core.scene import SceneSplit
 
-from .mapping import load_training_images
+from .mapping import TrainingImage, load_training_images
 from .network import SCRNetwork
 from .novel_views import head_depth
 
@@ -23,8 +25,14 @@ from .novel_views import head_depth
 class MapKeyframes:
     """The training split of a scene at the map's resolution; ``near(pose)`` gives the keyframes to align to."""
 
-    def __init__(self, split: SceneSplit, network: SCRNetwork, short_side: int, k: int = KEYFRAMES):
-        self.images = load_training_images(split, short_side)
+    def __init__(self, split: SceneSplit, network: SCRNetwork, short_side: int, k: int = KEYFRAMES,
+                 input_size: tuple[int, int] | None = None):
+        """``input_size`` (H, W): the exact size queries run at (a bundle's), instead of the short side's."""
+        if input_size is None:
+            self.images = load_training_images(split, short_side)
+        else:
+            self.images = [TrainingImage(*to_gray_input(f.load_rgb(), f.intrinsics, input_size), f.pose)
+                           for f in split.frames]
         self.c2ws = np.stack([im.c2w for im in self.images])
         self.network = network
         self.k = k
@@ -42,10 +50,15 @@ class MapKeyframes:
             if progress:
                 progress(i + 1, len(self.images))
 
+    def to_set(self) -> KeyframeSet:
+        """Every keyframe with its depth, as the arrays a bundle carries (acesplat.core.keyframe_set)."""
+        self.prepare()
+        return KeyframeSet.stack([self.keyframe(i) for i in range(len(self.images))])
+
+    def keyframe(self, i: int) -> Keyframe:
+        im = self.images[i]
+        return Keyframe(im.gray, im.intrinsics, im.c2w, self.depth(i), DENSE_OUTPUT_STRIDE)
+
     def near(self, pose_c2w: np.ndarray) -> list[Keyframe]:
         """Up to ``k`` keyframes nearest the camera-to-world ``pose_c2w`` (4, 4) and looking the same way."""
-        out = []
-        for i in nearest_keyframes(self.c2ws, pose_c2w, self.k):
-            im = self.images[i]
-            out.append(Keyframe(im.gray, im.intrinsics, im.c2w, self.depth(i), DENSE_OUTPUT_STRIDE))
-        return out
+        return [self.keyframe(i) for i in nearest_keyframes(self.c2ws, pose_c2w, self.k)]

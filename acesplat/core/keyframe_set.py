@@ -1,0 +1,92 @@
+"""The keyframes a bundle carries for pose refinement on the edge, as one ``.npz`` of plain arrays (torch-free).
+
+Plain arrays (no pickled objects: loaded with ``allow_pickle=False``) so a bundle from elsewhere cannot run
+code; every array's shape and every pose is checked on load, and the error names the file.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .atomic import atomic_path
+from .camera import Intrinsics
+from .errors import InputError
+from .geometry import rigidity_problem
+from .keyframe_align import KEYFRAMES, Keyframe, nearest_keyframes
+from .pnp import DENSE_OUTPUT_STRIDE, OUTPUT_STRIDE
+
+
+@dataclass(frozen=True)
+class KeyframeSet:
+    """gray (N, H, W) uint8; depth (N, h, w) float32 z-depth at cells ``stride`` px apart (0 unknown);
+    c2w (N, 4, 4); K (N, 3, 3), all for images of H x W."""
+
+    gray: np.ndarray
+    depth: np.ndarray
+    c2w: np.ndarray
+    K: np.ndarray
+    stride: int
+
+    def __len__(self) -> int:
+        return int(self.gray.shape[0])
+
+    def keyframe(self, i: int) -> Keyframe:
+        h, w = self.gray.shape[1:]
+        return Keyframe(self.gray[i], Intrinsics.from_K(self.K[i], w, h), self.c2w[i], self.depth[i], self.stride)
+
+    def near(self, pose_c2w: np.ndarray, k: int = KEYFRAMES) -> list[Keyframe]:
+        """Up to ``k`` keyframes nearest the camera-to-world ``pose_c2w`` (4, 4) and looking the same way."""
+        return [self.keyframe(i) for i in nearest_keyframes(self.c2w, pose_c2w, k)]
+
+    @classmethod
+    def stack(cls, keyframes: list[Keyframe]) -> "KeyframeSet":
+        if not keyframes:
+            raise ValueError("a keyframe set needs at least one keyframe")
+        strides = {k.stride for k in keyframes}
+        if len(strides) != 1:
+            raise ValueError(f"keyframes of one set share a stride, got {sorted(strides)}")
+        return cls(np.stack([k.gray for k in keyframes]), np.stack([k.depth for k in keyframes]).astype(np.float32),
+                   np.stack([k.c2w for k in keyframes]).astype(np.float64),
+                   np.stack([k.intrinsics.K for k in keyframes]), strides.pop())
+
+
+def save_keyframes(path: str | Path, ks: KeyframeSet) -> None:
+    """Write ``ks`` to ``path`` (.npz, depth as float16), atomically."""
+    with atomic_path(path, ".npz") as tmp:
+        np.savez_compressed(tmp, gray=ks.gray, depth=ks.depth.astype(np.float16), c2w=ks.c2w, K=ks.K,
+                            stride=np.int64(ks.stride))
+
+
+def load_keyframes(path: str | Path) -> KeyframeSet:
+    """Read and check a keyframe file; InputError naming it on anything malformed."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in ("gray", "depth", "c2w", "K", "stride")}
+    except FileNotFoundError:
+        raise InputError(path, "keyframe file not found") from None
+    except (KeyError, ValueError, OSError) as e:
+        raise InputError(path, f"not a keyframe file ({e})") from None
+    gray, depth, c2w, K = arrays["gray"], arrays["depth"].astype(np.float32), arrays["c2w"], arrays["K"]
+    stride = int(arrays["stride"])
+    n = gray.shape[0] if gray.ndim == 3 else -1
+    if gray.dtype != np.uint8 or n < 1:
+        raise InputError(path, f"gray must be (N, H, W) uint8 with N >= 1, got {gray.shape} {gray.dtype}")
+    if depth.ndim != 3 or c2w.shape != (n, 4, 4) or K.shape != (n, 3, 3) or depth.shape[0] != n:
+        raise InputError(path, f"{n} images but depth {depth.shape}, c2w {c2w.shape}, K {K.shape}")
+    if stride not in (OUTPUT_STRIDE, DENSE_OUTPUT_STRIDE):
+        raise InputError(path, f"stride must be {DENSE_OUTPUT_STRIDE} or {OUTPUT_STRIDE}, got {stride}")
+    h, w = gray.shape[1:]
+    if depth.shape[1] * stride < h - stride or depth.shape[2] * stride < w - stride:
+        raise InputError(path, f"a depth grid of {depth.shape[1:]} at stride {stride} does not cover {h}x{w} images")
+    for i in range(n):
+        problem = rigidity_problem(c2w[i])
+        if problem:
+            raise InputError(path, f"keyframe {i}: {problem}")
+        if not (np.all(np.isfinite(K[i])) and K[i][0, 0] > 0 and K[i][1, 1] > 0):
+            raise InputError(path, f"keyframe {i}: focal length must be positive and finite")
+    depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
+    return KeyframeSet(gray, depth, c2w.astype(np.float64), K.astype(np.float64), stride)
