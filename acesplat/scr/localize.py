@@ -1,4 +1,5 @@
-"""Desktop localization and evaluation: SCR prediction at 1/8 resolution, then the shared PnP solver."""
+"""Desktop localization and evaluation: SCR prediction at 1/8 resolution, the shared PnP solver, and optionally
+the pose refined against the nearest mapping images (acesplat.core.keyframe_align)."""
 
 from __future__ import annotations
 
