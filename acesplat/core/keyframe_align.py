@@ -25,13 +25,18 @@ import numpy as np
 from .camera import Intrinsics
 from .depth_warp import forward_map, warp_to_camera
 from .geometry import invert_pose, make_pose, pose_error
-from .pnp import OUTPUT_STRIDE
+from .pnp import DEFAULT_THRESHOLD_PX, OUTPUT_STRIDE
+from .pose_refine import reprojection
 
 KEYFRAMES = 4
 """Training views used per query. Measured on three herzjesu25 maps: one view alone diverged on two of seven
 frames (too little overlap at the trajectory's ends); four gave every frame but one within 2.5 cm."""
 MAX_VIEW_ANGLE_DEG = 30.0
 """A training view looking more than this away from the query shows too little of the same scene to warp."""
+ROTATION_WEIGHT = 0.25
+"""Weight of the angle between viewing directions against the baseline's parallax (baseline / depth, radians) when
+keyframes are ranked by viewpoint change: a keyframe's depth error moves its warp by the parallax only (a rotation
+warps without depth), so the baseline counts most; the angle only breaks ties on a turn."""
 ITERATIONS = 3
 """Warp-flow-PnP rounds; each starts from the last round's pose, so the warp's parallax error shrinks."""
 SAMPLE_STEP_PX = 2
@@ -46,8 +51,12 @@ RANSAC_ITERATIONS = 200
 MIN_POINTS = 300
 MIN_INLIER_RATIO = 0.5
 MAX_SHIFT_M = 0.5
-MAX_SHIFT_DEG = 5.0
+MAX_SHIFT_DEG = 3.0
 """A correction beyond these means the SCR pose was wrong, not imprecise: the SCR pose is kept."""
+MIN_ANCHOR_KEPT = 0.8
+"""The refined pose must keep this share of the SCR correspondences' inliers (at the solver's threshold) that the
+start pose had. On the built-in room (60 test frames) one alignment went from 1.5 cm to 11 cm / 4.6 deg through a
+flow that locked onto the wrong structure; the scene coordinates, which agree with the start pose, refuse it."""
 
 
 @dataclass(frozen=True)
@@ -70,7 +79,8 @@ class KeyframeAlignment:
     """pose (4, 4): the refined camera-to-world, or the input pose unless ``status`` is 'aligned'.
 
     status: 'aligned'; 'few_points' (too little textured overlap with the keyframes); 'no_fit' (PnP failed or
-    too few inliers); 'too_far' (the correction exceeded MAX_SHIFT_*: the input pose was not near enough).
+    too few inliers); 'too_far' (the correction exceeded MAX_SHIFT_*: the input pose was not near enough);
+    'disagrees' (the refined pose lost the SCR correspondences' inliers, see MIN_ANCHOR_KEPT).
     """
 
     pose: np.ndarray
@@ -82,18 +92,34 @@ class KeyframeAlignment:
 
 
 def nearest_keyframes(
-    c2ws: np.ndarray, pose_c2w: np.ndarray, k: int = KEYFRAMES, max_angle_deg: float = MAX_VIEW_ANGLE_DEG
+    c2ws: np.ndarray, pose_c2w: np.ndarray, k: int = KEYFRAMES, max_angle_deg: float = MAX_VIEW_ANGLE_DEG,
+    depth: float | None = None,
 ) -> list[int]:
-    """Indices of up to ``k`` cameras c2ws (N, 4, 4) nearest to ``pose_c2w`` (4, 4) by centre whose viewing
-    direction is within ``max_angle_deg`` of it, nearest first."""
+    """Indices of up to ``k`` cameras c2ws (N, 4, 4) nearest to ``pose_c2w`` (4, 4) whose viewing direction is
+    within ``max_angle_deg`` of it, nearest first.
+
+    Nearest by centre distance, or, given the scene's typical ``depth`` in front of the query, by the change of
+    viewpoint in radians: the angle between viewing directions plus the baseline's parallax, baseline / depth.
+    On the built-in room's turns the cameras nearest by centre were 7-27 degrees apart, and a keyframe's depth
+    error moves the result with the viewpoint change.
+    """
     c2ws = np.asarray(c2ws, np.float64)
     if c2ws.ndim != 3 or c2ws.shape[1:] != (4, 4):
         raise ValueError(f"c2ws must be (N, 4, 4), got {c2ws.shape}")
     d = np.linalg.norm(c2ws[:, :3, 3] - pose_c2w[:3, 3], axis=1)
-    cos = np.clip(np.einsum("ni,i->n", c2ws[:, :3, 2], pose_c2w[:3, 2]), -1.0, 1.0)
-    ok = np.degrees(np.arccos(cos)) <= max_angle_deg
-    order = [int(i) for i in np.argsort(d, kind="stable") if ok[i]]
+    angle = np.arccos(np.clip(np.einsum("ni,i->n", c2ws[:, :3, 2], pose_c2w[:3, 2]), -1.0, 1.0))
+    ok = np.degrees(angle) <= max_angle_deg
+    score = d if depth is None or not depth > 0 else ROTATION_WEIGHT * angle + d / depth
+    order = [int(i) for i in np.argsort(score, kind="stable") if ok[i]]
     return order[:k]
+
+
+def scene_depth(points: np.ndarray, pose_c2w: np.ndarray) -> float | None:
+    """Median z-depth of scene points (N, 3) in front of the camera ``pose_c2w`` (4, 4); None if none are."""
+    w2c = invert_pose(pose_c2w)
+    z = points[np.all(np.isfinite(points), axis=1)] @ w2c[2, :3] + w2c[2, 3]
+    z = z[z > 0]
+    return float(np.median(z)) if z.size else None
 
 
 def _bilinear(a: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -126,11 +152,11 @@ def resample_to(gray: np.ndarray, src: Intrinsics, dst: Intrinsics) -> np.ndarra
     return cv2.warpPerspective(gray, H, (dst.width, dst.height), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
 
 
-def keyframe_correspondences(
+def keyframe_matches(
     query: np.ndarray, pose_c2w: np.ndarray, kf: Keyframe, flow: "cv2.DISOpticalFlow"
-) -> tuple[np.ndarray, np.ndarray]:
-    """World points (M, 3) of the keyframe's textured pixels and where the query (H, W) uint8, already at the
-    keyframe's intrinsics, shows them (M, 2), given the query's estimated pose (4, 4)."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The keyframe's textured pixels (M, 2) with their depth (M,), and where the query (H, W) uint8, already at
+    the keyframe's intrinsics and seen from ``pose_c2w`` (4, 4), shows them (M, 2)."""
     h, w = kf.gray.shape
     fmap = forward_map(kf.depth, kf.intrinsics, kf.stride, kf.c2w, pose_c2w)  # keyframe pixel -> query pixel
     warped, valid = warp_to_camera(kf.gray, kf.depth, kf.intrinsics, kf.stride, kf.c2w, pose_c2w)
@@ -150,9 +176,17 @@ def keyframe_correspondences(
     z = _depth_at(kf, u, v)
     ok = (np.linalg.norm(back - at, axis=1) < MAX_FB_ERROR_PX) & (z > 0) & np.isfinite(z)
     ok &= (seen[:, 0] >= 0) & (seen[:, 0] <= w - 1) & (seen[:, 1] >= 0) & (seen[:, 1] <= h - 1)
-    uv = np.stack([u[ok], v[ok]], axis=1)
-    X = kf.intrinsics.unproject(uv, z[ok]) @ kf.c2w[:3, :3].T + kf.c2w[:3, 3]
-    return X, seen[ok]
+    return np.stack([u[ok], v[ok]], axis=1), z[ok], seen[ok]
+
+
+def keyframe_correspondences(
+    query: np.ndarray, pose_c2w: np.ndarray, kf: Keyframe, flow: "cv2.DISOpticalFlow"
+) -> tuple[np.ndarray, np.ndarray]:
+    """World points (M, 3) of the keyframe's textured pixels and where the query (H, W) uint8, already at the
+    keyframe's intrinsics, shows them (M, 2), given the query's estimated pose (4, 4)."""
+    uv, z, seen = keyframe_matches(query, pose_c2w, kf, flow)
+    X = kf.intrinsics.unproject(uv, z) @ kf.c2w[:3, :3].T + kf.c2w[:3, 3]
+    return X, seen
 
 
 def _check(gray: np.ndarray, intrinsics: Intrinsics, pose_c2w: np.ndarray) -> None:
@@ -170,9 +204,13 @@ def align_to_keyframes(
     pose_c2w: np.ndarray,
     keyframes: Sequence[Keyframe],
     iterations: int = ITERATIONS,
+    anchor: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> KeyframeAlignment:
     """Refine the query's camera-to-world ``pose_c2w`` (4, 4) against ``keyframes`` (nearest first, see
-    nearest_keyframes); ``gray`` (H, W) uint8 is the query at the map's resolution with ``intrinsics``."""
+    nearest_keyframes); ``gray`` (H, W) uint8 is the query at the map's resolution with ``intrinsics``.
+
+    ``anchor``: the correspondences the start pose was solved from, scene points (N, 3) and pixels (N, 2) of
+    ``gray``; a refined pose that loses their inliers is refused."""
     _check(gray, intrinsics, pose_c2w)
     start = np.asarray(pose_c2w, np.float64)
     if not keyframes:
@@ -212,4 +250,15 @@ def align_to_keyframes(
         if dt > MAX_SHIFT_M or dr > MAX_SHIFT_DEG:
             return KeyframeAlignment(start, "too_far", points, inliers, dt, dr)
     dt, dr = pose_error(pose, start)
+    if anchor is not None and anchor_inliers(anchor, intrinsics, pose) < MIN_ANCHOR_KEPT * anchor_inliers(anchor, intrinsics, start):
+        return KeyframeAlignment(start, "disagrees", points, inliers, dt, dr)
     return KeyframeAlignment(pose, "aligned", points, inliers, dt, dr)
+
+
+def anchor_inliers(anchor: tuple[np.ndarray, np.ndarray], intrinsics: Intrinsics, pose_c2w: np.ndarray) -> int:
+    """How many of the correspondences (points (N, 3), pixels (N, 2)) reproject within the solver's threshold."""
+    points, pixels = anchor
+    finite = np.all(np.isfinite(points), axis=1)
+    w2c = invert_pose(pose_c2w)
+    _, _, err = reprojection(points[finite], pixels[finite], intrinsics.K, w2c[:3, :3], w2c[:3, 3])
+    return int(np.count_nonzero(err < DEFAULT_THRESHOLD_PX))

@@ -37,9 +37,10 @@ class KeyframeSet:
         h, w = self.gray.shape[1:]
         return Keyframe(self.gray[i], Intrinsics.from_K(self.K[i], w, h), self.c2w[i], self.depth[i], self.stride)
 
-    def near(self, pose_c2w: np.ndarray, k: int = KEYFRAMES) -> list[Keyframe]:
-        """Up to ``k`` keyframes nearest the camera-to-world ``pose_c2w`` (4, 4) and looking the same way."""
-        return [self.keyframe(i) for i in nearest_keyframes(self.c2w, pose_c2w, k)]
+    def near(self, pose_c2w: np.ndarray, k: int = KEYFRAMES, depth: float | None = None) -> list[Keyframe]:
+        """Up to ``k`` keyframes nearest the camera-to-world ``pose_c2w`` (4, 4) and looking the same way (by
+        viewpoint change when the scene ``depth`` in front of the query is given: nearest_keyframes)."""
+        return [self.keyframe(i) for i in nearest_keyframes(self.c2w, pose_c2w, k, depth=depth)]
 
     @classmethod
     def stack(cls, keyframes: list[Keyframe]) -> "KeyframeSet":

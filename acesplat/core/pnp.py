@@ -164,14 +164,20 @@ def _ransac_and_refine(
     return invert_pose(make_pose(R, t)), int(np.count_nonzero(err < threshold_px))
 
 
-def solve_from_grid(
-    coords: np.ndarray, intrinsics: Intrinsics, stride: int = OUTPUT_STRIDE, **kwargs
-) -> PnPResult:
-    """Pose from a scene-coordinate grid (3, h, w) or (h, w, 3) predicted for an image with ``intrinsics``."""
+def grid_correspondences(coords: np.ndarray, stride: int = OUTPUT_STRIDE) -> tuple[np.ndarray, np.ndarray]:
+    """Scene points (h * w, 3) and their cells' pixels (h * w, 2) of a coordinate grid (3, h, w) or (h, w, 3)."""
     coords = np.asarray(coords)
     if coords.ndim != 3:
         raise ValueError(f"coordinate grid must be 3-D, got shape {coords.shape}")
     if coords.shape[0] == 3 and coords.shape[2] != 3:
         coords = np.moveaxis(coords, 0, -1)
     h, w, _ = coords.shape
-    return solve_pnp(cell_centers(h, w, stride), coords.reshape(-1, 3), intrinsics, **kwargs)
+    return coords.reshape(-1, 3), cell_centers(h, w, stride)
+
+
+def solve_from_grid(
+    coords: np.ndarray, intrinsics: Intrinsics, stride: int = OUTPUT_STRIDE, **kwargs
+) -> PnPResult:
+    """Pose from a scene-coordinate grid (3, h, w) or (h, w, 3) predicted for an image with ``intrinsics``."""
+    points, pixels = grid_correspondences(coords, stride)
+    return solve_pnp(pixels, points, intrinsics, **kwargs)

@@ -12,6 +12,7 @@ from typing import Callable
 import numpy as np
 
 from acesplat.core.keyframe_align import KEYFRAMES, Keyframe, nearest_keyframes
+from acesplat.core.keyframe_depth import depth_neighbours, refine_depth
 from acesplat.core.keyframe_set import KeyframeSet
 from acesplat.core.pnp import DENSE_OUTPUT_STRIDE
 from acesplat.core.preprocess import to_gray_input
@@ -37,11 +38,28 @@ class MapKeyframes:
         self.network = network
         self.k = k
         self._depth: dict[int, np.ndarray] = {}
+        self._head: dict[int, np.ndarray] = {}
+
+    def head_depth(self, i: int) -> np.ndarray:
+        if i not in self._head:
+            self._head[i] = head_depth(self.network, self.images[i])
+        return self._head[i]
 
     def depth(self, i: int) -> np.ndarray:
+        """The head's depth, re-measured where neighbouring keyframes triangulate it (acesplat.core.keyframe_depth)."""
         if i not in self._depth:
-            self._depth[i] = head_depth(self.network, self.images[i])
+            z = self.head_depth(i)
+            known = z[z > 0]
+            nbs = depth_neighbours(self.c2ws, i, float(np.median(known))) if known.size else []
+            im = self.images[i]
+            kf = Keyframe(im.gray, im.intrinsics, im.c2w, z, DENSE_OUTPUT_STRIDE)
+            self._depth[i] = refine_depth(kf, [self._plain(j) for j in nbs])
         return self._depth[i]
+
+    def _plain(self, j: int) -> Keyframe:
+        """Keyframe j for its image and pose only (refine_depth does not read a neighbour's depth)."""
+        im = self.images[j]
+        return Keyframe(im.gray, im.intrinsics, im.c2w, np.zeros((1, 1), np.float32), DENSE_OUTPUT_STRIDE)
 
     def prepare(self, progress: Callable[[int, int], None] | None = None) -> None:
         """Predict every keyframe's depth now (so per-frame timings measure localization alone)."""
@@ -59,6 +77,7 @@ class MapKeyframes:
         im = self.images[i]
         return Keyframe(im.gray, im.intrinsics, im.c2w, self.depth(i), DENSE_OUTPUT_STRIDE)
 
-    def near(self, pose_c2w: np.ndarray) -> list[Keyframe]:
-        """Up to ``k`` keyframes nearest the camera-to-world ``pose_c2w`` (4, 4) and looking the same way."""
-        return [self.keyframe(i) for i in nearest_keyframes(self.c2ws, pose_c2w, self.k)]
+    def near(self, pose_c2w: np.ndarray, depth: float | None = None) -> list[Keyframe]:
+        """Up to ``k`` keyframes nearest the camera-to-world ``pose_c2w`` (4, 4) and looking the same way (by
+        viewpoint change when the scene ``depth`` in front of the query is given: nearest_keyframes)."""
+        return [self.keyframe(i) for i in nearest_keyframes(self.c2ws, pose_c2w, self.k, depth=depth)]
