@@ -184,7 +184,7 @@ def results_table(summary: dict) -> Table:
         t.add_row("eval (torch)", _accuracy(e), f"{e['mean_ms'] * e['frames'] / 1000:.1f}")
         a = summary.get("eval_align")
         if a:
-            t.add_row("eval (torch) + keyframe alignment", _accuracy(a) + f"; keyframe depth {a['keyframes_seconds']:.1f} s",
+            t.add_row("eval (torch), aligned", _accuracy(a) + f"; keyframes {a['keyframes_seconds']:.1f} s",
                       f"{a['mean_ms'] * a['frames'] / 1000 + a['keyframes_seconds']:.1f}")
     if "splat" in summary:
         sp = summary["splat"]

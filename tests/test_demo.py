@@ -20,7 +20,7 @@ def test_tiny_demo_runs_every_stage_and_reports_refinement(tmp_path) -> None:
     s = json.loads(out.read_text())
     assert s["synth"]["train_frames"] == 12 and s["synth"]["size"] == [64, 80]
     assert s["eval_align"]["frames"] == 4 and sum(s["eval_align"]["keyframe_alignment"].values()) == s["eval"]["localized"]
-    assert "keyframe alignment" in r.output
+    assert "eval (torch), aligned" in r.output
     assert s["splat"]["iterations"] == 3 and s["splat"]["gaussians_final"] > 0
     checks = s["export"]["checks"]
     assert {"fp32_vs_torch", "test_split", "splat_init_fp32_vs_torch", "splat_init_via_scr_int8_vs_torch"} <= set(checks)
