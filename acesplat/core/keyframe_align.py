@@ -221,7 +221,7 @@ def align_to_keyframes(
     queries: dict[Intrinsics, np.ndarray] = {}
     pose, points, inliers = start, 0, 0
     for _ in range(iterations):
-        Xs, uvs, Ks = [], [], []
+        Xs, uvs = [], []
         for kf in keyframes:
             if kf.intrinsics not in queries:
                 queries[kf.intrinsics] = resample_to(gray, intrinsics, kf.intrinsics)
