@@ -29,14 +29,12 @@ console = Console(stderr=True)
 
 
 def open_bundle(path: Path, precisions: list[str], align: bool = False) -> Bundle:
-    """Verify the manifest and the files that will be read: the models that run, the keyframes with --align."""
+    """Verify the manifest and the files that will be read: the models that run, the keyframes with --align (a
+    bundle without them is refused, in one line, when EdgeLocalizer reads them)."""
     roles = [PRECISION_ROLES[p] for p in precisions]
     if align:
         from acesplat.core.bundle import ROLE_KEYFRAMES
 
-        b = load_bundle(path, verify=False)
-        if not b.has(ROLE_KEYFRAMES):
-            b.keyframes()  # the one-line error: no keyframes, re-export with --keyframes
         roles.append(ROLE_KEYFRAMES)
     b = load_bundle(path, verify=True, roles=roles)
     for p in precisions:

@@ -16,8 +16,8 @@ import numpy as np
 from acesplat.core.bundle import Bundle
 from acesplat.core.camera import Intrinsics
 from acesplat.core.errors import InputError
-from acesplat.core.keyframe_align import align_to_keyframes, scene_depth
-from acesplat.core.pnp import DEFAULT_MIN_INLIERS, PnPResult, grid_correspondences, solve_from_grid
+from acesplat.core.keyframe_align import align_scr_pose
+from acesplat.core.pnp import DEFAULT_MIN_INLIERS, PnPResult, solve_from_grid
 from acesplat.core.pose import PoseRecord, TrackingState
 
 from .frame_prep import FramePrep
@@ -87,9 +87,7 @@ class EdgeLocalizer:
         t3 = time.perf_counter()
         status = None
         if self.keyframes is not None and res.localized and res.T_c2w is not None:
-            anchor = grid_correspondences(coords, self.stride)
-            near = self.keyframes.near(res.T_c2w, depth=scene_depth(anchor[0], res.T_c2w))
-            al = align_to_keyframes(gray, intr, res.T_c2w, near, anchor=anchor)
+            al = align_scr_pose(gray, intr, coords, self.stride, res.T_c2w, self.keyframes.near)
             res, status = replace(res, T_c2w=al.pose), al.status
         t4 = time.perf_counter()
         times = {

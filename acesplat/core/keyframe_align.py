@@ -19,7 +19,7 @@ cameras), so cameras with other calibrations align too.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import cv2
 import numpy as np
@@ -27,7 +27,7 @@ import numpy as np
 from .camera import Intrinsics
 from .depth_warp import forward_map, warp_to_camera
 from .geometry import invert_pose, make_pose, pose_error
-from .pnp import DEFAULT_THRESHOLD_PX, OUTPUT_STRIDE
+from .pnp import DEFAULT_THRESHOLD_PX, OUTPUT_STRIDE, grid_correspondences
 from .pose_refine import reprojection
 
 KEYFRAMES = 4
@@ -255,6 +255,22 @@ def align_to_keyframes(
     if anchor is not None and anchor_inliers(anchor, intrinsics, pose) < MIN_ANCHOR_KEPT * anchor_inliers(anchor, intrinsics, start):
         return KeyframeAlignment(start, "disagrees", points, inliers, dt, dr)
     return KeyframeAlignment(pose, "aligned", points, inliers, dt, dr)
+
+
+def align_scr_pose(
+    gray: np.ndarray,
+    intrinsics: Intrinsics,
+    coords: np.ndarray,
+    stride: int,
+    pose_c2w: np.ndarray,
+    near: Callable[..., Sequence[Keyframe]],
+) -> KeyframeAlignment:
+    """Refine a pose solved from the SCR grid ``coords`` (h, w, 3) (cells ``stride`` px apart) of ``gray``: the
+    keyframes ``near(pose, depth=...)`` gives for the scene's depth in front of it, the grid as the anchor.
+    One path for the desktop localizer and the edge runtime."""
+    anchor = grid_correspondences(coords, stride)
+    keyframes = near(pose_c2w, depth=scene_depth(anchor[0], pose_c2w))
+    return align_to_keyframes(gray, intrinsics, pose_c2w, keyframes, anchor=anchor)
 
 
 def anchor_inliers(anchor: tuple[np.ndarray, np.ndarray], intrinsics: Intrinsics, pose_c2w: np.ndarray) -> int:

@@ -12,9 +12,9 @@ import torch
 
 from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import pose_error
-from acesplat.core.keyframe_align import KeyframeAlignment, align_to_keyframes, scene_depth
+from acesplat.core.keyframe_align import KeyframeAlignment, align_scr_pose
 from acesplat.core.metrics import FrameResult, accuracy_summary
-from acesplat.core.pnp import OUTPUT_STRIDE, PnPResult, grid_correspondences, solve_from_grid
+from acesplat.core.pnp import OUTPUT_STRIDE, PnPResult, solve_from_grid
 from acesplat.core.preprocess import size_for_short_side, to_gray_input
 from acesplat.core.scene import SceneSplit
 
@@ -65,9 +65,7 @@ class Localizer:
         res = solve_from_grid(coords, intr, stride=self.output_stride, **self.pnp)
         if self.keyframes is None or not res.localized or res.T_c2w is None:
             return res, None
-        anchor = grid_correspondences(coords, self.output_stride)
-        near = self.keyframes.near(res.T_c2w, scene_depth(anchor[0], res.T_c2w))
-        al = align_to_keyframes(gray, intr, res.T_c2w, near, anchor=anchor)
+        al = align_scr_pose(gray, intr, coords, self.output_stride, res.T_c2w, self.keyframes.near)
         return replace(res, T_c2w=al.pose), al
 
 
