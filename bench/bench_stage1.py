@@ -11,9 +11,9 @@ process, one scene after the other, and prints one table plus the machine it ran
 
 The test split is localized three times: as `acesplat eval` does by default (a prediction every 8th pixel), as
 `acesplat eval --dense` does (every 4th pixel, row "dense") and as `acesplat eval --align` does (the default's
-poses refined against the nearest training images, row "align"; keyframe depths are predicted before, untimed). Each map's cell accuracy (bench/cell_accuracy.py:
-the share of test cells within 4 px under the true pose, and of 7 training frames' cells within 1 px) is printed
-too, because it is a far steadier signal than a 7-frame median.
+poses refined against the nearest training images, row "align"; keyframe depths are made before, untimed).
+Each map's cell accuracy (bench/cell_accuracy.py: the share of test cells within 4 px under the true pose, and of
+7 training frames' cells within 1 px) is printed too, because it is a far steadier signal than a 7-frame median.
 """
 
 from __future__ import annotations

@@ -53,7 +53,8 @@ class ExportOptions:
     dense: bool = False
     """Coordinates every 4th pixel (acesplat eval --dense): more accurate poses at about 3.5x the SCR time."""
     keyframes: bool = False
-    """Carry the training images with the head's depth, for pose refinement on the edge (acesplat-edge --align)."""
+    """Carry the training images with their depth (acesplat.scr.keyframes), for pose refinement on the edge
+    (acesplat-edge --align)."""
 
 
 @dataclass
@@ -203,7 +204,7 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
             save_keyframes(tmp / KEYFRAMES_FILE, ks)
             files.append(describe_file(tmp, KEYFRAMES_FILE, ROLE_KEYFRAMES))
             keyframes_info = {"count": len(ks), "image_size": list(ks.gray.shape[1:]), "depth_stride": ks.stride,
-                              "depth_from": "the map's head (dense grid, median-filtered)"}
+                              "depth_from": "the map's head (dense grid, median-filtered), re-measured between keyframes"}
             timings["keyframes_s"] = time.monotonic() - t0
             if progress:
                 progress("keyframes", 1.0, {"images": len(ks)})

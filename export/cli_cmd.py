@@ -72,7 +72,7 @@ def export_command(
     splat: Optional[Path] = typer.Option(None, "--splat", help="Splat folder from `acesplat splat`: add its Gaussians and initializer (edge refinement)."),
     dense: bool = typer.Option(False, help="Coordinates every 4th pixel instead of every 8th (as `acesplat eval --dense`): "
                                "more accurate poses at about 3.5x the SCR time; no --splat."),
-    keyframes: bool = typer.Option(False, help="Carry the training images with the head's depth, so the edge can "
+    keyframes: bool = typer.Option(False, help="Carry the training images with their depth, so the edge can "
                                    "refine poses against them (acesplat-edge replay/localize --align)."),
 ) -> None:
     """Export a map to an ONNX bundle (FP32, optionally INT8) that checks itself."""

@@ -37,7 +37,7 @@ SCR_FEATURES_OUTPUT = "features"
 ROLE_SCR_FP32 = "scr_fp32"
 ROLE_SCR_INT8 = "scr_int8"
 ROLE_KEYFRAMES = "keyframes"
-"""Mapping images with their poses and the head's depth (acesplat.core.keyframe_set), for pose refinement."""
+"""Mapping images with their poses and depth (acesplat.core.keyframe_set), for pose refinement."""
 PRECISION_ROLES = {"fp32": ROLE_SCR_FP32, "int8": ROLE_SCR_INT8}
 
 

@@ -154,8 +154,8 @@ def eval_command(
         False, help="Predict every 4th pixel instead of every 8th: 4x the correspondences at about 3.5x the time "
         "(bench/herz_gap.md)."),
     align: bool = typer.Option(
-        False, help="Refine each localized pose against the nearest training images of SCENE (warped with the "
-        "head's depth, dense flow, PnP): centimetre poses where the head alone is a few cm off (bench/herz_gap.md)."),
+        False, help="Refine each localized pose against the nearest training images of SCENE (warped with "
+        "their depth, dense flow, PnP): centimetre poses where the head alone is a few cm off (bench/herz_gap.md)."),
 ) -> None:
     """Localize a split against a map and report pose accuracy."""
     import torch

@@ -1,8 +1,9 @@
-"""The mapping images as keyframes for pose refinement (acesplat.core.keyframe_align), depth from the head.
+"""The mapping images as keyframes for pose refinement (acesplat.core.keyframe_align), with their depth.
 
-Depth is predicted once per training image, on its first use, on the dense grid (half the cell spacing) and
-median-filtered as the novel views use it (acesplat.scr.novel_views.head_depth): a query needs only its
-few nearest training images, so a long mapping sequence costs only what is used.
+Depth is made once per training image, on its first use: predicted by the head on the dense grid (half the cell
+spacing) and median-filtered as the novel views use it (acesplat.scr.novel_views.head_depth), then re-measured
+by triangulation with two neighbours (acesplat.core.keyframe_depth). A query needs only its few nearest training
+images, so a long mapping sequence costs only what is used.
 """
 
 from __future__ import annotations
