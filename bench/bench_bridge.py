@@ -23,12 +23,12 @@ import numpy as np
 import serial
 
 from acesplat.core.geometry import look_at, matrix_to_quat
+from acesplat.core.machine import cpu_model
 from acesplat.core.pose import PoseRecord, TrackingState
 from firmware_bridge.mavlink import MavlinkConfig, MavlinkEncoder
 from firmware_bridge.protocol import MsgType, Pose, RuntimeState, Status, encode_frame, wire_size
 from firmware_bridge.sink import FrameEncoder, PoseSink
 from firmware_bridge.transport import serial_opener
-from acesplat.core.machine import cpu_model
 
 TARGET_US = 50.0
 BAUD = 115200
@@ -37,7 +37,12 @@ BYTES_PER_S = BAUD / 10  # 8N1: start + 8 data + stop bits per byte
 
 def machine() -> dict:
     model = cpu_model()
-    return {"cpu": model, "cores": os.cpu_count(), "python": platform.python_version(), "load_avg_1_5_15": os.getloadavg()}
+    return {
+        "cpu": model,
+        "cores": os.cpu_count(),
+        "python": platform.python_version(),
+        "load_avg_1_5_15": os.getloadavg(),
+    }
 
 
 def records(n: int) -> list[PoseRecord]:
@@ -46,14 +51,25 @@ def records(n: int) -> list[PoseRecord]:
     for i in range(n):
         eye = rng.uniform(-5, 5, 3)
         T = look_at(eye, eye + rng.normal(size=3))
-        out.append(PoseRecord(time.monotonic_ns() // 1000 + i, T, int(rng.integers(20, 900)), TrackingState.TRACKING, float(rng.random()), i))
+        out.append(
+            PoseRecord(
+                time.monotonic_ns() // 1000 + i,
+                T,
+                int(rng.integers(20, 900)),
+                TrackingState.TRACKING,
+                float(rng.random()),
+                i,
+            )
+        )
     return out
 
 
 def summarize(ns: list[int], cpu_ns: list[int]) -> dict:
     us = np.asarray(ns) / 1000.0
     return {
-        "median_us": round(float(median(us)), 2), "p99_us": round(float(np.percentile(us, 99)), 2), "max_us": round(float(us.max()), 1),
+        "median_us": round(float(median(us)), 2),
+        "p99_us": round(float(np.percentile(us, 99)), 2),
+        "max_us": round(float(us.max()), 1),
         "cpu_median_us": round(float(median(cpu_ns)) / 1000.0, 2),
     }
 
@@ -145,7 +161,9 @@ def link_budget() -> dict:
         "headroom_after_100hz_pose_and_status": round(1 - pose_100hz - status_1hz, 4),
         "max_pose_hz_with_status": round((BYTES_PER_S - status) / pose, 1),
         "mavlink_bytes": mav,
-        "mavlink_max_hz_with_heartbeat": {k: round((BYTES_PER_S - mav["heartbeat"]) / v, 1) for k, v in mav.items() if k != "heartbeat"},
+        "mavlink_max_hz_with_heartbeat": {
+            k: round((BYTES_PER_S - mav["heartbeat"]) / v, 1) for k, v in mav.items() if k != "heartbeat"
+        },
     }
 
 
@@ -162,20 +180,28 @@ def main() -> None:
     report["machine"]["load_avg_after"] = os.getloadavg()
 
     m = report["machine"]
-    print(f"machine: {m['cpu']}, {m['cores']} cores, Python {m['python']}, load avg before {m['load_avg_1_5_15']} after {m['load_avg_after']}")
-    print(f"per pose, {args.n} poses, microseconds (wall median / p99 / max, thread CPU median; target {TARGET_US:g} us):")
+    print(
+        f"machine: {m['cpu']}, {m['cores']} cores, Python {m['python']}, load avg before {m['load_avg_1_5_15']} after {m['load_avg_after']}"
+    )
+    print(
+        f"per pose, {args.n} poses, microseconds (wall median / p99 / max, thread CPU median; target {TARGET_US:g} us):"
+    )
     for name, r in {**report["per_pose"], "submit (caller side)": report["submit"]}.items():
         print(
             f"  {name:<32} {r['median_us']:8.2f} {r['p99_us']:8.2f} {r['max_us']:8.1f} {r['cpu_median_us']:8.2f}"
             f"   wall median/target = {r['median_us'] / TARGET_US:.2f}, cpu median/target = {r['cpu_median_us'] / TARGET_US:.2f}"
         )
     s = report["submit"]
-    print(f"  submit burst: {s['submitted']} submitted, {s['sent']} sent, {s['dropped']} replaced by a newer pose (link-limited)")
+    print(
+        f"  submit burst: {s['submitted']} submitted, {s['sent']} sent, {s['dropped']} replaced by a newer pose (link-limited)"
+    )
     b = report["link_budget"]
     print(f"link budget at {BAUD} baud 8N1 ({BYTES_PER_S:g} bytes/s):")
-    print(f"  POSE frame {b['pose_frame_bytes']} B -> 100 Hz uses {b['pose_100hz_utilisation']:.1%}; "
-          f"STATUS {b['status_frame_bytes']} B at 1 Hz uses {b['status_1hz_utilisation']:.2%}; "
-          f"headroom {b['headroom_after_100hz_pose_and_status']:.1%}; max POSE rate with STATUS {b['max_pose_hz_with_status']} Hz")
+    print(
+        f"  POSE frame {b['pose_frame_bytes']} B -> 100 Hz uses {b['pose_100hz_utilisation']:.1%}; "
+        f"STATUS {b['status_frame_bytes']} B at 1 Hz uses {b['status_1hz_utilisation']:.2%}; "
+        f"headroom {b['headroom_after_100hz_pose_and_status']:.1%}; max POSE rate with STATUS {b['max_pose_hz_with_status']} Hz"
+    )
     print(f"  MAVLink bytes {b['mavlink_bytes']} -> max Hz with 1 Hz HEARTBEAT {b['mavlink_max_hz_with_heartbeat']}")
     if args.json:
         args.json.write_text(json.dumps(report, indent=2) + "\n")

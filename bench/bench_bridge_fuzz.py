@@ -54,8 +54,12 @@ def main() -> int:
     got = [encode_frame(f.message, f.seq)[:-1] for f in accepted]
     false_accepts = sum(seg not in originals for seg in got)
     report.update(
-        accepted=len(got), expected=len(expected), rejected=dec.frames_rejected, rejects=dict(dec.rejects),
-        false_accepts=false_accepts, python_matches_oracle=got == expected,
+        accepted=len(got),
+        expected=len(expected),
+        rejected=dec.frames_rejected,
+        rejects=dict(dec.rejects),
+        false_accepts=false_accepts,
+        python_matches_oracle=got == expected,
     )
 
     digest = 0
@@ -73,15 +77,28 @@ def main() -> int:
             report[f"{key}_matches_python"] = c_lines == py_lines
     report["machine"]["load_avg_after"] = os.getloadavg()
 
-    ok = report["python_matches_oracle"] and false_accepts == 0 and report["c_asan_ubsan_matches_python"] and report["c_O2_matches_python"]
+    ok = (
+        report["python_matches_oracle"]
+        and false_accepts == 0
+        and report["c_asan_ubsan_matches_python"]
+        and report["c_O2_matches_python"]
+    )
     report["pass"] = ok
     m = report["machine"]
-    print(f"machine: {m['cpu']}, {m['cores']} cores, load avg before {m['load_avg_1_5_15']} after {m['load_avg_after']}")
-    print(f"{args.frames} frames (seed {args.seed}), {len(stream) / 1e6:.1f} MB stream, generated in {report['generate_s']} s")
-    print(f"python: {report['python_decode_s']} s ({report['python_us_per_frame']} us/frame); accepted {len(got)} = intact frames {len(expected)}: "
-          f"{report['python_matches_oracle']}; corrupted accepted: {false_accepts}; rejected {dec.frames_rejected} {dict(dec.rejects)}")
-    print(f"C (ASan+UBSan): {report['c_asan_ubsan_decode_s']} s, identical to Python: {report['c_asan_ubsan_matches_python']}; "
-          f"C (-O2): {report['c_O2_decode_s']} s, identical: {report['c_O2_matches_python']}")
+    print(
+        f"machine: {m['cpu']}, {m['cores']} cores, load avg before {m['load_avg_1_5_15']} after {m['load_avg_after']}"
+    )
+    print(
+        f"{args.frames} frames (seed {args.seed}), {len(stream) / 1e6:.1f} MB stream, generated in {report['generate_s']} s"
+    )
+    print(
+        f"python: {report['python_decode_s']} s ({report['python_us_per_frame']} us/frame); accepted {len(got)} = intact frames {len(expected)}: "
+        f"{report['python_matches_oracle']}; corrupted accepted: {false_accepts}; rejected {dec.frames_rejected} {dict(dec.rejects)}"
+    )
+    print(
+        f"C (ASan+UBSan): {report['c_asan_ubsan_decode_s']} s, identical to Python: {report['c_asan_ubsan_matches_python']}; "
+        f"C (-O2): {report['c_O2_decode_s']} s, identical: {report['c_O2_matches_python']}"
+    )
     print("PASS" if ok else "FAIL")
     if args.json:
         args.json.write_text(json.dumps(report, indent=2) + "\n")

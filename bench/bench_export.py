@@ -37,7 +37,15 @@ from edge.profile import cpu_model, profile_precision  # noqa: E402
 from edge.replay import replay_split  # noqa: E402
 from edge.runtime import STAGES, EdgeLocalizer  # noqa: E402
 
-KEYS = ("localized", "median_translation_m", "median_rotation_deg", "recall_5cm_5deg", "recall_10cm_5deg", "recall_25cm_2deg", "mean_ms")
+KEYS = (
+    "localized",
+    "median_translation_m",
+    "median_rotation_deg",
+    "recall_5cm_5deg",
+    "recall_10cm_5deg",
+    "recall_25cm_2deg",
+    "mean_ms",
+)
 
 
 def accuracy_part(map_path: Path | None, scene: Path | None, threads: int, work: Path) -> None:
@@ -58,9 +66,11 @@ def accuracy_part(map_path: Path | None, scene: Path | None, threads: int, work:
     t0 = time.time()
     rep = export_bundle(map_path, work / "bundle", ExportOptions(int8=True, scene_path=scene))
     par = rep.manifest["checks"]["fp32_vs_torch"]
-    print(f"export with INT8 + self-checks: {time.time() - t0:.0f} s; FP32 ONNX vs torch on the same input: max |diff| "
-          f"fraction {par['max_abs_diff_fraction']:.2e}, poses of {par['pose_frames_compared']} frames differ by at most "
-          f"{1000 * par['pose_max_translation_diff_m']:.3f} mm / {par['pose_max_rotation_diff_deg']:.4f} deg (target 1 mm / 0.01 deg)")
+    print(
+        f"export with INT8 + self-checks: {time.time() - t0:.0f} s; FP32 ONNX vs torch on the same input: max |diff| "
+        f"fraction {par['max_abs_diff_fraction']:.2e}, poses of {par['pose_frames_compared']} frames differ by at most "
+        f"{1000 * par['pose_max_translation_diff_m']:.3f} mm / {par['pose_max_rotation_diff_deg']:.4f} deg (target 1 mm / 0.01 deg)"
+    )
     m = load_map(map_path)
     torch.set_num_threads(threads)
     net = m.network(encoder_for_map(m, map_path))
@@ -72,7 +82,13 @@ def accuracy_part(map_path: Path | None, scene: Path | None, threads: int, work:
     print(f"\naccuracy on {scene} / test ({b.input_size[0]}x{b.input_size[1]})")
     print(f"{'':12s}" + "".join(f"{k:>22s}" for k in KEYS))
     for name, s in rows.items():
-        print(f"{name:12s}" + "".join(f"{'-' if s[k] is None else (f'{s[k]:.4g}' if isinstance(s[k], float) else str(s[k])):>22s}" for k in KEYS))
+        print(
+            f"{name:12s}"
+            + "".join(
+                f"{'-' if s[k] is None else (f'{s[k]:.4g}' if isinstance(s[k], float) else str(s[k])):>22s}"
+                for k in KEYS
+            )
+        )
     for p in ("FP32 ONNX", "INT8 ONNX"):
         t = rows[p]["timing_ms"]
         print(f"{p} stage p50 ms: " + ", ".join(f"{s} {t[s]['p50']:.2f}" for s in STAGES))
@@ -85,9 +101,9 @@ def quant_variants(work: Path, scene: Path, size: tuple[int, int], threads: int)
 
     from acesplat.core.bundle import ROLE_SCR_FP32, ROLE_SCR_INT8, describe_file, write_manifest
     from acesplat.core.scene import read_split
+    from edge.inference import ScrSession
     from export.checks import prepare_frames
     from export.quantize import quantize_int8
-    from edge.inference import ScrSession
 
     fp32 = work / "bundle" / "scr.onnx"
     calib = [c.gray for c in prepare_frames(read_split(scene, "train").frames, size)]
@@ -99,11 +115,15 @@ def quant_variants(work: Path, scene: Path, size: tuple[int, int], threads: int)
         "MinMax, every conv INT8 (tail float)": dict(method=CalibrationMethod.MinMax, float_tail=False),
         "Percentile, last conv + tail float": dict(method=CalibrationMethod.Percentile, float_tail=True, float_convs=1),
         "MinMax, head's fc1-fc3 float": dict(method=CalibrationMethod.MinMax, float_tail=True, float_convs=3),
-        "MinMax, res block + fc1-fc3 float (6, shipped)": dict(method=CalibrationMethod.MinMax, float_tail=True, float_convs=6),
+        "MinMax, res block + fc1-fc3 float (6, shipped)": dict(
+            method=CalibrationMethod.MinMax, float_tail=True, float_convs=6
+        ),
         "MinMax, head float but res3_conv1 (8)": dict(method=CalibrationMethod.MinMax, float_tail=True, float_convs=8),
         "MinMax, whole head float (10 convs)": dict(method=CalibrationMethod.MinMax, float_tail=True, float_convs=10),
     }
-    print("\nINT8 variants on the same map (coordinate deviation from FP32 ONNX over test cells; replay of the test split)")
+    print(
+        "\nINT8 variants on the same map (coordinate deviation from FP32 ONNX over test cells; replay of the test split)"
+    )
     for name, kw in variants.items():
         root = work / f"q_{abs(hash(name))}"
         root.mkdir()
@@ -113,14 +133,19 @@ def quant_variants(work: Path, scene: Path, size: tuple[int, int], threads: int)
         t0 = time.time()
         quantize_int8(root / "scr.onnx", root / "scr.int8.onnx", calib, **kw)
         qs = time.time() - t0
-        write_manifest(root, {"scr": {"input_size": list(size), "output_stride": 8}},
-                       [describe_file(root, "scr.onnx", ROLE_SCR_FP32), describe_file(root, "scr.int8.onnx", ROLE_SCR_INT8)])
+        write_manifest(
+            root,
+            {"scr": {"input_size": list(size), "output_stride": 8}},
+            [describe_file(root, "scr.onnx", ROLE_SCR_FP32), describe_file(root, "scr.int8.onnx", ROLE_SCR_INT8)],
+        )
         sess = ScrSession(root / "scr.int8.onnx", size, threads)
         dev = np.concatenate([np.linalg.norm(sess.run(f.gray) - r, axis=-1).ravel() for f, r in zip(test, refs)])
         s = replay_split(EdgeLocalizer(load_bundle(root), "int8", threads), scene, "test")
-        print(f"  {name:50s} deviation median {100 * np.median(dev):6.2f} cm, p90 {100 * np.percentile(dev, 90):6.2f} cm; "
-              f"localized {s['localized']}/{s['frames']}, 5cm/5deg {s['recall_5cm_5deg']:.1f}%, 10cm/5deg {s['recall_10cm_5deg']:.1f}%, median {_num(s['median_translation_m'])} m / {_num(s['median_rotation_deg'])} deg, "
-              f"inference p50 {s['timing_ms']['inference']['p50']:.2f} ms; quantized in {qs:.0f} s")
+        print(
+            f"  {name:50s} deviation median {100 * np.median(dev):6.2f} cm, p90 {100 * np.percentile(dev, 90):6.2f} cm; "
+            f"localized {s['localized']}/{s['frames']}, 5cm/5deg {s['recall_5cm_5deg']:.1f}%, 10cm/5deg {s['recall_10cm_5deg']:.1f}%, median {_num(s['median_translation_m'])} m / {_num(s['median_rotation_deg'])} deg, "
+            f"inference p50 {s['timing_ms']['inference']['p50']:.2f} ms; quantized in {qs:.0f} s"
+        )
 
 
 def _num(v: float | None) -> str:
@@ -130,8 +155,7 @@ def _num(v: float | None) -> str:
 def synthetic_pnp_ms(n: int = 20) -> dict:
     from acesplat.core.camera import Intrinsics
     from acesplat.core.geometry import look_at, transform_points
-    from acesplat.core.pnp import cell_centers
-
+    from acesplat.core.grid import cell_centers
     from edge.runtime import PnPSettings
 
     rng = np.random.default_rng(0)
@@ -140,7 +164,9 @@ def synthetic_pnp_ms(n: int = 20) -> dict:
     for i in range(n):
         T = look_at(np.array([0.3, -0.2, 1.5]) + rng.normal(0, 0.3, 3), np.array([0.5, 4.0, 1.2]))
         pix = cell_centers(45, 60)
-        X = transform_points(T, intr.unproject(pix + rng.normal(0, 1.0, pix.shape), 3.0 + rng.uniform(0, 2.0, len(pix))))
+        X = transform_points(
+            T, intr.unproject(pix + rng.normal(0, 1.0, pix.shape), 3.0 + rng.uniform(0, 2.0, len(pix)))
+        )
         bad = rng.random(len(X)) < 0.4
         X[bad] += rng.normal(0, 2.0, (bad.sum(), 3))
         t0 = time.perf_counter()
@@ -150,17 +176,19 @@ def synthetic_pnp_ms(n: int = 20) -> dict:
 
 
 def latency_part(size: tuple[int, int], frames: int, threads: int, work: Path) -> None:
+    from acesplat.core.bundle import ROLE_SCR_FP32, ROLE_SCR_INT8, describe_file, write_manifest
     from acesplat.core.camera import Intrinsics
     from acesplat.scr.network import Encoder, Head, HeadConfig, SCRNetwork
     from acesplat.scr.pretrain import EDGE_ENCODER
     from export.onnx_graph import export_scr_onnx
     from export.quantize import quantize_int8
-    from acesplat.core.bundle import ROLE_SCR_FP32, ROLE_SCR_INT8, describe_file, write_manifest
     from tests.test_edge_scene import _texture, camera_poses, render
 
     h, w = size
     torch.manual_seed(0)
-    net = SCRNetwork(Encoder(EDGE_ENCODER), Head(torch.tensor([2.0, 1.5, 1.2]), EDGE_ENCODER.out, HeadConfig(width=256))).eval()
+    net = SCRNetwork(
+        Encoder(EDGE_ENCODER), Head(torch.tensor([2.0, 1.5, 1.2]), EDGE_ENCODER.out, HeadConfig(width=256))
+    ).eval()
     root = work / "latency_bundle"
     root.mkdir()
     rng = np.random.default_rng(1)
@@ -172,16 +200,20 @@ def latency_part(size: tuple[int, int], frames: int, threads: int, work: Path) -
     import cv2
 
     quantize_int8(root / "scr.onnx", root / "scr.int8.onnx", [cv2.cvtColor(v, cv2.COLOR_RGB2GRAY) for v in views[:8]])
-    print(f"\nlatency model: EDGE_ENCODER {EDGE_ENCODER.as_dict()}, head 256, random weights, exported + quantized in {time.time() - t0:.0f} s")
-    write_manifest(root, {"scr": {"input_size": [h, w], "output_stride": 8}},
-                   [describe_file(root, "scr.onnx", ROLE_SCR_FP32), describe_file(root, "scr.int8.onnx", ROLE_SCR_INT8)])
+    print(
+        f"\nlatency model: EDGE_ENCODER {EDGE_ENCODER.as_dict()}, head 256, random weights, exported + quantized in {time.time() - t0:.0f} s"
+    )
+    write_manifest(
+        root,
+        {"scr": {"input_size": [h, w], "output_stride": 8}},
+        [describe_file(root, "scr.onnx", ROLE_SCR_FP32), describe_file(root, "scr.int8.onnx", ROLE_SCR_INT8)],
+    )
     b = load_bundle(root)
     frames_dir = work / "latency_frames"
     frames_dir.mkdir()
     for i, v in enumerate(views):
         cv2.imwrite(str(frames_dir / f"{i:04d}.png"), cv2.cvtColor(v, cv2.COLOR_RGB2BGR))
-    (frames_dir / "intrinsics.json").write_text(
-        '{"K": %s, "width": %d, "height": %d}' % (intr.K.tolist(), w, h))
+    (frames_dir / "intrinsics.json").write_text('{"K": %s, "width": %d, "height": %d}' % (intr.K.tolist(), w, h))
     from edge.profile import read_frames
     from edge.sources import ReplaySource
 
@@ -190,14 +222,26 @@ def latency_part(size: tuple[int, int], frames: int, threads: int, work: Path) -
     pnp = synthetic_pnp_ms()
     print(f"per-stage ms at {h}x{w}, {threads} threads, {frames} frames after 5 warm-up (mean / p50 / p95 / max):")
     for p, r in runs.items():
-        print(f"  {p}: " + "; ".join(f"{s} {r['stages'][s]['mean']:.1f}/{r['stages'][s]['p50']:.1f}/{r['stages'][s]['p95']:.1f}/{r['stages'][s]['max']:.1f}" for s in STAGES))
-    print(f"  PnP on 2700 realistic correspondences (40% outliers): p50 {pnp['p50']:.1f} ms, p95 {pnp['p95']:.1f} ms, max {pnp['max']:.1f} ms")
+        print(
+            f"  {p}: "
+            + "; ".join(
+                f"{s} {r['stages'][s]['mean']:.1f}/{r['stages'][s]['p50']:.1f}/{r['stages'][s]['p95']:.1f}/{r['stages'][s]['max']:.1f}"
+                for s in STAGES
+            )
+        )
+    print(
+        f"  PnP on 2700 realistic correspondences (40% outliers): p50 {pnp['p50']:.1f} ms, p95 {pnp['p95']:.1f} ms, max {pnp['max']:.1f} ms"
+    )
     for p, r in runs.items():
         st = r["stages"]
         e50 = st["capture"]["p50"] + st["preprocess"]["p50"] + st["inference"]["p50"] + pnp["p50"]
         e95 = st["capture"]["p95"] + st["preprocess"]["p95"] + st["inference"]["p95"] + pnp["p95"]
-        print(f"  {p} end-to-end estimate: p50 {e50:.1f} ms, p95 {e95:.1f} ms (targets INT8: p50 <= 60, p95 <= 90; PnP <= 15)")
-    print(f"  INT8 inference speed-up (p50): {runs['fp32']['stages']['inference']['p50'] / runs['int8']['stages']['inference']['p50']:.2f}x")
+        print(
+            f"  {p} end-to-end estimate: p50 {e50:.1f} ms, p95 {e95:.1f} ms (targets INT8: p50 <= 60, p95 <= 90; PnP <= 15)"
+        )
+    print(
+        f"  INT8 inference speed-up (p50): {runs['fp32']['stages']['inference']['p50'] / runs['int8']['stages']['inference']['p50']:.2f}x"
+    )
 
 
 def main() -> None:

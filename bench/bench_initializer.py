@@ -55,9 +55,17 @@ class ImageInitializer(torch.nn.Module):
 
 def export_image_initializer(graph: torch.nn.Module, size_hw: tuple[int, int], out: Path) -> None:
     h, w = size_hw
-    torch.onnx.export(graph, (torch.full((1, 1, h, w), 128.0), torch.zeros((1, PRIOR_CHANNELS, h, w))), str(out),
-                      dynamo=True, external_data=False, opset_version=18, input_names=["gray", "prior"],
-                      output_names=[INIT_OUTPUT], verbose=False)
+    torch.onnx.export(
+        graph,
+        (torch.full((1, 1, h, w), 128.0), torch.zeros((1, PRIOR_CHANNELS, h, w))),
+        str(out),
+        dynamo=True,
+        external_data=False,
+        opset_version=18,
+        input_names=["gray", "prior"],
+        output_names=[INIT_OUTPUT],
+        verbose=False,
+    )
 
 
 def session(path: Path, threads: int) -> ort.InferenceSession:
@@ -113,15 +121,29 @@ def main() -> None:
                 times[k].append(1000.0 * (time.perf_counter() - t0))
     stats = {k: timing_stats(v) for k, v in times.items()}
     print(f"machine: {machine_line()}; load before {load_before:.2f}, after {os.getloadavg()[0]:.2f}")
-    print(f"input {h}x{w}, features {tuple(feats.shape[1:])}, {args.runs} interleaved runs, {args.threads} onnxruntime thread(s)")
+    print(
+        f"input {h}x{w}, features {tuple(feats.shape[1:])}, {args.runs} interleaved runs, {args.threads} onnxruntime thread(s)"
+    )
     for k, s in stats.items():
         print(f"  {k:30s} p50 {s['p50']:7.2f}  p95 {s['p95']:7.2f}  mean {s['mean']:7.2f}")
     ratio = stats["initializer_image_in_ms"]["p50"] / stats["initializer_features_in_ms"]["p50"]
     extra = stats["scr_coords_and_features_ms"]["p50"] - stats["scr_coords_only_ms"]["p50"]
-    print(f"initializer p50: image in / features in = {ratio:.1f}x; SCR graph p50 with the features output: {extra:+.2f} ms")
+    print(
+        f"initializer p50: image in / features in = {ratio:.1f}x; SCR graph p50 with the features output: {extra:+.2f} ms"
+    )
     if args.json:
-        write_json(args.json, {"machine": machine_line(), "size": [h, w], "runs": args.runs, "threads": args.threads,
-                               "stats_ms": stats, "ratio_p50": ratio, "features_output_extra_p50_ms": extra})
+        write_json(
+            args.json,
+            {
+                "machine": machine_line(),
+                "size": [h, w],
+                "runs": args.runs,
+                "threads": args.threads,
+                "stats_ms": stats,
+                "ratio_p50": ratio,
+                "features_output_extra_p50_ms": extra,
+            },
+        )
 
 
 if __name__ == "__main__":

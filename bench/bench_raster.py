@@ -36,9 +36,9 @@ sys.path.insert(0, str(ROOT))
 
 from acesplat.core.camera import Intrinsics  # noqa: E402
 from acesplat.core.gaussians import Gaussians  # noqa: E402
-from acesplat.core.raster import get_num_threads, rasterize, rasterize_backward, set_num_threads  # noqa: E402
-from acesplat.core.raster import rasterizer as _rasterizer  # noqa: E402
 from acesplat.core.machine import cpu_model
+from acesplat.raster import get_num_threads, rasterize, rasterize_backward, set_num_threads  # noqa: E402
+from acesplat.raster import rasterizer as _rasterizer  # noqa: E402
 
 BASE_W, BASE_H = 320, 240
 
@@ -181,7 +181,7 @@ void composite_forward(const float* rec, const int64_t* offs, const int64_t* ord
 
 def compare_cpp(g: Gaussians, k: Intrinsics, repeats: int) -> dict[str, float] | None:
     """Single-thread CPU ms of the forward compositing pass: numba kernel vs g++ builds of the same code."""
-    from acesplat.core.raster._tile_kernels import composite_forward
+    from acesplat.raster._tile_kernels import composite_forward
 
     gxx = shutil.which("g++")
     if gxx is None:
@@ -196,26 +196,43 @@ def compare_cpp(g: Gaussians, k: Intrinsics, repeats: int) -> dict[str, float] |
 
     def outputs() -> list[np.ndarray]:
         d = g.dtype
-        return [np.empty((h, w, 3), d), np.empty((h, w), d), np.empty((h, w), d), np.empty((h, w), d),
-                np.empty((h, w), np.int32)]
+        return [
+            np.empty((h, w, 3), d),
+            np.empty((h, w), d),
+            np.empty((h, w), d),
+            np.empty((h, w), d),
+            np.empty((h, w), np.int32),
+        ]
 
     numba_out = outputs()
-    runs = {"numba": lambda: composite_forward(0, len(order), c.tile_rec, c.tile_offsets, order, tiles_x, w, h, bg,
-                                               *numba_out)}
+    runs = {
+        "numba": lambda: composite_forward(
+            0, len(order), c.tile_rec, c.tile_offsets, order, tiles_x, w, h, bg, *numba_out
+        )
+    }
     ptr = lambda a: a.ctypes.data_as(ctypes.c_void_p)  # noqa: E731
     with tempfile.TemporaryDirectory() as tmp:
         src = Path(tmp) / "composite.cpp"
         src.write_text(CPP_FORWARD)
         for label, flags in (("g++ -O3 -march=native", ["-ffp-contract=off"]), ("g++ ... + FMA contraction", [])):
             lib_path = Path(tmp) / f"lib{len(runs)}.so"
-            subprocess.run([gxx, "-O3", "-march=native", *flags, "-shared", "-fPIC", str(src), "-o", str(lib_path)],
-                           check=True)
+            subprocess.run(
+                [gxx, "-O3", "-march=native", *flags, "-shared", "-fPIC", str(src), "-o", str(lib_path)], check=True
+            )
             fn = ctypes.CDLL(str(lib_path)).composite_forward
             fn.restype = None
             out = outputs()
-            runs[label] = (lambda fn=fn, out=out: fn(
-                ptr(c.tile_rec), ptr(c.tile_offsets), ptr(order), ctypes.c_int64(len(order)), ctypes.c_int64(tiles_x),
-                ctypes.c_int64(w), ctypes.c_int64(h), ptr(bg), *[ptr(o) for o in out]))
+            runs[label] = lambda fn=fn, out=out: fn(
+                ptr(c.tile_rec),
+                ptr(c.tile_offsets),
+                ptr(order),
+                ctypes.c_int64(len(order)),
+                ctypes.c_int64(tiles_x),
+                ctypes.c_int64(w),
+                ctypes.c_int64(h),
+                ptr(bg),
+                *[ptr(o) for o in out],
+            )
         times: dict[str, float] = {}
         for _ in range(3):  # interleaved, best of all, so load changes hit every variant alike
             for label, run in runs.items():
@@ -265,13 +282,17 @@ def main() -> None:
 
     target = time_fwd_bwd(g50, k, r)
     verdict = "meets" if target["total_ms"] <= 150.0 else "MISSES"
-    print(f"\n50,000 Gaussians at 320x240, {get_num_threads()} threads: forward {target['fwd_ms']:.1f} ms + "
-          f"backward {target['bwd_ms']:.1f} ms = {target['total_ms']:.1f} ms (best {target['best_total_ms']:.1f}; "
-          f"{verdict} the 150 ms target)")
+    print(
+        f"\n50,000 Gaussians at 320x240, {get_num_threads()} threads: forward {target['fwd_ms']:.1f} ms + "
+        f"backward {target['bwd_ms']:.1f} ms = {target['total_ms']:.1f} ms (best {target['best_total_ms']:.1f}; "
+        f"{verdict} the 150 ms target)"
+    )
     print(f"  CPU time of all threads per forward+backward: {target['cpu_ms']:.1f} ms")
-    print(f"  visible {target['visible']}, tile entries {target['tile_entries']}, median 3-sigma radius "
-          f"{target['median_radius_px']:.0f} px, mean alpha {target['mean_alpha']:.2f}, mean list length to the "
-          f"last contributor {target['mean_list_to_last_contributor']:.0f}")
+    print(
+        f"  visible {target['visible']}, tile entries {target['tile_entries']}, median 3-sigma radius "
+        f"{target['median_radius_px']:.0f} px, mean alpha {target['mean_alpha']:.2f}, mean list length to the "
+        f"last contributor {target['mean_list_to_last_contributor']:.0f}"
+    )
     report["target"] = target
 
     stages = stage_breakdown(g50, k, r)
@@ -283,8 +304,10 @@ def main() -> None:
         set_num_threads(1)
         one = time_fwd_bwd(g50, k, r)
         set_num_threads(threads)
-        print(f"  1 thread: {one['total_ms']:.1f} ms wall, {one['cpu_ms']:.1f} ms CPU -> parallel speed-up "
-              f"x{one['total_ms'] / target['total_ms']:.2f} on {threads} threads")
+        print(
+            f"  1 thread: {one['total_ms']:.1f} ms wall, {one['cpu_ms']:.1f} ms CPU -> parallel speed-up "
+            f"x{one['total_ms'] / target['total_ms']:.2f} on {threads} threads"
+        )
         report["one_thread"] = one
 
     counts = [5_000, 50_000] if args.quick else [5_000, 20_000, 50_000, 100_000]
@@ -297,8 +320,10 @@ def main() -> None:
         rows.append({"n": n, **t})
     base = next(x["total_ms"] for x in rows if x["n"] == 50_000)
     for x in rows:
-        print(f"  {x['n']:>8} {x['fwd_ms']:>8.1f} {x['bwd_ms']:>8.1f} {x['total_ms']:>9.1f} "
-              f"{x['total_ms'] / base:>7.2f} {x['cpu_ms']:>7.1f} {x['tile_entries']:>8}")
+        print(
+            f"  {x['n']:>8} {x['fwd_ms']:>8.1f} {x['bwd_ms']:>8.1f} {x['total_ms']:>9.1f} "
+            f"{x['total_ms'] / base:>7.2f} {x['cpu_ms']:>7.1f} {x['tile_entries']:>8}"
+        )
     report["by_count"] = rows
 
     sizes = [(160, 120), (320, 240)] if args.quick else [(160, 120), (320, 240), (640, 480)]
@@ -310,8 +335,10 @@ def main() -> None:
         rows.append({"width": w, "height": h, **t})
     base = next(x["total_ms"] for x in rows if x["width"] == 320)
     for x in rows:
-        print(f"  {x['width']:>4}x{x['height']:<3} {x['fwd_ms']:>8.1f} {x['bwd_ms']:>8.1f} {x['total_ms']:>9.1f} "
-              f"{x['total_ms'] / base:>7.2f} {x['cpu_ms']:>7.1f} {x['tile_entries']:>8}")
+        print(
+            f"  {x['width']:>4}x{x['height']:<3} {x['fwd_ms']:>8.1f} {x['bwd_ms']:>8.1f} {x['total_ms']:>9.1f} "
+            f"{x['total_ms'] / base:>7.2f} {x['cpu_ms']:>7.1f} {x['tile_entries']:>8}"
+        )
     report["by_resolution"] = rows
 
     if args.compare_cpp:

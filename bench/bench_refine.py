@@ -69,7 +69,7 @@ def prepare(work: Path, args) -> dict:
         link_split(scene / "train", names[half:], second / "test")
     map_path = Path(args.map) if args.map else work / ("tiny.map" if args.fitted_map else "map.pt")
     if not map_path.is_file() and not args.fitted_map:
-        from acesplat.demo import _stage_map
+        from acesplat.apps.demo import _stage_map
 
         log(f"Stage 1: map the whole training trajectory with the default encoder, {args.map_minutes} min")
         info: dict = {}
@@ -81,7 +81,9 @@ def prepare(work: Path, args) -> dict:
         every = work / "map_frames"
         if not every.is_dir():
             link_split(scene / "train", names[:: args.map_every], every / "train")
-        log(f"fit an SCR map to every {args.map_every}th training frame (depth-derived coordinates), {args.map_steps} steps")
+        log(
+            f"fit an SCR map to every {args.map_every}th training frame (depth-derived coordinates), {args.map_steps} steps"
+        )
         t0 = time.monotonic()
         train_tiny_map(every, work, steps=args.map_steps)
         log(f"map: {time.monotonic() - t0:.0f} s")
@@ -89,11 +91,24 @@ def prepare(work: Path, args) -> dict:
     if not (splat / "gaussians.ply").is_file():
         from typer.testing import CliRunner
 
-        from acesplat.cli import app
+        from acesplat.apps.cli import app
 
         log(f"Stage 2 on the first half ({half} frames), {args.splat_minutes} min")
-        r = CliRunner().invoke(app, ["splat", str(first), "--map", str(map_path), "-o", str(splat),
-                                     "--minutes", str(args.splat_minutes), "--max-gaussians", str(args.max_gaussians)])
+        r = CliRunner().invoke(
+            app,
+            [
+                "splat",
+                str(first),
+                "--map",
+                str(map_path),
+                "-o",
+                str(splat),
+                "--minutes",
+                str(args.splat_minutes),
+                "--max-gaussians",
+                str(args.max_gaussians),
+            ],
+        )
         if r.exit_code:
             raise SystemExit(r.output)
         log(r.output.strip().splitlines()[-1])
@@ -106,11 +121,23 @@ def prepare(work: Path, args) -> dict:
         # size: the map's, from the scene's images; INT8 too (the edge's fast path)
         export_bundle(map_path, bundle, ExportOptions(int8=True, scene_path=scene))
         export_splat(bundle, splat, map_path)
-    return {"scene": scene, "second": second, "bundle": bundle, "first_frames": half, "second_frames": len(names) - half}
+    return {
+        "scene": scene,
+        "second": second,
+        "bundle": bundle,
+        "first_frames": half,
+        "second_frames": len(names) - half,
+    }
 
 
-def replay(bundle: Path, split_root: Path, threads: int | None, refine: dict | None, pace_ms: float | None = None,
-           precision: str = "int8") -> dict:
+def replay(
+    bundle: Path,
+    split_root: Path,
+    threads: int | None,
+    refine: dict | None,
+    pace_ms: float | None = None,
+    precision: str = "int8",
+) -> dict:
     """One replay of the second half; refine=None: localization only (``pace_ms``: one frame per that many ms,
     as a camera would deliver them, so the reference idles between frames exactly as the paced refinement run)."""
     from acesplat.core.bundle import load_bundle
@@ -199,20 +226,33 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--workdir", type=Path, default=ROOT / "runs" / "bench_refine")
     ap.add_argument("--size", type=int, nargs=2, default=[120, 160], metavar=("H", "W"))
-    ap.add_argument("--frames", type=int, default=80, help="training frames of the built-in scene (half seed, half replayed)")
-    ap.add_argument("--scene", type=str, default=None, help="an existing scene (its training split is halved) instead of synthesizing one")
+    ap.add_argument(
+        "--frames", type=int, default=80, help="training frames of the built-in scene (half seed, half replayed)"
+    )
+    ap.add_argument(
+        "--scene",
+        type=str,
+        default=None,
+        help="an existing scene (its training split is halved) instead of synthesizing one",
+    )
     ap.add_argument("--map", type=str, default=None, help="an existing Stage 1 map of the scene")
     ap.add_argument("--map-minutes", type=float, default=4.5, help="Stage 1 mapping budget when no --map is given")
-    ap.add_argument("--fitted-map", action="store_true", help="fit the map to depth-derived coordinates instead of Stage 1")
+    ap.add_argument(
+        "--fitted-map", action="store_true", help="fit the map to depth-derived coordinates instead of Stage 1"
+    )
     ap.add_argument("--precision", default="int8", choices=["fp32", "int8"])
-    ap.add_argument("--skip-unpaced", action="store_true", help="only the paced settings and the reference (half the time)")
+    ap.add_argument(
+        "--skip-unpaced", action="store_true", help="only the paced settings and the reference (half the time)"
+    )
     ap.add_argument("--skip-gil", action="store_true")
     ap.add_argument("--map-steps", type=int, default=200)
     ap.add_argument("--map-every", type=int, default=2, help="fit the map to every n-th training frame (CPU time)")
     ap.add_argument("--splat-minutes", type=float, default=2.0)
     ap.add_argument("--max-gaussians", type=int, default=30_000)
     ap.add_argument("--budget-ms", type=float, default=100.0)
-    ap.add_argument("--threads", type=int, default=None, help="onnxruntime threads (default: all cores, as acesplat-edge localize)")
+    ap.add_argument(
+        "--threads", type=int, default=None, help="onnxruntime threads (default: all cores, as acesplat-edge localize)"
+    )
     ap.add_argument("--repeats", type=int, default=1, help="replays per setting (latency statistics pool them)")
     ap.add_argument("--fresh", action="store_true", help="rebuild the scene, map, splat and bundle")
     ap.add_argument("--json", type=Path, default=None)
@@ -273,24 +313,34 @@ def main() -> None:
     m = result["machine"]
     print(f"\nmachine: {m.get('cpu')} ({m.get('cores')} cores); load {load_start} -> {result['load_average']['end']}")
     size = paced.get("psnr_size", args.size)
-    print(f"scene {size[0]}x{size[1]}: Gaussians from the first {prep['first_frames']} frames, "
-          f"{prep['second_frames']} frames replayed ({args.precision}), budget {args.budget_ms:.0f} ms")
+    print(
+        f"scene {size[0]}x{size[1]}: Gaussians from the first {prep['first_frames']} frames, "
+        f"{prep['second_frames']} frames replayed ({args.precision}), budget {args.budget_ms:.0f} ms"
+    )
     un = f"; unpaced run: {result['psnr_unpaced_after']:.2f}" if unpaced else ""
-    print(f"PSNR on the replayed frames: {result['psnr_before']:.2f} -> {result['psnr_after']:.2f} dB "
-          f"({result['psnr_gain_db']:+.2f}{un})")
+    print(
+        f"PSNR on the replayed frames: {result['psnr_before']:.2f} -> {result['psnr_after']:.2f} dB "
+        f"({result['psnr_gain_db']:+.2f}{un})"
+    )
     for name in runs:
         t = lat[name]
         print(f"localization ({name:11s}) ms: p50 {t['p50']:.1f}  p95 {t['p95']:.1f}  max {t['max']:.1f}")
-    print(f"p95 ratio with/without refinement: paced {result['localization_p95_ratio_paced']:.3f} (vs off)"
-          + (f", unpaced {result['localization_p95_ratio_unpaced']:.3f} (vs off_unpaced)" if unpaced else ""))
+    print(
+        f"p95 ratio with/without refinement: paced {result['localization_p95_ratio_paced']:.3f} (vs off)"
+        + (f", unpaced {result['localization_p95_ratio_unpaced']:.3f} (vs off_unpaced)" if unpaced else "")
+    )
     if gil:
-        print(f"GIL probe (lateness of a 1 ms sleep): idle p95 {gil['idle_ms']['p95']:.2f} max {gil['idle_ms']['max']:.2f} ms; "
-              f"beside refinement p95 {gil['refining_ms']['p95']:.2f} max {gil['refining_ms']['max']:.2f} ms")
+        print(
+            f"GIL probe (lateness of a 1 ms sleep): idle p95 {gil['idle_ms']['p95']:.2f} max {gil['idle_ms']['max']:.2f} ms; "
+            f"beside refinement p95 {gil['refining_ms']['p95']:.2f} max {gil['refining_ms']['max']:.2f} ms"
+        )
     r = paced
-    print(f"refinement (paced): {r['keyframes']} keyframes, {r['keyframes_committed']} committed, {r['steps']} steps, "
-          f"step p50 {r['timing_ms']['step']['p50']:.1f} ms, refinement work per frame window p95 {r['timing_ms']['window']['p95']:.1f} ms, "
-          f"Gaussians {r['gaussians_initial']} -> {r['gaussians_final']} (cap {r['gaussian_cap']}); localization waited for "
-          f"a running piece p95 {r['timing_ms']['park']['p95']:.1f} max {r['timing_ms']['park']['max']:.1f} ms")
+    print(
+        f"refinement (paced): {r['keyframes']} keyframes, {r['keyframes_committed']} committed, {r['steps']} steps, "
+        f"step p50 {r['timing_ms']['step']['p50']:.1f} ms, refinement work per frame window p95 {r['timing_ms']['window']['p95']:.1f} ms, "
+        f"Gaussians {r['gaussians_initial']} -> {r['gaussians_final']} (cap {r['gaussian_cap']}); localization waited for "
+        f"a running piece p95 {r['timing_ms']['park']['p95']:.1f} max {r['timing_ms']['park']['max']:.1f} ms"
+    )
     counts = r["gaussians_over_time"]
     step = max(1, len(counts) // 8)
     print("Gaussians over time (frame, count): " + ", ".join(f"({f}, {c})" for f, c in counts[::step] + [counts[-1]]))

@@ -18,7 +18,8 @@ import torch
 
 from acesplat.core.atomic import write_json
 from acesplat.core.geometry import invert_pose, pose_error
-from acesplat.core.pnp import cell_centers, solve_from_grid
+from acesplat.core.grid import cell_centers
+from acesplat.core.pnp import solve_from_grid
 from acesplat.core.pose_refine import reprojection
 from acesplat.core.scene import read_split
 from acesplat.scr.localize import Localizer
@@ -32,7 +33,9 @@ def cell_errors(coords: np.ndarray, T_c2w: np.ndarray, intr) -> np.ndarray:
     true pose; inf behind the camera."""
     h, w, _ = coords.shape
     w2c = invert_pose(T_c2w)
-    return reprojection(coords.reshape(-1, 3).astype(np.float64), cell_centers(h, w), intr.K, w2c[:3, :3], w2c[:3, 3])[2]
+    return reprojection(coords.reshape(-1, 3).astype(np.float64), cell_centers(h, w), intr.K, w2c[:3, :3], w2c[:3, 3])[
+        2
+    ]
 
 
 def split_cell_accuracy(split, loc: Localizer, max_frames: int = 0) -> list[dict]:
@@ -47,8 +50,13 @@ def split_cell_accuracy(split, loc: Localizer, max_frames: int = 0) -> list[dict
         err = cell_errors(coords, f.pose, intr)
         res = solve_from_grid(coords, intr)
         t_cm = 100.0 * pose_error(res.T_c2w, f.pose)[0] if res.T_c2w is not None else float("inf")
-        rows.append({"frame": f.name, "within_px": [float(np.mean(err < t)) for t in THRESHOLDS_PX],
-                     "pose_translation_cm": t_cm})
+        rows.append(
+            {
+                "frame": f.name,
+                "within_px": [float(np.mean(err < t)) for t in THRESHOLDS_PX],
+                "pose_translation_cm": t_cm,
+            }
+        )
     return rows
 
 
@@ -64,16 +72,25 @@ def main() -> None:
     m = load_map(args.map)
     loc = Localizer(m.network(encoder_for_map(m, args.map, None)), m.short_side, {})
     report: dict = {"map": str(args.map), "scene": str(args.scene), "thresholds_px": list(THRESHOLDS_PX)}
-    print(f"{'split':>5s} {'frame':>16s} " + " ".join(f"{'<' + format(t, 'g') + ' px':>7s}" for t in THRESHOLDS_PX)
-          + f" {'pose cm':>8s}")
+    print(
+        f"{'split':>5s} {'frame':>16s} "
+        + " ".join(f"{'<' + format(t, 'g') + ' px':>7s}" for t in THRESHOLDS_PX)
+        + f" {'pose cm':>8s}"
+    )
     for name in args.splits.split(","):
         rows = split_cell_accuracy(read_split(args.scene, name), loc, args.frames)
         for r in rows:
-            print(f"{name:>5s} {r['frame'][-16:]:>16s} " + " ".join(f"{s:7.3f}" for s in r["within_px"])
-                  + f" {r['pose_translation_cm']:8.2f}")
+            print(
+                f"{name:>5s} {r['frame'][-16:]:>16s} "
+                + " ".join(f"{s:7.3f}" for s in r["within_px"])
+                + f" {r['pose_translation_cm']:8.2f}"
+            )
         mean = np.mean([r["within_px"] for r in rows], axis=0)
-        print(f"{name:>5s} {'mean':>16s} " + " ".join(f"{s:7.3f}" for s in mean)
-              + f" {np.mean([r['pose_translation_cm'] for r in rows]):8.2f}")
+        print(
+            f"{name:>5s} {'mean':>16s} "
+            + " ".join(f"{s:7.3f}" for s in mean)
+            + f" {np.mean([r['pose_translation_cm'] for r in rows]):8.2f}"
+        )
         report[name] = {"frames": rows, "mean_within_px": mean.tolist()}
     if args.json:
         write_json(args.json, report)

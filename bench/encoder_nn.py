@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from acesplat.core.grid import cell_centers
 from acesplat.core.machine import machine_line
-from acesplat.core.pnp import cell_centers
 from acesplat.core.preprocess import size_for_short_side, to_gray_input
 from acesplat.core.scene import SceneSplit, read_split
 from acesplat.scr.encoders import load_encoder
@@ -53,7 +53,9 @@ def cell_features(encoder: Encoder, split: SceneSplit, short_side: int, every: i
     return torch.nn.functional.normalize(torch.cat(feats), dim=1), np.concatenate(coords)
 
 
-def nearest_distances(train_f: torch.Tensor, train_x: np.ndarray, test_f: torch.Tensor, test_x: np.ndarray) -> np.ndarray:
+def nearest_distances(
+    train_f: torch.Tensor, train_x: np.ndarray, test_f: torch.Tensor, test_x: np.ndarray
+) -> np.ndarray:
     """Distance (M,) from each test cell's true point to the true point of its nearest training feature."""
     out = []
     for i in range(0, len(test_f), 2048):
@@ -65,7 +67,9 @@ def nearest_distances(train_f: torch.Tensor, train_x: np.ndarray, test_f: torch.
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--scene", type=Path, default=ROOT / "runs" / "bench_stage1" / "synth")
-    ap.add_argument("--encoder", type=Path, action="append", default=None, help="Encoder weights (repeatable; default: shipped).")
+    ap.add_argument(
+        "--encoder", type=Path, action="append", default=None, help="Encoder weights (repeatable; default: shipped)."
+    )
     ap.add_argument("--short-side", type=int, default=240)
     ap.add_argument("--every", type=int, default=3, help="Use every n-th test frame.")
     ap.add_argument("--train-scales", default="1", help="Comma-separated scales of the training images' short side.")
@@ -74,7 +78,9 @@ def main() -> None:
         synthesize(args.scene, seed=0, overwrite=True)
     train, test = read_split(args.scene, "train"), read_split(args.scene, "test")
     print(machine_line())
-    print(f"scene {args.scene}: {len(train)} training frames (all cells), one in {args.every} of {len(test)} test frames")
+    print(
+        f"scene {args.scene}: {len(train)} training frames (all cells), one in {args.every} of {len(test)} test frames"
+    )
     for path in args.encoder or [None]:
         t0 = time.perf_counter()
         enc, ident = load_encoder(path)
@@ -83,9 +89,11 @@ def main() -> None:
         for scale in (float(s) for s in args.train_scales.split(",")):
             tf, tx = cell_features(enc, train, round(args.short_side * scale), 1)
             d = nearest_distances(tf, tx, qf, qx)
-            print(f"{ident.name:24s} train x{scale:<5.3g} test cells {len(d):6d} vs {len(tf):6d}: within 5 cm {100 * np.mean(d < 0.05):5.1f}%  "
-                  f"10 cm {100 * np.mean(d < 0.10):5.1f}%  25 cm {100 * np.mean(d < 0.25):5.1f}%  median {100 * np.median(d):5.1f} cm  "
-                  f"({time.perf_counter() - t0:.0f} s)")
+            print(
+                f"{ident.name:24s} train x{scale:<5.3g} test cells {len(d):6d} vs {len(tf):6d}: within 5 cm {100 * np.mean(d < 0.05):5.1f}%  "
+                f"10 cm {100 * np.mean(d < 0.10):5.1f}%  25 cm {100 * np.mean(d < 0.25):5.1f}%  median {100 * np.median(d):5.1f} cm  "
+                f"({time.perf_counter() - t0:.0f} s)"
+            )
 
 
 if __name__ == "__main__":

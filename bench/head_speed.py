@@ -68,7 +68,9 @@ def main() -> None:
         ts = step_times(head, feats, layout, args.steps)
         med = statistics.median(ts)
         base = base or med
-        print(f"{layout:12s} median {med * 1000:7.1f} ms/step  (min {min(ts) * 1000:6.1f})  time ratio {med / base:5.2f}")
+        print(
+            f"{layout:12s} median {med * 1000:7.1f} ms/step  (min {min(ts) * 1000:6.1f})  time ratio {med / base:5.2f}"
+        )
     if "linear-bf16" in layouts:
         encoder_times(args.steps)
 
@@ -81,8 +83,11 @@ def encoder_times(steps: int, hw: tuple[int, int] = (240, 320)) -> None:
     ref = encoder(x)
     print(f"encoder (shipped default) on one {hw[0]}x{hw[1]} image")
     base = None
-    for name, bf16, layout in (("fp32", False, torch.contiguous_format), ("bf16", True, torch.contiguous_format),
-                               ("bf16-chlast", True, torch.channels_last)):
+    for name, bf16, layout in (
+        ("fp32", False, torch.contiguous_format),
+        ("bf16", True, torch.contiguous_format),
+        ("bf16-chlast", True, torch.channels_last),
+    ):
         encoder.to(memory_format=layout)
         xi = x.contiguous(memory_format=layout)
         ts = []
@@ -95,8 +100,10 @@ def encoder_times(steps: int, hw: tuple[int, int] = (240, 320)) -> None:
         med = statistics.median(ts)
         base = base or med
         err = float((y.float() - ref).norm() / ref.norm())
-        print(f"{name:12s} median {med * 1000:7.1f} ms/image (min {min(ts) * 1000:6.1f})  time ratio {med / base:5.2f}"
-              f"  relative feature error {err:.4f}")
+        print(
+            f"{name:12s} median {med * 1000:7.1f} ms/image (min {min(ts) * 1000:6.1f})  time ratio {med / base:5.2f}"
+            f"  relative feature error {err:.4f}"
+        )
 
 
 if __name__ == "__main__":

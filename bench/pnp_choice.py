@@ -18,9 +18,9 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import tempfile
 import time
 from pathlib import Path
-import tempfile
 
 import cv2
 import numpy as np
@@ -29,8 +29,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from acesplat.core.camera import Intrinsics  # noqa: E402
 from acesplat.core.geometry import look_at, pose_error, transform_points  # noqa: E402
+from acesplat.core.grid import cell_centers
 from acesplat.core.metrics import timing_stats  # noqa: E402
-from acesplat.core.pnp import PNP_METHODS, cell_centers, solve_pnp  # noqa: E402
+from acesplat.core.pnp import PNP_METHODS, solve_pnp  # noqa: E402
 from edge.profile import cpu_model  # noqa: E402
 
 
@@ -152,27 +153,45 @@ def main() -> None:
             rows[f"{m} LM"] = run_method(m, cases, iterations=256, robust_scales=())
             rows[f"{m} robust"] = run_method(m, cases, iterations=256)
         table("each method (256 iterations): LM on the RANSAC inliers only vs + robust refinement", rows)
-        sched = {"(4, 2, 1)": (4.0, 2.0, 1.0), "(8, 4, 2, 1)": (8.0, 4.0, 2.0, 1.0), "(2, 2, 2)": (2.0, 2.0, 2.0),
-                 "(4, 2)": (4.0, 2.0), "(4, 2, 1, 0.5)": (4.0, 2.0, 1.0, 0.5)}
-        table("robust scale schedule (px), ransac_ap3p, 256 iterations",
-              {k: run_method("ransac_ap3p", cases, iterations=256, robust_scales=v) for k, v in sched.items()})
+        sched = {
+            "(4, 2, 1)": (4.0, 2.0, 1.0),
+            "(8, 4, 2, 1)": (8.0, 4.0, 2.0, 1.0),
+            "(2, 2, 2)": (2.0, 2.0, 2.0),
+            "(4, 2)": (4.0, 2.0),
+            "(4, 2, 1, 0.5)": (4.0, 2.0, 1.0, 0.5),
+        }
+        table(
+            "robust scale schedule (px), ransac_ap3p, 256 iterations",
+            {k: run_method("ransac_ap3p", cases, iterations=256, robust_scales=v) for k, v in sched.items()},
+        )
         if args.map_only:
             print(f"\nload average after: {os.getloadavg()}")
             return
     real = real_cases(size, args.steps)
     e = np.concatenate(real_cases.errors)
-    print(f"real predictions: {len(real)} frames x {len(real[0][0])} cells; coordinate error median {100 * np.median(e):.1f} cm, "
-          f"{100 * np.mean(e > 0.25):.0f}% of cells off by > 25 cm")
+    print(
+        f"real predictions: {len(real)} frames x {len(real[0][0])} cells; coordinate error median {100 * np.median(e):.1f} cm, "
+        f"{100 * np.mean(e > 0.25):.0f}% of cells off by > 25 cm"
+    )
     table("real predictions (tiny room map)", {m: run_method(m, real, repeats=3) for m in PNP_METHODS})
-    table("2700 correspondences (360x480 grid), 40% outliers, 1 px noise", {m: run_method(m, synthetic_cases()) for m in PNP_METHODS})
+    table(
+        "2700 correspondences (360x480 grid), 40% outliers, 1 px noise",
+        {m: run_method(m, synthetic_cases()) for m in PNP_METHODS},
+    )
     caps = (1000, 500, 256, 128)
     synth, lost = synthetic_cases(), garbage_cases()
-    table("iteration cap, ransac_ap3p: real predictions",
-          {f"cap {c}": run_method("ransac_ap3p", real, repeats=3, iterations=c) for c in caps})
-    table("iteration cap, ransac_ap3p: 2700 correspondences, 40% outliers",
-          {f"cap {c}": run_method("ransac_ap3p", synth, iterations=c) for c in caps})
-    table("iteration cap, ransac_ap3p: 2700 predictions that match nothing (lost)",
-          {f"cap {c}": run_method("ransac_ap3p", lost, iterations=c) for c in caps})
+    table(
+        "iteration cap, ransac_ap3p: real predictions",
+        {f"cap {c}": run_method("ransac_ap3p", real, repeats=3, iterations=c) for c in caps},
+    )
+    table(
+        "iteration cap, ransac_ap3p: 2700 correspondences, 40% outliers",
+        {f"cap {c}": run_method("ransac_ap3p", synth, iterations=c) for c in caps},
+    )
+    table(
+        "iteration cap, ransac_ap3p: 2700 predictions that match nothing (lost)",
+        {f"cap {c}": run_method("ransac_ap3p", lost, iterations=c) for c in caps},
+    )
     print(f"\nload average after: {os.getloadavg()}")
 
 

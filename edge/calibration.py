@@ -111,7 +111,9 @@ def read_calibration_file(path: str | Path) -> CameraCalibration:
         except (KeyError, ValueError, TypeError):
             raise InputError(path, "JSON intrinsics need K (3x3) or fx, fy, cx, cy") from None
         dist = _dist(obj.get("distortion", obj.get("dist")), path)
-        return CameraCalibration(K=K, size=_size(obj.get("width"), obj.get("height"), path), distortion=dist, source=str(path))
+        return CameraCalibration(
+            K=K, size=_size(obj.get("width"), obj.get("height"), path), distortion=dist, source=str(path)
+        )
     if suffix in (".yaml", ".yml", ".xml"):
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
         if not fs.isOpened():

@@ -39,19 +39,32 @@ class FramePrep:
         self._maps: tuple[np.ndarray, np.ndarray] | None = None
 
     def _undistort(self, gray: np.ndarray, intr: Intrinsics, dist: np.ndarray) -> np.ndarray:
-        key = (intr.fx, intr.fy, intr.cx, intr.cy, intr.width, intr.height, tuple(np.asarray(dist).reshape(-1).tolist()))
+        key = (
+            intr.fx,
+            intr.fy,
+            intr.cx,
+            intr.cy,
+            intr.width,
+            intr.height,
+            tuple(np.asarray(dist).reshape(-1).tolist()),
+        )
         if key != self._maps_key:
-            self._maps = cv2.initUndistortRectifyMap(intr.K, np.asarray(dist, np.float64), None, intr.K,
-                                                     (intr.width, intr.height), cv2.CV_16SC2)
+            self._maps = cv2.initUndistortRectifyMap(
+                intr.K, np.asarray(dist, np.float64), None, intr.K, (intr.width, intr.height), cv2.CV_16SC2
+            )
             self._maps_key = key
         return cv2.remap(gray, self._maps[0], self._maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
 
-    def __call__(self, image: np.ndarray, intr: Intrinsics, dist: np.ndarray | None = None) -> tuple[np.ndarray, Intrinsics]:
+    def __call__(
+        self, image: np.ndarray, intr: Intrinsics, dist: np.ndarray | None = None
+    ) -> tuple[np.ndarray, Intrinsics]:
         """Grayscale uint8 (H, W) at the input size and its pinhole intrinsics (distortion removed)."""
         if image.ndim not in (2, 3) or image.dtype != np.uint8:
             raise ValueError(f"frame must be uint8 (H, W) or (H, W, 3), got {image.dtype} {image.shape}")
         if (intr.width, intr.height) != (image.shape[1], image.shape[0]):
-            raise ValueError(f"intrinsics are for {intr.width}x{intr.height}, frame is {image.shape[1]}x{image.shape[0]}")
+            raise ValueError(
+                f"intrinsics are for {intr.width}x{intr.height}, frame is {image.shape[1]}x{image.shape[0]}"
+            )
         gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
         if dist is not None and np.any(np.asarray(dist) != 0):
             gray = self._undistort(gray, intr, dist)

@@ -56,7 +56,9 @@ class ScrSession:
         self.input_size = (int(input_size[0]), int(input_size[1]))
         shape = list(inp.shape)
         if len(shape) != 4 or [shape[2], shape[3]] != list(self.input_size):
-            raise InputError(self.path, f"model input shape {shape} does not match the bundle input size {self.input_size}")
+            raise InputError(
+                self.path, f"model input shape {shape} does not match the bundle input size {self.input_size}"
+            )
 
     @property
     def has_features(self) -> bool:

@@ -11,13 +11,13 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 from acesplat.core.pose import TrackingState
-
-from .runtime import EdgeLocalizer, FrameOutcome
-from .sources import FrameSource, SourceDisconnected, UnreadableFrame
+from edge.runtime import EdgeLocalizer, FrameOutcome
+from edge.sources import FrameSource, SourceDisconnected, UnreadableFrame
 
 BACKOFF_S = (0.1, 2.0)
 """First and longest wait between reconnect attempts."""
@@ -87,10 +87,18 @@ class RunStats:
 
     def as_dict(self) -> dict:
         return {
-            "frames": self.frames, "tracking": self.tracking, "lost": self.lost, "dropped": self.dropped,
-            "skipped": self.skipped, "skipped_frames": self.skipped_frames, "disconnects": self.disconnects,
-            "reconnects": self.reconnects, "gap_s": self.gap_s, "interrupted": self.interrupted,
-            "seconds": self.seconds, "fps": self.frames / self.seconds if self.seconds > 0 else 0.0,
+            "frames": self.frames,
+            "tracking": self.tracking,
+            "lost": self.lost,
+            "dropped": self.dropped,
+            "skipped": self.skipped,
+            "skipped_frames": self.skipped_frames,
+            "disconnects": self.disconnects,
+            "reconnects": self.reconnects,
+            "gap_s": self.gap_s,
+            "interrupted": self.interrupted,
+            "seconds": self.seconds,
+            "fps": self.frames / self.seconds if self.seconds > 0 else 0.0,
         }
 
 
@@ -111,8 +119,12 @@ class _Events:
         return items
 
 
-def reconnect_with_backoff(source: FrameSource, stop: threading.Event, backoff: tuple[float, float] = BACKOFF_S,
-                           wait: Callable[[float], bool] | None = None) -> bool:
+def reconnect_with_backoff(
+    source: FrameSource,
+    stop: threading.Event,
+    backoff: tuple[float, float] = BACKOFF_S,
+    wait: Callable[[float], bool] | None = None,
+) -> bool:
     """Retry ``source.reconnect()`` until it works (True) or ``stop`` is set (False)."""
     wait = wait or stop.wait
     delay = backoff[0]

@@ -15,9 +15,8 @@ import numpy as np
 
 from acesplat.core.camera import Intrinsics
 from acesplat.core.errors import InputError
-
-from .calibration import CameraCalibration
-from .sources import SourceDisconnected, SourceFrame
+from edge.calibration import CameraCalibration
+from edge.sources import SourceDisconnected, SourceFrame
 
 RESIZE_MODES = ("crop", "stretch", "letterbox")
 
@@ -62,8 +61,15 @@ class OakSource:
 
     live = True
 
-    def __init__(self, size_hw: tuple[int, int], resize_mode: str = "crop", socket: str = "CAM_A", fps: float = 30.0,
-                 calibration: CameraCalibration | None = None, dai: Any = None) -> None:
+    def __init__(
+        self,
+        size_hw: tuple[int, int],
+        resize_mode: str = "crop",
+        socket: str = "CAM_A",
+        fps: float = 30.0,
+        calibration: CameraCalibration | None = None,
+        dai: Any = None,
+    ) -> None:
         if resize_mode not in RESIZE_MODES:
             raise InputError(None, f"oak resize mode must be one of {RESIZE_MODES}, got {resize_mode!r}")
         self.dai = dai if dai is not None else import_depthai()

@@ -11,16 +11,16 @@ import json
 import math
 import os
 import threading
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
 from acesplat.core.errors import InputError
 from acesplat.core.pose import PoseRecord, TrackingState
-
-from .loop import LatestSlot, LoopEvent
-from .runtime import FrameOutcome
+from edge.loop import LatestSlot, LoopEvent
+from edge.runtime import FrameOutcome
 
 
 def _clean(v: Any) -> Any:
@@ -38,22 +38,31 @@ def outcome_line(out: FrameOutcome) -> dict:
     """timestamp, frame id, camera-to-world pose (row-major 4x4), inliers, state and stage timings."""
     rec = out.record
     T = np.asarray(rec.T_c2w, dtype=float)
-    return _clean({
-        "timestamp_us": rec.timestamp_us,
-        "frame_id": rec.frame_id,
-        "name": out.name,
-        "T_c2w": T.tolist() if np.all(np.isfinite(T)) else None,
-        "inliers": rec.inliers,
-        "quality": rec.quality,
-        "state": TrackingState(rec.state).name,
-        "ms": {k: round(v, 3) for k, v in out.times_ms.items()},
-        "alignment": out.alignment,
-    })
+    return _clean(
+        {
+            "timestamp_us": rec.timestamp_us,
+            "frame_id": rec.frame_id,
+            "name": out.name,
+            "T_c2w": T.tolist() if np.all(np.isfinite(T)) else None,
+            "inliers": rec.inliers,
+            "quality": rec.quality,
+            "state": TrackingState(rec.state).name,
+            "ms": {k: round(v, 3) for k, v in out.times_ms.items()},
+            "alignment": out.alignment,
+        }
+    )
 
 
 def event_line(e: LoopEvent) -> dict:
-    return _clean({"event": e.kind, "detail": e.detail, "wall_time": e.wall_time, "gap_s": e.gap_s,
-                   "state": TrackingState.LOST.name if e.kind == "disconnected" else None})
+    return _clean(
+        {
+            "event": e.kind,
+            "detail": e.detail,
+            "wall_time": e.wall_time,
+            "gap_s": e.gap_s,
+            "state": TrackingState.LOST.name if e.kind == "disconnected" else None,
+        }
+    )
 
 
 class JsonLinesWriter:
@@ -89,7 +98,7 @@ class JsonLinesWriter:
                 os.close(self._fd)
                 self._fd = -1
 
-    def __enter__(self) -> "JsonLinesWriter":
+    def __enter__(self) -> JsonLinesWriter:
         return self
 
     def __exit__(self, *exc: object) -> None:

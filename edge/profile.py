@@ -9,8 +9,8 @@ from __future__ import annotations
 import os
 import platform
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Callable, Sequence
 
 import cv2
 import numpy as np
@@ -18,10 +18,9 @@ import onnxruntime as ort
 
 from acesplat.core.bundle import Bundle
 from acesplat.core.errors import InputError
-
-from .replay import timing_summary
-from .runtime import EdgeLocalizer, FrameOutcome, PnPSettings
-from .sources import FrameSource, SourceFrame, UnreadableFrame
+from edge.replay import timing_summary
+from edge.runtime import EdgeLocalizer, FrameOutcome, PnPSettings
+from edge.sources import FrameSource, SourceFrame, UnreadableFrame
 
 WARMUP_FRAMES = 5
 
@@ -73,8 +72,12 @@ def read_frames(source: FrameSource, n: int) -> list[tuple[SourceFrame, float]]:
     return frames
 
 
-def profile_precision(localizer: EdgeLocalizer, frames: Sequence[tuple[SourceFrame, float]], warmup: int,
-                      progress: Callable[[str, float, dict], None] | None = None) -> dict:
+def profile_precision(
+    localizer: EdgeLocalizer,
+    frames: Sequence[tuple[SourceFrame, float]],
+    warmup: int,
+    progress: Callable[[str, float, dict], None] | None = None,
+) -> dict:
     """stages (stage -> statistics over the timed frames), fps, precision, input_size."""
     if len(frames) <= warmup:
         raise InputError(None, f"profiling needs more than {warmup} frames (warm-up), the source gave {len(frames)}")
@@ -99,10 +102,17 @@ def profile_precision(localizer: EdgeLocalizer, frames: Sequence[tuple[SourceFra
     }
 
 
-def run_profile(bundle: Bundle, source: FrameSource, precisions: Sequence[str], frames: int, threads: int,
-                warmup: int = WARMUP_FRAMES, pnp: PnPSettings | None = None,
-                progress: Callable[[str, float, dict], None] | None = None,
-                attach: Callable[[EdgeLocalizer], Callable[[], dict] | None] | None = None) -> dict:
+def run_profile(
+    bundle: Bundle,
+    source: FrameSource,
+    precisions: Sequence[str],
+    frames: int,
+    threads: int,
+    warmup: int = WARMUP_FRAMES,
+    pnp: PnPSettings | None = None,
+    progress: Callable[[str, float, dict], None] | None = None,
+    attach: Callable[[EdgeLocalizer], Callable[[], dict] | None] | None = None,
+) -> dict:
     """Profile each precision on the same frames; one run's JSON (keys stages, fps, precision, input_size).
 
     ``attach`` (edge refinement) hooks each localizer before it runs and returns what adds a run's 'refine' report."""

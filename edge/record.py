@@ -9,9 +9,9 @@ captured (still distorted) so replay applies the same correction as live.
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -19,9 +19,8 @@ import numpy as np
 from acesplat.core.atomic import atomic_path, write_text
 from acesplat.core.errors import InputError
 from acesplat.core.scene import format_matrix
-
-from .loop import reconnect_with_backoff
-from .sources import DISTORTION_FILE, TIMESTAMPS_FILE, FrameSource, SourceDisconnected, UnreadableFrame
+from edge.loop import reconnect_with_backoff
+from edge.sources import DISTORTION_FILE, TIMESTAMPS_FILE, FrameSource, SourceDisconnected, UnreadableFrame
 
 
 @dataclass
@@ -34,8 +33,13 @@ class RecordStats:
     names: list[str] = field(default_factory=list)
 
     def as_dict(self) -> dict:
-        return {"frames": self.frames, "skipped": self.skipped, "disconnects": self.disconnects,
-                "interrupted": self.interrupted, "without_intrinsics": self.without_intrinsics}
+        return {
+            "frames": self.frames,
+            "skipped": self.skipped,
+            "disconnects": self.disconnects,
+            "interrupted": self.interrupted,
+            "without_intrinsics": self.without_intrinsics,
+        }
 
 
 def _check_out(out: Path) -> None:
@@ -43,8 +47,13 @@ def _check_out(out: Path) -> None:
         raise InputError(out, "output folder exists and is not empty")
 
 
-def record(source: FrameSource, out: str | Path, max_frames: int | None = None,
-           progress: Callable[[int], None] | None = None, stop=None) -> RecordStats:
+def record(
+    source: FrameSource,
+    out: str | Path,
+    max_frames: int | None = None,
+    progress: Callable[[int], None] | None = None,
+    stop=None,
+) -> RecordStats:
     """Copy frames from ``source`` into ``out`` until it ends, ``max_frames`` are written, or Ctrl-C."""
     out = Path(out)
     _check_out(out)
@@ -79,7 +88,9 @@ def record(source: FrameSource, out: str | Path, max_frames: int | None = None,
             if f.gt_pose is not None:
                 write_text(out / "poses" / f"{name}.txt", format_matrix(f.gt_pose))
             if f.distortion is not None and np.any(np.asarray(f.distortion) != 0) and not wrote_dist:
-                write_text(out / DISTORTION_FILE, " ".join(f"{v:.10g}" for v in np.asarray(f.distortion).reshape(-1)) + "\n")
+                write_text(
+                    out / DISTORTION_FILE, " ".join(f"{v:.10g}" for v in np.asarray(f.distortion).reshape(-1)) + "\n"
+                )
                 wrote_dist = True
             stamps.append(f"{name} {f.timestamp:.6f}")
             write_text(out / TIMESTAMPS_FILE, "\n".join(stamps) + "\n")

@@ -2,16 +2,15 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Callable, Sequence
 
 from acesplat.core.errors import InputError
 from acesplat.core.geometry import pose_error
 from acesplat.core.metrics import FrameResult, accuracy_summary, timing_stats
-
-from .loop import RunStats, run_loop
-from .runtime import STAGES, EdgeLocalizer, FrameOutcome
-from .sources import ReplaySource
+from edge.loop import RunStats, run_loop
+from edge.runtime import STAGES, EdgeLocalizer, FrameOutcome
+from edge.sources import ReplaySource
 
 
 def timing_summary(outcomes: Sequence[FrameOutcome], stages: Sequence[str] = STAGES) -> dict:
@@ -44,8 +43,9 @@ def summarize(outcomes: Sequence[FrameOutcome], stats: RunStats | None = None) -
     return s
 
 
-def replay_split(localizer: EdgeLocalizer, scene: str | Path, split: str = "test",
-                 progress: Callable[[int, int], None] | None = None) -> dict:
+def replay_split(
+    localizer: EdgeLocalizer, scene: str | Path, split: str = "test", progress: Callable[[int, int], None] | None = None
+) -> dict:
     """Localize every frame of ``scene``/``split`` as fast as possible and compare with its poses."""
     root = Path(scene) / split
     if not Path(scene).is_dir():

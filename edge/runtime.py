@@ -2,7 +2,7 @@
 
 Stages (milliseconds): capture (source read and decode), preprocess (gray, undistort, crop,
 resize), inference (onnxruntime), pnp (RANSAC + LM + gate), align (with --align: the pose refined against
-the bundle's keyframes, acesplat.core.keyframe_align; 0 otherwise) and total (from the start of the
+the bundle's keyframes, acesplat.align.keyframe_align; 0 otherwise) and total (from the start of the
 capture to the pose, including any wait between capture and processing).
 """
 
@@ -13,16 +13,16 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from acesplat.align.keyframe_align import align_scr_pose
+from acesplat.align.keyframe_set import bundle_keyframes
 from acesplat.core.bundle import Bundle
 from acesplat.core.camera import Intrinsics
 from acesplat.core.errors import InputError
-from acesplat.core.keyframe_align import align_scr_pose
 from acesplat.core.pnp import DEFAULT_MIN_INLIERS, PnPResult, solve_from_grid
 from acesplat.core.pose import PoseRecord, TrackingState
-
-from .frame_prep import FramePrep
-from .inference import ScrSession
-from .sources import SourceFrame
+from edge.frame_prep import FramePrep
+from edge.inference import ScrSession
+from edge.sources import SourceFrame
 
 STAGES = ("capture", "preprocess", "inference", "pnp", "align", "total")
 
@@ -61,8 +61,14 @@ class PnPSettings:
 class EdgeLocalizer:
     """A bundle's SCR model (FP32 or INT8) plus frame preparation and the shared PnP solver."""
 
-    def __init__(self, bundle: Bundle, precision: str = "fp32", threads: int | None = None,
-                 pnp: PnPSettings | None = None, align: bool = False) -> None:
+    def __init__(
+        self,
+        bundle: Bundle,
+        precision: str = "fp32",
+        threads: int | None = None,
+        pnp: PnPSettings | None = None,
+        align: bool = False,
+    ) -> None:
         self.bundle = bundle
         self.precision = precision
         self.input_size = bundle.input_size
@@ -70,7 +76,7 @@ class EdgeLocalizer:
         self.session = ScrSession(bundle.scr_model(precision), self.input_size, threads)
         self.prep = FramePrep(self.input_size)
         self.pnp = pnp or PnPSettings()
-        self.keyframes = bundle.keyframes() if align else None
+        self.keyframes = bundle_keyframes(bundle) if align else None
         """The bundle's keyframes when poses are refined against them (InputError at start if it has none)."""
 
     def localize(self, frame: SourceFrame, capture_ms: float = 0.0, t_start: float | None = None) -> FrameOutcome:

@@ -9,9 +9,10 @@ calls ``reconnect()`` with backoff). Specs: ``replay:DIR``, ``video:FILE``, ``ca
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Protocol
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -19,13 +20,20 @@ import numpy as np
 from acesplat.core.camera import Intrinsics
 from acesplat.core.errors import InputError
 from acesplat.core.scene import IMAGE_SUFFIXES, read_calibration, read_matrix, read_pose, read_rgb
-
-from .calibration import CameraCalibration, read_calibration_file
+from edge.calibration import CameraCalibration, read_calibration_file
 
 TIMESTAMPS_FILE = "timestamps.txt"
 DISTORTION_FILE = "distortion.txt"
-INTRINSICS_NAMES = ("intrinsics.json", "intrinsics.yaml", "intrinsics.yml", "intrinsics.xml", "intrinsics.txt",
-                    "calibration.txt", "calibration.json", "calibration.yaml")
+INTRINSICS_NAMES = (
+    "intrinsics.json",
+    "intrinsics.yaml",
+    "intrinsics.yml",
+    "intrinsics.xml",
+    "intrinsics.txt",
+    "calibration.txt",
+    "calibration.json",
+    "calibration.yaml",
+)
 
 
 @dataclass
@@ -69,8 +77,14 @@ class FrameSource(Protocol):
 
 # --------------------------------------------------------------------------------------------- replay
 def _images(folder: Path) -> list[Path]:
-    return sorted((p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")),
-                  key=lambda p: p.name)
+    return sorted(
+        (
+            p
+            for p in folder.iterdir()
+            if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")
+        ),
+        key=lambda p: p.name,
+    )
 
 
 def _text_files(folder: Path) -> list[Path]:
@@ -117,8 +131,14 @@ class ReplaySource:
     otherwise frames come as fast as they are asked for.
     """
 
-    def __init__(self, path: str | Path, calibration: CameraCalibration | None = None, realtime: bool = False,
-                 clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep) -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        calibration: CameraCalibration | None = None,
+        realtime: bool = False,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> None:
         root = resolve_replay_dir(Path(path))
         self.root = root
         self.description = f"replay:{root}"
@@ -234,7 +254,7 @@ class VideoSource:
 
 
 # --------------------------------------------------------------------------------------------- camera
-def _open_v4l2(index: int) -> "cv2.VideoCapture":
+def _open_v4l2(index: int) -> cv2.VideoCapture:
     backend = getattr(cv2, "CAP_V4L2", cv2.CAP_ANY)
     cap = cv2.VideoCapture(index, backend)
     if not cap.isOpened():
@@ -248,9 +268,13 @@ class CameraSource:
 
     live = True
 
-    def __init__(self, index: int, calibration: CameraCalibration | None,
-                 opener: Callable[[int], "cv2.VideoCapture"] = _open_v4l2,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        index: int,
+        calibration: CameraCalibration | None,
+        opener: Callable[[int], cv2.VideoCapture] = _open_v4l2,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         self.index = index
         self.calibration = calibration
         self.description = f"camera:{index}"
@@ -321,7 +345,7 @@ def open_source(spec: str, opts: SourceOptions) -> FrameSource:
             raise InputError(None, f"camera source needs a device number: camera:N, got {spec!r}") from None
         return CameraSource(index, opts.calibration)
     if kind == "oak":
-        from .oak import OakSource
+        from edge.oak import OakSource
 
         if opts.input_size is None:
             raise InputError(None, "oak source needs the bundle's input size")

@@ -10,28 +10,34 @@ import os
 import shutil
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
 from acesplat import __version__
+from acesplat.align.keyframe_set import save_keyframes
 from acesplat.core.bundle import (
-    MANIFEST_NAME, ROLE_KEYFRAMES, ROLE_SCR_FP32, ROLE_SCR_INT8, BundleFile, describe_file, sha256_of, write_manifest,
+    MANIFEST_NAME,
+    ROLE_KEYFRAMES,
+    ROLE_SCR_FP32,
+    ROLE_SCR_INT8,
+    BundleFile,
+    describe_file,
+    sha256_of,
+    write_manifest,
 )
-from acesplat.core.keyframe_set import save_keyframes
 from acesplat.core.camera import Intrinsics
 from acesplat.core.errors import InputError
-from acesplat.core.pnp import DENSE_OUTPUT_STRIDE, OUTPUT_STRIDE
+from acesplat.core.grid import DENSE_OUTPUT_STRIDE, OUTPUT_STRIDE
 from acesplat.core.preprocess import size_for_short_side
 from acesplat.core.scene import IMAGE_SUFFIXES, SceneSplit, image_size, read_split
 from acesplat.scr.mapfile import encoder_for_map, load_map
 from acesplat.scr.network import GRAY_MEAN, GRAY_STD
-
-from .checks import CheckFrame, fp32_parity, localization_accuracy, prepare_frames
-from .onnx_graph import FEATURES_NAME, INPUT_NAME, OPSET, OUTPUT_NAME, export_scr_onnx
-from .quantize import quantize_int8
+from export.checks import CheckFrame, fp32_parity, localization_accuracy, prepare_frames
+from export.onnx_graph import FEATURES_NAME, INPUT_NAME, OPSET, OUTPUT_NAME, export_scr_onnx
+from export.quantize import quantize_int8
 
 FP32_FILE = "scr.onnx"
 KEYFRAMES_FILE = "keyframes.npz"
@@ -72,7 +78,9 @@ def round_to_stride(n: int, stride: int = OUTPUT_STRIDE) -> int:
 def default_size(scene: Path | None, short_side: int, map_path: Path) -> tuple[int, int]:
     """The map's short side with the training images' aspect ratio, each side a multiple of the output stride."""
     if scene is None or not (scene / "train" / "rgb").is_dir():
-        raise InputError(map_path, f"cannot choose the input size: scene folder {scene} not found; pass --size HxW or --scene")
+        raise InputError(
+            map_path, f"cannot choose the input size: scene folder {scene} not found; pass --size HxW or --scene"
+        )
     images = sorted(p for p in (scene / "train" / "rgb").iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
     if not images:
         raise InputError(scene / "train" / "rgb", "no training images to take the aspect ratio from")
@@ -133,9 +141,13 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
     train = _try_split(scene, "train")
     test = _try_split(scene, "test")
     if opts.int8 and train is None:
-        raise InputError(map_path, f"--int8 calibrates on the map's training images, but {scene}/train was not found; pass --scene")
+        raise InputError(
+            map_path, f"--int8 calibrates on the map's training images, but {scene}/train was not found; pass --scene"
+        )
     if opts.keyframes and train is None:
-        raise InputError(map_path, f"--keyframes takes the map's training images, but {scene}/train was not found; pass --scene")
+        raise InputError(
+            map_path, f"--keyframes takes the map's training images, but {scene}/train was not found; pass --scene"
+        )
     timings: dict[str, float] = {}
     checks: dict = {}
 
@@ -160,8 +172,15 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
             checks["fp32_vs_torch"] = fp32_parity(net, tmp / FP32_FILE, parity_frames, progress, stride)
         else:
             rng = np.random.default_rng(0)
-            noise = [CheckFrame(f"noise{i}", rng.integers(0, 256, size, dtype=np.uint8),
-                                Intrinsics.from_focal(max(size), size[1], size[0]), np.eye(4)) for i in range(2)]
+            noise = [
+                CheckFrame(
+                    f"noise{i}",
+                    rng.integers(0, 256, size, dtype=np.uint8),
+                    Intrinsics.from_focal(max(size), size[1], size[0]),
+                    np.eye(4),
+                )
+                for i in range(2)
+            ]
             checks["fp32_vs_torch"] = fp32_parity(net, tmp / FP32_FILE, noise, progress, stride)
             checks["fp32_vs_torch"]["note"] = "scene not found: compared on random images"
 
@@ -203,8 +222,12 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
             ks = MapKeyframes(train, net, m.short_side, input_size=size).to_set()
             save_keyframes(tmp / KEYFRAMES_FILE, ks)
             files.append(describe_file(tmp, KEYFRAMES_FILE, ROLE_KEYFRAMES))
-            keyframes_info = {"count": len(ks), "image_size": list(ks.gray.shape[1:]), "depth_stride": ks.stride,
-                              "depth_from": "the map's head (dense grid, median-filtered), re-measured between keyframes"}
+            keyframes_info = {
+                "count": len(ks),
+                "image_size": list(ks.gray.shape[1:]),
+                "depth_stride": ks.stride,
+                "depth_from": "the map's head (dense grid, median-filtered), re-measured between keyframes",
+            }
             timings["keyframes_s"] = time.monotonic() - t0
             if progress:
                 progress("keyframes", 1.0, {"images": len(ks)})
@@ -218,23 +241,40 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
                 "input_size": [size[0], size[1]],
                 "output_stride": stride,
                 "output_size": [size[0] // stride, size[1] // stride],
-                "input": {"name": INPUT_NAME, "shape": [1, 1, size[0], size[1]], "dtype": "float32",
-                          "content": "grayscale intensities in [0, 255] (uint8 values as float)"},
-                "output": {"name": OUTPUT_NAME, "shape": [1, 3, size[0] // stride, size[1] // stride],
-                           "content": "scene coordinates (x, y, z) in scene units per cell; "
-                                      f"cell (i, j) is pixel ({stride}j+4, {stride}i+4)"},
-                "features": {"name": FEATURES_NAME,
-                             "shape": [1, net.encoder.cfg.out, size[0] // stride, size[1] // stride],
-                             "content": "the encoder's features per cell (the head's input; the splat initializer's input)"},
-                "normalization": {"formula": "(x / 255 - mean) / std", "mean": GRAY_MEAN, "std": GRAY_STD,
-                                  "inside_graph": True},
+                "input": {
+                    "name": INPUT_NAME,
+                    "shape": [1, 1, size[0], size[1]],
+                    "dtype": "float32",
+                    "content": "grayscale intensities in [0, 255] (uint8 values as float)",
+                },
+                "output": {
+                    "name": OUTPUT_NAME,
+                    "shape": [1, 3, size[0] // stride, size[1] // stride],
+                    "content": "scene coordinates (x, y, z) in scene units per cell; "
+                    f"cell (i, j) is pixel ({stride}j+4, {stride}i+4)",
+                },
+                "features": {
+                    "name": FEATURES_NAME,
+                    "shape": [1, net.encoder.cfg.out, size[0] // stride, size[1] // stride],
+                    "content": "the encoder's features per cell (the head's input; the splat initializer's input)",
+                },
+                "normalization": {
+                    "formula": "(x / 255 - mean) / std",
+                    "mean": GRAY_MEAN,
+                    "std": GRAY_STD,
+                    "inside_graph": True,
+                },
                 "mean_offset": [float(v) for v in np.asarray(m.mean).reshape(3)],
                 "encoder": {"name": m.encoder_identity.name, "sha256": m.encoder_identity.sha256},
                 "head": m.head.cfg.as_dict(),
                 "opset": OPSET,
                 "precisions": ["fp32"] + (["int8"] if opts.int8 else []),
-                "int8_scheme": ("onnxruntime static QDQ, per-channel weights, U8S8, last conv and head tail in float; "
-                                "features output dequantized from uint8") if opts.int8 else None,
+                "int8_scheme": (
+                    "onnxruntime static QDQ, per-channel weights, U8S8, last conv and head tail in float; "
+                    "features output dequantized from uint8"
+                )
+                if opts.int8
+                else None,
             },
             "checks": checks,
         }

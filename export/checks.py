@@ -6,9 +6,9 @@ The numbers are written into the manifest so a bundle carries the evidence of it
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
 
 import numpy as np
 import onnxruntime as ort
@@ -17,8 +17,9 @@ import torch
 from acesplat.core.bundle import SCR_COORDS_OUTPUT, SCR_FEATURES_OUTPUT
 from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import pose_error
+from acesplat.core.grid import OUTPUT_STRIDE
 from acesplat.core.metrics import FrameResult, accuracy_summary
-from acesplat.core.pnp import OUTPUT_STRIDE, solve_from_grid
+from acesplat.core.pnp import solve_from_grid
 from acesplat.core.preprocess import to_gray_input
 from acesplat.core.scene import Frame
 from acesplat.scr.network import SCRNetwork, normalize_gray
@@ -50,7 +51,9 @@ def onnx_session(path: str | Path) -> ort.InferenceSession:
     return ort.InferenceSession(str(path), sess_options=so, providers=["CPUExecutionProvider"])
 
 
-def onnx_outputs(sess: ort.InferenceSession, gray: np.ndarray, features: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+def onnx_outputs(
+    sess: ort.InferenceSession, gray: np.ndarray, features: bool = False
+) -> tuple[np.ndarray, np.ndarray | None]:
     """(h, w, 3) coordinates and, if asked and the graph has them, the (C, h, w) features for a grayscale (H, W) image."""
     name = sess.get_inputs()[0].name
     outs = [o.name for o in sess.get_outputs()]
@@ -87,8 +90,13 @@ def coordinate_extent(coords: Sequence[np.ndarray]) -> float:
     return float(np.linalg.norm(hi - lo))
 
 
-def fp32_parity(net: SCRNetwork, fp32_path: Path, frames: Sequence[CheckFrame], progress: ProgressFn | None = None,
-                stride: int = OUTPUT_STRIDE) -> dict:
+def fp32_parity(
+    net: SCRNetwork,
+    fp32_path: Path,
+    frames: Sequence[CheckFrame],
+    progress: ProgressFn | None = None,
+    stride: int = OUTPUT_STRIDE,
+) -> dict:
     """Max |ONNX - torch| over the frames' coordinates, as metres and as a fraction of the scene extent; pose
     differences; and the same for the encoder features output (relative to their largest magnitude)."""
     sess = onnx_session(fp32_path)
@@ -127,8 +135,13 @@ def fp32_parity(net: SCRNetwork, fp32_path: Path, frames: Sequence[CheckFrame], 
     }
 
 
-def localization_accuracy(model_path: Path, frames: Sequence[CheckFrame], label: str, progress: ProgressFn | None = None,
-                          stride: int = OUTPUT_STRIDE) -> dict:
+def localization_accuracy(
+    model_path: Path,
+    frames: Sequence[CheckFrame],
+    label: str,
+    progress: ProgressFn | None = None,
+    stride: int = OUTPUT_STRIDE,
+) -> dict:
     """accuracy_summary (without per-frame rows) of one ONNX model on posed frames."""
     sess = onnx_session(model_path)
     results = []

@@ -16,7 +16,7 @@ import torch
 
 from acesplat.core.atomic import atomic_path
 from acesplat.core.bundle import SCR_COORDS_OUTPUT, SCR_FEATURES_OUTPUT
-from acesplat.core.pnp import OUTPUT_STRIDE
+from acesplat.core.grid import OUTPUT_STRIDE
 from acesplat.scr.network import SCRNetwork, normalize_gray
 
 INPUT_NAME = "gray"
@@ -39,8 +39,9 @@ class ScrWithFeatures(torch.nn.Module):
         return self.net.head(feats), feats
 
 
-def export_scr_onnx(net: SCRNetwork, size_hw: tuple[int, int], out_path: str | Path,
-                    output_stride: int = OUTPUT_STRIDE) -> Path:
+def export_scr_onnx(
+    net: SCRNetwork, size_hw: tuple[int, int], out_path: str | Path, output_stride: int = OUTPUT_STRIDE
+) -> Path:
     """Write ``net`` at the fixed input size ``size_hw`` (H, W) and ``output_stride`` to ``out_path`` as a
     single-file ONNX model."""
     h, w = size_hw
@@ -53,7 +54,14 @@ def export_scr_onnx(net: SCRNetwork, size_hw: tuple[int, int], out_path: str | P
         warnings.simplefilter("ignore")
         logging.getLogger("torch.onnx").setLevel(logging.ERROR)
         torch.onnx.export(
-            model, (example,), str(tmp), dynamo=True, external_data=False, opset_version=OPSET,
-            input_names=[INPUT_NAME], output_names=[OUTPUT_NAME, FEATURES_NAME], verbose=False,
+            model,
+            (example,),
+            str(tmp),
+            dynamo=True,
+            external_data=False,
+            opset_version=OPSET,
+            input_names=[INPUT_NAME],
+            output_names=[OUTPUT_NAME, FEATURES_NAME],
+            verbose=False,
         )
     return out_path

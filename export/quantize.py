@@ -9,8 +9,8 @@ centimetres by itself (FLOAT_HEAD_CONVS).
 from __future__ import annotations
 
 import tempfile
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Iterable
 
 import numpy as np
 import onnx
@@ -24,8 +24,7 @@ from onnxruntime.quantization import (
 from onnxruntime.quantization.shape_inference import quant_pre_process
 
 from acesplat.core.atomic import atomic_path
-
-from .onnx_graph import INPUT_NAME
+from export.onnx_graph import INPUT_NAME
 
 
 class _Images(CalibrationDataReader):
@@ -78,11 +77,17 @@ def quantize_int8(
         model = onnx.load(str(pre))
         with atomic_path(out_path) as tmp:
             quantize_static(
-                str(pre), str(tmp), _Images(calibration),
-                quant_format=QuantFormat.QDQ, per_channel=True,
-                activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
+                str(pre),
+                str(tmp),
+                _Images(calibration),
+                quant_format=QuantFormat.QDQ,
+                per_channel=True,
+                activation_type=QuantType.QUInt8,
+                weight_type=QuantType.QInt8,
                 op_types_to_quantize=["Conv", "Relu", "Add"],
-                nodes_to_quantize=_with_followers(model, conv_nodes_to_quantize(model, float_convs)) if float_tail else None,
+                nodes_to_quantize=_with_followers(model, conv_nodes_to_quantize(model, float_convs))
+                if float_tail
+                else None,
                 calibrate_method=method,
                 extra_options={"ActivationSymmetric": False, "WeightSymmetric": True},
             )

@@ -18,15 +18,15 @@ from __future__ import annotations
 import logging
 import time
 import warnings
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
 from acesplat.core.atomic import atomic_path
 from acesplat.core.bundle import SCR_FEATURES_OUTPUT, BundleFile, describe_file, load_bundle, write_manifest
 from acesplat.core.errors import InputError
-from acesplat.core.pnp import OUTPUT_STRIDE
+from acesplat.core.grid import OUTPUT_STRIDE
 from acesplat.core.ply import read_ply, write_ply
 
 ROLE_GAUSSIANS = "gaussians"
@@ -79,18 +79,30 @@ class _InitGraph:
         return InitGraph().eval()
 
 
-def export_initializer_onnx(graph, size_hw: tuple[int, int], feature_channels: int, prior_channels: int,
-                            out_path: Path) -> None:
+def export_initializer_onnx(
+    graph, size_hw: tuple[int, int], feature_channels: int, prior_channels: int, out_path: Path
+) -> None:
     import torch
 
     h, w = size_hw
-    example = (torch.zeros((1, feature_channels, h // OUTPUT_STRIDE, w // OUTPUT_STRIDE)),
-               torch.zeros((1, prior_channels, h, w)))
+    example = (
+        torch.zeros((1, feature_channels, h // OUTPUT_STRIDE, w // OUTPUT_STRIDE)),
+        torch.zeros((1, prior_channels, h, w)),
+    )
     with atomic_path(out_path) as tmp, warnings.catch_warnings():
         warnings.simplefilter("ignore")
         logging.getLogger("torch.onnx").setLevel(logging.ERROR)
-        torch.onnx.export(graph, example, str(tmp), dynamo=True, external_data=False, opset_version=18,
-                          input_names=list(INIT_INPUTS), output_names=[INIT_OUTPUT], verbose=False)
+        torch.onnx.export(
+            graph,
+            example,
+            str(tmp),
+            dynamo=True,
+            external_data=False,
+            opset_version=18,
+            input_names=list(INIT_INPUTS),
+            output_names=[INIT_OUTPUT],
+            verbose=False,
+        )
 
 
 def _session(path: Path):
@@ -101,13 +113,14 @@ def _session(path: Path):
     return ort.InferenceSession(str(path), sess_options=so, providers=["CPUExecutionProvider"])
 
 
-def check_images(bundle, size_hw: tuple[int, int], n: int = PARITY_SAMPLES, seed: int = 0) -> tuple[list[np.ndarray], str]:
+def check_images(
+    bundle, size_hw: tuple[int, int], n: int = PARITY_SAMPLES, seed: int = 0
+) -> tuple[list[np.ndarray], str]:
     """Grayscale (H, W) uint8 images for the checks: the bundle scene's test (or train) images when it is
     where the manifest says, else random noise; and which it was."""
     from acesplat.core.scene import read_split
-
-    from .bundle_export import evenly
-    from .checks import prepare_frames
+    from export.bundle_export import evenly
+    from export.checks import prepare_frames
 
     scene = Path(bundle.scene_path) if bundle.scene_path else None
     for split in ("test", "train"):
@@ -139,13 +152,14 @@ def initializer_parity(graph, onnx_path: Path, features: list[np.ndarray], prior
     return {"max_abs_diff": worst, "max_abs_output": scale, "samples": len(features)}
 
 
-def initializer_through_scr(net, graph, init_path: Path, scr_path: Path, images: list[np.ndarray],
-                            priors: list[np.ndarray]) -> dict:
+def initializer_through_scr(
+    net, graph, init_path: Path, scr_path: Path, images: list[np.ndarray], priors: list[np.ndarray]
+) -> dict:
     """What the edge computes (the bundle's SCR graph's features into the ONNX initializer) against torch
     (encoder, adapter and head) from the same images and priors."""
     import torch
 
-    from .checks import onnx_outputs, torch_features
+    from export.checks import onnx_outputs, torch_features
 
     scr, init = _session(scr_path), _session(init_path)
     worst, total, count, scale = 0.0, 0.0, 0, 0.0
@@ -159,32 +173,53 @@ def initializer_through_scr(net, graph, init_path: Path, scr_path: Path, images:
         d = np.abs(got - ref)
         worst, total, count = max(worst, float(d.max())), total + float(d.sum()), count + d.size
         scale = max(scale, float(np.max(np.abs(ref))))
-    return {"max_abs_diff": worst, "mean_abs_diff": total / max(count, 1), "max_abs_output": scale,
-            "samples": len(images)}
+    return {
+        "max_abs_diff": worst,
+        "mean_abs_diff": total / max(count, 1),
+        "max_abs_output": scale,
+        "samples": len(images),
+    }
 
 
 def _check_bundle_takes_features(root: Path, b, splat_dir: Path, sm: dict, init, net) -> None:
     """The initializer must get the features it was trained on, in the shape the bundle's SCR graph gives."""
     feats = b.scr.get("features")
     if not isinstance(feats, dict) or "shape" not in feats:
-        raise InputError(root / "manifest.json", f"bundle format {b.format_version}: its SCR graph has no features "
-                         "output for the initializer; re-export the bundle (acesplat export MAP --splat SPLAT)")
+        raise InputError(
+            root / "manifest.json",
+            f"bundle format {b.format_version}: its SCR graph has no features "
+            "output for the initializer; re-export the bundle (acesplat export MAP --splat SPLAT)",
+        )
     if b.output_stride != OUTPUT_STRIDE:
-        raise InputError(root / "manifest.json", f"the bundle's SCR graph predicts every {b.output_stride}th pixel; the "
-                         f"initializer takes stride-{OUTPUT_STRIDE} features: export without --dense to add Gaussians")
+        raise InputError(
+            root / "manifest.json",
+            f"the bundle's SCR graph predicts every {b.output_stride}th pixel; the "
+            f"initializer takes stride-{OUTPUT_STRIDE} features: export without --dense to add Gaussians",
+        )
     channels = int(feats["shape"][1])
     if channels != init.adapter.cfg.in_channels or net.encoder.cfg.out != init.adapter.cfg.in_channels:
-        raise InputError(splat_dir, f"adapter takes {init.adapter.cfg.in_channels} channels, the bundle's SCR graph "
-                         f"gives {channels} and the map's encoder {net.encoder.cfg.out}")
+        raise InputError(
+            splat_dir,
+            f"adapter takes {init.adapter.cfg.in_channels} channels, the bundle's SCR graph "
+            f"gives {channels} and the map's encoder {net.encoder.cfg.out}",
+        )
     bundle_enc = (b.scr.get("encoder") or {}).get("sha256")
     splat_enc = (sm.get("encoder") or {}).get("sha256")
     if bundle_enc and splat_enc and bundle_enc != splat_enc:
-        raise InputError(splat_dir, f"splat was trained on features of encoder {splat_enc[:12]}..., the bundle's SCR "
-                         f"graph gives encoder {bundle_enc[:12]}...'s")
+        raise InputError(
+            splat_dir,
+            f"splat was trained on features of encoder {splat_enc[:12]}..., the bundle's SCR "
+            f"graph gives encoder {bundle_enc[:12]}...'s",
+        )
 
 
-def export_splat(bundle_dir: str | Path, splat_dir: str | Path, map_path: str | Path,
-                 encoder_path: str | Path | None = None, progress: ProgressFn | None = None) -> dict:
+def export_splat(
+    bundle_dir: str | Path,
+    splat_dir: str | Path,
+    map_path: str | Path,
+    encoder_path: str | Path | None = None,
+    progress: ProgressFn | None = None,
+) -> dict:
     """Add ``splat_dir``'s Gaussians and initializer to the bundle (checked with ``map_path``'s encoder in torch);
     returns the manifest, the seconds and the checks."""
     import torch
@@ -193,8 +228,7 @@ def export_splat(bundle_dir: str | Path, splat_dir: str | Path, map_path: str | 
     from acesplat.scr.mapfile import encoder_for_map, load_map
     from acesplat.splat.init_head import OPACITY_PRIOR, PRIOR_CHANNELS, SCALE_PRIOR
     from acesplat.splat.splatfile import PLY_NAME, load_initializer, load_manifest
-
-    from .checks import torch_features
+    from export.checks import torch_features
 
     t0 = time.monotonic()
     root, splat_dir = Path(bundle_dir), Path(splat_dir)
@@ -236,30 +270,38 @@ def export_splat(bundle_dir: str | Path, splat_dir: str | Path, map_path: str | 
     files = _replace_entry(list(b.files.values()), describe_file(root, INIT_FILE, ROLE_SPLAT_INIT))
     head = init.head.cfg
     splat = dict(manifest.get("splat") or {})
-    splat.update({
-        "source": str(splat_dir.resolve()),
-        "background": sm.get("background", [0.0, 0.0, 0.0]),
-        "short_side": sm.get("short_side"),
-        "scene_norm": sm.get("scene_norm"),
-        "encoder": sm.get("encoder"),
-        "adapter": init.adapter.cfg.as_dict(),
-        "head": head.as_dict(),
-        "init": {
-            "input_size": [size[0], size[1]],
-            "inputs": {INIT_INPUTS[0]: [1, channels, cells[0], cells[1]],
-                       INIT_INPUTS[1]: [1, PRIOR_CHANNELS, size[0], size[1]]},
-            "output": {INIT_OUTPUT: [1, head.out_channels, size[0], size[1]]},
-            "features": f"the SCR graph's '{SCR_FEATURES_OUTPUT}' output of the same frame (either precision)",
-            "prior": "rgb - 0.5 (3), (world centre - scene_norm.centre) / scene_norm.scale (3), log(depth / scene_norm.scale) (1)",
-            "residuals": f"opacity logit (1), SH (3 x {(head.sh_degree + 1) ** 2}, coefficient-major), log-scale (3), quaternion wxyz (4)",
-            "opacity_prior": OPACITY_PRIOR,
-            "scale_prior": SCALE_PRIOR,
-            "precision": "fp32",
-        },
-    })
+    splat.update(
+        {
+            "source": str(splat_dir.resolve()),
+            "background": sm.get("background", [0.0, 0.0, 0.0]),
+            "short_side": sm.get("short_side"),
+            "scene_norm": sm.get("scene_norm"),
+            "encoder": sm.get("encoder"),
+            "adapter": init.adapter.cfg.as_dict(),
+            "head": head.as_dict(),
+            "init": {
+                "input_size": [size[0], size[1]],
+                "inputs": {
+                    INIT_INPUTS[0]: [1, channels, cells[0], cells[1]],
+                    INIT_INPUTS[1]: [1, PRIOR_CHANNELS, size[0], size[1]],
+                },
+                "output": {INIT_OUTPUT: [1, head.out_channels, size[0], size[1]]},
+                "features": f"the SCR graph's '{SCR_FEATURES_OUTPUT}' output of the same frame (either precision)",
+                "prior": "rgb - 0.5 (3), (world centre - scene_norm.centre) / scene_norm.scale (3), log(depth / scene_norm.scale) (1)",
+                "residuals": f"opacity logit (1), SH (3 x {(head.sh_degree + 1) ** 2}, coefficient-major), log-scale (3), quaternion wxyz (4)",
+                "opacity_prior": OPACITY_PRIOR,
+                "scale_prior": SCALE_PRIOR,
+                "precision": "fp32",
+            },
+        }
+    )
     new_manifest = dict(b.manifest)
     new_manifest["splat"] = splat
     new_manifest["checks"] = checks
     written = write_manifest(root, new_manifest, files)
-    return {"manifest": written, "seconds": time.monotonic() - t0, "parity": parity,
-            "checks": {k: v for k, v in checks.items() if k.startswith("splat_init")}}
+    return {
+        "manifest": written,
+        "seconds": time.monotonic() - t0,
+        "parity": parity,
+        "checks": {k: v for k, v in checks.items() if k.startswith("splat_init")},
+    }

@@ -3,9 +3,18 @@
 The edge runtime needs only ``open_sink`` (see sink.py); PROTOCOL.md documents the bytes.
 """
 
-from .mavlink import MavlinkConfig
-from .ned import CameraMount
-from .protocol import CommandCode, RuntimeState
-from .sink import CommandEvent, PoseSink, SinkStats, open_sink
+from firmware_bridge.mavlink import MavlinkConfig
+from firmware_bridge.ned import CameraMount
+from firmware_bridge.protocol import CommandCode, RuntimeState
+from firmware_bridge.sink import CommandEvent, PoseSink, SinkStats, open_sink
 
-__all__ = ["CameraMount", "CommandCode", "CommandEvent", "MavlinkConfig", "PoseSink", "RuntimeState", "SinkStats", "open_sink"]
+__all__ = [
+    "CameraMount",
+    "CommandCode",
+    "CommandEvent",
+    "MavlinkConfig",
+    "PoseSink",
+    "RuntimeState",
+    "SinkStats",
+    "open_sink",
+]

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections import Counter
 
-from .protocol import MAX_SEGMENT, REJECT_REASONS, Frame, decode_segment
+from firmware_bridge.protocol import MAX_SEGMENT, REJECT_REASONS, Frame, decode_segment
 
 
 class StreamDecoder:
@@ -61,4 +61,8 @@ class StreamDecoder:
 
     def counts(self) -> dict[str, int]:
         """frames_ok, frames_rejected and the rejects by reason (for stats and --json)."""
-        return {"frames_ok": self.frames_ok, "frames_rejected": self.frames_rejected, **{f"rejected_{k}": v for k, v in self.rejects.items()}}
+        return {
+            "frames_ok": self.frames_ok,
+            "frames_rejected": self.frames_rejected,
+            **{f"rejected_{k}": v for k, v in self.rejects.items()},
+        }

@@ -23,9 +23,8 @@ import numpy as np
 from acesplat.core.errors import InputError
 from acesplat.core.geometry import matrix_to_quat
 from acesplat.core.pose import PoseRecord, TrackingState
-
-from .ned import CameraMount, matrix_to_euler, ned_converter
-from .protocol import RuntimeState
+from firmware_bridge.ned import CameraMount, matrix_to_euler, ned_converter
+from firmware_bridge.protocol import RuntimeState
 
 log = logging.getLogger(__name__)
 
@@ -60,9 +59,13 @@ class MavlinkConfig:
 
     @classmethod
     def from_flags(
-        cls, message: str = "vision_position_estimate", mount: str = "forward", offset: str = "0,0,0",
-        pitch_deg: float = 0.0, world_frame: str = "enu",
-    ) -> "MavlinkConfig":
+        cls,
+        message: str = "vision_position_estimate",
+        mount: str = "forward",
+        offset: str = "0,0,0",
+        pitch_deg: float = 0.0,
+        world_frame: str = "enu",
+    ) -> MavlinkConfig:
         """From command-line text, e.g. ``--mount forward --mount-offset 0.1,0,-0.05 --world-frame enu``."""
         try:
             xyz = tuple(float(v) for v in offset.split(","))
@@ -117,13 +120,29 @@ class MavlinkEncoder:
         usec = max(int(rec.timestamp_us), 0)
         if self.config.message == "vision_position_estimate":
             roll, pitch, yaw = matrix_to_euler(T[:3, :3])
-            msg = self._mav.vision_position_estimate_encode(usec, x, y, z, roll, pitch, yaw, self._cov, self.reset_counter)
+            msg = self._mav.vision_position_estimate_encode(
+                usec, x, y, z, roll, pitch, yaw, self._cov, self.reset_counter
+            )
         else:
             nan = math.nan
             msg = self._mav.odometry_encode(
-                usec, self._m.MAV_FRAME_LOCAL_FRD, self._m.MAV_FRAME_BODY_FRD, x, y, z,
-                matrix_to_quat(T[:3, :3]).tolist(), nan, nan, nan, nan, nan, nan,
-                self._cov, self._nan_cov, self.reset_counter, self._m.MAV_ESTIMATOR_TYPE_VISION,
+                usec,
+                self._m.MAV_FRAME_LOCAL_FRD,
+                self._m.MAV_FRAME_BODY_FRD,
+                x,
+                y,
+                z,
+                matrix_to_quat(T[:3, :3]).tolist(),
+                nan,
+                nan,
+                nan,
+                nan,
+                nan,
+                nan,
+                self._cov,
+                self._nan_cov,
+                self.reset_counter,
+                self._m.MAV_ESTIMATOR_TYPE_VISION,
                 int(round(min(max(float(rec.quality), 0.0), 1.0) * 100)),
             )
         return msg.pack(self._mav)

@@ -14,8 +14,8 @@ z points down (NED, or "FRD local" when north is unknown). Two fixed rotations c
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
@@ -27,13 +27,17 @@ WORLD_FRAMES: dict[str, np.ndarray] = {
     "enu": np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]),  # x east, y north, z up
     "flu": np.diag([1.0, -1.0, -1.0]),  # x forward, y left, z up (ROS body-style map)
     "ned": np.eye(3),
-    "opencv": np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]),  # a level OpenCV camera: x right, y down, z forward
+    "opencv": np.array(
+        [[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]
+    ),  # a level OpenCV camera: x right, y down, z forward
 }
 """Map-frame presets: R_ned_world for maps whose axes are named so. The default is "enu" (z up)."""
 
 MOUNTS: dict[str, np.ndarray] = {
     # columns: camera x, y, z axes expressed in body FRD
-    "forward": np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]),  # looks ahead, image right = vehicle right
+    "forward": np.array(
+        [[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]
+    ),  # looks ahead, image right = vehicle right
     "down": np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),  # looks down, image top = vehicle front
 }
 """Mount presets: R_body_cam of a camera looking along the named direction."""
@@ -41,7 +45,14 @@ MOUNTS: dict[str, np.ndarray] = {
 
 def euler_to_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
     """Rotation (3, 3) body -> NED from aerospace Euler angles in radians (Z-Y-X: yaw, then pitch, then roll)."""
-    cr, sr, cp, sp, cy, sy = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch), math.cos(yaw), math.sin(yaw)
+    cr, sr, cp, sp, cy, sy = (
+        math.cos(roll),
+        math.sin(roll),
+        math.cos(pitch),
+        math.sin(pitch),
+        math.cos(yaw),
+        math.sin(yaw),
+    )
     return np.array(
         [
             [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
@@ -90,9 +101,13 @@ class CameraMount:
 
     @classmethod
     def preset(
-        cls, name: str = "forward", offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0),
-        roll_deg: float = 0.0, pitch_deg: float = 0.0, yaw_deg: float = 0.0,
-    ) -> "CameraMount":
+        cls,
+        name: str = "forward",
+        offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        roll_deg: float = 0.0,
+        pitch_deg: float = 0.0,
+        yaw_deg: float = 0.0,
+    ) -> CameraMount:
         """A preset direction, tilted by body-frame Euler angles (pitch_deg=-20: a forward camera tilted 20 deg down)."""
         tilt = euler_to_matrix(math.radians(roll_deg), math.radians(pitch_deg), math.radians(yaw_deg))
         return cls(tilt @ _rotation(name, MOUNTS, "camera mount"), np.asarray(offset_m, dtype=np.float64))

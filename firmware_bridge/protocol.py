@@ -26,8 +26,7 @@ import numpy as np
 
 from acesplat.core.geometry import matrix_to_quat, quat_to_matrix
 from acesplat.core.pose import PoseRecord, TrackingState
-
-from .cobs import cobs_decode, cobs_encode
+from firmware_bridge.cobs import cobs_decode, cobs_encode
 
 VERSION = 1
 HEADER = struct.Struct("<BBHB")
@@ -91,7 +90,7 @@ class Pose:
     quality: float
 
     @classmethod
-    def from_record(cls, rec: PoseRecord) -> "Pose":
+    def from_record(cls, rec: PoseRecord) -> Pose:
         """Wire form of a PoseRecord; out-of-range counters are clamped or wrapped so encoding never fails."""
         T = np.asarray(rec.T_c2w, dtype=np.float64)
         state = TrackingState(int(rec.state))

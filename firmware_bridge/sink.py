@@ -19,19 +19,29 @@ import math
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import serial
 
 from acesplat.core.errors import InputError
 from acesplat.core.pose import PoseRecord
-
-from .decoder import StreamDecoder
-from .mavlink import MavlinkConfig, MavlinkDecoder, MavlinkEncoder
-from .protocol import Ack, AckResult, Command, CommandCode, Frame, Pose, RuntimeState, Status, encode_frame
-from .transport import Opener, SerialLink, serial_opener
+from firmware_bridge.decoder import StreamDecoder
+from firmware_bridge.mavlink import MavlinkConfig, MavlinkDecoder, MavlinkEncoder
+from firmware_bridge.protocol import (
+    Ack,
+    AckResult,
+    Command,
+    CommandCode,
+    Frame,
+    Pose,
+    RuntimeState,
+    Status,
+    encode_frame,
+)
+from firmware_bridge.transport import Opener, SerialLink, serial_opener
 
 log = logging.getLogger(__name__)
 
@@ -182,11 +192,18 @@ class PoseSink:
             self._cond.notify()
 
     def update_status(
-        self, state: RuntimeState | None = None, fps: float | None = None,
-        latency_ms: float | None = None, frames_dropped: int | None = None,
+        self,
+        state: RuntimeState | None = None,
+        fps: float | None = None,
+        latency_ms: float | None = None,
+        frames_dropped: int | None = None,
     ) -> None:
         """Figures for the next STATUS heartbeat (frame protocol) or HEARTBEAT system status (MAVLink)."""
-        new = {k: v for k, v in dict(state=state, fps=fps, latency_ms=latency_ms, frames_dropped=frames_dropped).items() if v is not None}
+        new = {
+            k: v
+            for k, v in dict(state=state, fps=fps, latency_ms=latency_ms, frames_dropped=frames_dropped).items()
+            if v is not None
+        }
         if "state" in new:
             new["state"] = RuntimeState(int(new["state"]))
         with self._cond:
@@ -228,7 +245,7 @@ class PoseSink:
         for t in self._threads:
             t.join(timeout=2.0)
 
-    def __enter__(self) -> "PoseSink":
+    def __enter__(self) -> PoseSink:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -239,8 +256,12 @@ class PoseSink:
     def _status_message(self) -> Status:
         s = self._status
         return Status(
-            time.monotonic_ns() // 1000, float(s["fps"]), float(s["latency_ms"]),
-            int(s["frames_dropped"]) & 0xFFFF_FFFF, self._stats.dropped & 0xFFFF_FFFF, s["state"],
+            time.monotonic_ns() // 1000,
+            float(s["fps"]),
+            float(s["latency_ms"]),
+            int(s["frames_dropped"]) & 0xFFFF_FFFF,
+            self._stats.dropped & 0xFFFF_FFFF,
+            s["state"],
         )
 
     def _next_batch(self, port: Any, next_hb: float, next_pose: float) -> tuple[PoseRecord | None, float, list, Any]:
@@ -412,5 +433,11 @@ def open_sink(
     may give the adapter another ttyUSB number, and the sink reopens the name it was given.
     """
     return PoseSink(
-        serial_opener(port, baud), protocol, rate_hz, mavlink=mavlink, on_command=on_command, wait_for_port=wait_for_port, name=port
+        serial_opener(port, baud),
+        protocol,
+        rate_hz,
+        mavlink=mavlink,
+        on_command=on_command,
+        wait_for_port=wait_for_port,
+        name=port,
     )

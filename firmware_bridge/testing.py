@@ -17,10 +17,9 @@ from pathlib import Path
 import numpy as np
 
 from acesplat.core.pose import TrackingState
-
-from .cobs import cobs_encode
-from .decoder import StreamDecoder
-from .protocol import (
+from firmware_bridge.cobs import cobs_encode
+from firmware_bridge.decoder import StreamDecoder
+from firmware_bridge.protocol import (
     CRC,
     HEADER,
     PAYLOAD_SIZES,
@@ -75,7 +74,10 @@ def reference_messages() -> list[tuple[int, Message]]:
     out: list[tuple[int, Message]] = [
         (1, Pose(1_700_000_123_456, 1234, (1.5, -2.0, 0.8), (s, 0.0, 0.0, s), 412, TrackingState.TRACKING, 0.8125)),
         (2, Pose(0, 0, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), 0, TrackingState.LOST, 0.0)),
-        (65535, Pose(2**64 - 1, 2**32 - 1, (-1e6, 1e-6, 3.25), (0.5, -0.5, 0.5, -0.5), 65535, TrackingState.TRACKING, 1.0)),
+        (
+            65535,
+            Pose(2**64 - 1, 2**32 - 1, (-1e6, 1e-6, 3.25), (0.5, -0.5, 0.5, -0.5), 65535, TrackingState.TRACKING, 1.0),
+        ),
         (7, Pose(5, 6, (math.nan,) * 3, (math.nan,) * 4, 0, TrackingState.LOST, 0.0)),
     ]
     for i, state in enumerate(RuntimeState):
@@ -110,7 +112,10 @@ def reference_rejects() -> list[tuple[str, bytes]]:
         ("type", _frame_from_body(HEADER.pack(1, 0x7F, 9, 4) + bytes(4))),
         ("length", _frame_from_body(HEADER.pack(1, MsgType.POSE, 9, 4) + bytes(4))),
         ("length", _frame_from_body(HEADER.pack(1, MsgType.ACK, 9, 5) + bytes(4))),
-        ("value", _frame_from_body(HEADER.pack(1, MsgType.POSE, 9, 48) + pose_payload[:42] + b"\x02" + pose_payload[43:])),
+        (
+            "value",
+            _frame_from_body(HEADER.pack(1, MsgType.POSE, 9, 48) + pose_payload[:42] + b"\x02" + pose_payload[43:]),
+        ),
         ("value", _frame_from_body(HEADER.pack(1, MsgType.STATUS, 9, 28) + bytes(24) + b"\x09" + bytes(3))),
         ("value", _frame_from_body(HEADER.pack(1, MsgType.ACK, 9, 4) + b"\x01\x00\x04\x05")),
     ]
@@ -178,11 +183,23 @@ def random_message(rng: np.random.Generator) -> Message:
         q = rng.normal(size=4)
         q /= np.linalg.norm(q)
         return Pose(
-            int(rng.integers(0, 2**63)), int(rng.integers(0, 2**32)), (f(), f(), f()), tuple(q.tolist()),  # type: ignore[arg-type]
-            int(rng.integers(0, 65536)), TrackingState(int(rng.integers(2))), f(0.0, 1.0),
+            int(rng.integers(0, 2**63)),
+            int(rng.integers(0, 2**32)),
+            (f(), f(), f()),
+            tuple(q.tolist()),  # type: ignore[arg-type]
+            int(rng.integers(0, 65536)),
+            TrackingState(int(rng.integers(2))),
+            f(0.0, 1.0),
         )
     if kind == 1:
-        return Status(int(rng.integers(0, 2**63)), f(0, 120), f(0, 500), int(rng.integers(0, 2**32)), int(rng.integers(0, 2**32)), RuntimeState(int(rng.integers(5))))
+        return Status(
+            int(rng.integers(0, 2**63)),
+            f(0, 120),
+            f(0, 500),
+            int(rng.integers(0, 2**32)),
+            int(rng.integers(0, 2**32)),
+            RuntimeState(int(rng.integers(5))),
+        )
     if kind == 2:
         return Command(int(rng.integers(256)), f(0, 200))
     return Ack(int(rng.integers(65536)), int(rng.integers(256)), AckResult(int(rng.integers(3))))
@@ -212,7 +229,7 @@ def _mutate(frame: bytes, rng: np.random.Generator, other: bytes) -> bytes:
                 del b[int(rng.integers(len(b)))]
     elif kind == 6:  # splice with another frame
         cut = int(rng.integers(1, len(b)))
-        b = b[:cut] + other[int(rng.integers(len(other))):]
+        b = b[:cut] + other[int(rng.integers(len(other))) :]
     else:  # long non-zero noise: exercises the overflow bound
         b = bytearray(rng.integers(1, 256, size=int(rng.integers(200, 700)), dtype=np.uint8).tobytes()) + b
     return bytes(b)

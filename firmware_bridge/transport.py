@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import serial
 
@@ -39,8 +39,12 @@ class SerialLink:
     """Thread-safe holder of the current port, with reconnect backoff and outage accounting."""
 
     def __init__(
-        self, opener: Opener, name: str | None = None, backoff_s: tuple[float, float] = (0.05, 2.0),
-        clock: Callable[[], float] = time.monotonic, on_down: Callable[[], None] | None = None,
+        self,
+        opener: Opener,
+        name: str | None = None,
+        backoff_s: tuple[float, float] = (0.05, 2.0),
+        clock: Callable[[], float] = time.monotonic,
+        on_down: Callable[[], None] | None = None,
     ):
         self._opener = opener
         self.name = name

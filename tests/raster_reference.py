@@ -1,7 +1,7 @@
 """A slow, obviously correct pure-torch Gaussian renderer, for checking the tile rasterizer.
 
 Dense: every pixel evaluates every Gaussian, all sorted by depth, no tiles, no hand-written
-gradients (autograd does them). It follows the model documented in acesplat.core.raster.rasterizer,
+gradients (autograd does them). It follows the model documented in acesplat.raster.rasterizer,
 written from the equations, not from the kernels.
 """
 
@@ -15,7 +15,7 @@ import torch
 
 from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import invert_pose
-from acesplat.core.raster import ALPHA_MAX, ALPHA_MIN, DILATION, FRUSTUM_SLACK, MAHA2_MAX, T_MIN
+from acesplat.raster import ALPHA_MAX, ALPHA_MIN, DILATION, FRUSTUM_SLACK, MAHA2_MAX, T_MIN
 
 
 def sh_basis_reference(d: torch.Tensor) -> torch.Tensor:
@@ -35,8 +35,14 @@ def sh_basis_reference(d: torch.Tensor) -> torch.Tensor:
     return torch.stack(
         [
             torch.full_like(x, c0),
-            -c1 * y, c1 * z, -c1 * x,
-            c2 * x * y, -c2 * y * z, c2b * (2 * z * z - x * x - y * y), -c2 * x * z, c2c * (x * x - y * y),
+            -c1 * y,
+            c1 * z,
+            -c1 * x,
+            c2 * x * y,
+            -c2 * y * z,
+            c2b * (2 * z * z - x * x - y * y),
+            -c2 * x * z,
+            c2c * (x * x - y * y),
             -c3a * y * (3 * x * x - y * y),
             c3b * x * y * z,
             -c3c * y * (4 * z * z - x * x - y * y),
@@ -54,9 +60,15 @@ def quat_to_rot(q: torch.Tensor) -> torch.Tensor:
     w, x, y, z = q.unbind(-1)
     return torch.stack(
         [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
         ],
         dim=-1,
     ).reshape(q.shape[:-1] + (3, 3))
@@ -206,6 +218,10 @@ def random_scene(
     sh[:, 0] = rng.normal(scale=1.0, size=(n, 3))
     sh[:, 1:] = rng.normal(scale=0.3, size=(n, sh.shape[1] - 1, 3))
     params = {
-        "means": means, "log_scales": log_scales, "quats": quats, "opacity_logits": logits, "sh": sh,
+        "means": means,
+        "log_scales": log_scales,
+        "quats": quats,
+        "opacity_logits": logits,
+        "sh": sh,
     }
     return {name: a.astype(dtype) for name, a in params.items()}, pose, k

@@ -32,7 +32,9 @@ def rgb01(f: Frame) -> np.ndarray:
     return f.load_rgb().astype(np.float32) / 255.0
 
 
-def depth_gaussians(f: Frame, stride: int, rng: np.random.Generator, pos_noise: float = 0.0, col_noise: float = 0.0) -> Gaussians:
+def depth_gaussians(
+    f: Frame, stride: int, rng: np.random.Generator, pos_noise: float = 0.0, col_noise: float = 0.0
+) -> Gaussians:
     """Gaussians on a pixel lattice of a frame, at its true depths, optionally perturbed."""
     d, rgb, k = f.load_depth(), rgb01(f), f.intrinsics
     ys, xs = np.mgrid[stride // 2 : d.shape[0] : stride, stride // 2 : d.shape[1] : stride]

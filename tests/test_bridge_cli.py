@@ -12,12 +12,11 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from edge.cli import app
+from acesplat.apps.edge_cli import app
 from firmware_bridge.decoder import StreamDecoder
 from firmware_bridge.protocol import Ack, Command, CommandCode, Pose, Status, encode_frame
 from firmware_bridge.testing import reference_messages
-
-from .test_bridge_transport import PtyPeer
+from tests.test_bridge_transport import PtyPeer
 
 runner = CliRunner()
 
@@ -72,7 +71,9 @@ def test_send_test_drives_the_link_and_honours_commands(tmp_path: Path) -> None:
     t = threading.Thread(target=mcu_side, daemon=True)
     t.start()
     try:
-        result = runner.invoke(app, ["bridge", "send-test", peer.name, "--rate", "40", "--seconds", "0.8", "--json", str(out)])
+        result = runner.invoke(
+            app, ["bridge", "send-test", peer.name, "--rate", "40", "--seconds", "0.8", "--json", str(out)]
+        )
     finally:
         stop.set()
         t.join()

@@ -20,8 +20,7 @@ from firmware_bridge.ned import CameraMount, body_pose_ned, euler_to_matrix, mat
 from firmware_bridge.protocol import RuntimeState
 from firmware_bridge.sink import PoseSink
 from firmware_bridge.transport import serial_opener
-
-from .test_bridge_transport import PtyPeer, wait_for
+from tests.test_bridge_transport import PtyPeer, wait_for
 
 ROOT = Path(__file__).resolve().parents[1]
 c10, s10 = math.cos(math.radians(10)), math.sin(math.radians(10))
@@ -65,7 +64,9 @@ def test_world_frame_presets() -> None:
     moved = make_pose(np.eye(3), (0, 0, 1.0))
     np.testing.assert_allclose(body_pose_ned(moved, mount, "opencv")[:3, 3], (1, 0, 0), atol=1e-12)
     # FLU map (x forward, y left, z up): 1 m left and 2 m up is E = -1, D = -2
-    np.testing.assert_allclose(body_pose_ned(make_pose(mount.R_body_cam, (0, 1, 2)), mount, "flu")[:3, 3], (0, -1, -2), atol=1e-12)
+    np.testing.assert_allclose(
+        body_pose_ned(make_pose(mount.R_body_cam, (0, 1, 2)), mount, "flu")[:3, 3], (0, -1, -2), atol=1e-12
+    )
     with pytest.raises(InputError, match="world frame"):
         body_pose_ned(np.eye(4), mount, "ecef")
     with pytest.raises(ValueError, match="determinant"):
@@ -73,9 +74,15 @@ def test_world_frame_presets() -> None:
 
 
 def test_euler_convention_and_round_trip() -> None:
-    np.testing.assert_allclose(euler_to_matrix(0, 0, math.pi / 2) @ [1, 0, 0], [0, 1, 0], atol=1e-12)  # yaw 90: nose east
-    np.testing.assert_allclose(euler_to_matrix(0, math.radians(30), 0) @ [1, 0, 0], [c := math.cos(math.radians(30)), 0, -0.5], atol=1e-12)
-    np.testing.assert_allclose(euler_to_matrix(math.radians(30), 0, 0) @ [0, 1, 0], [0, c, 0.5], atol=1e-12)  # right wing down
+    np.testing.assert_allclose(
+        euler_to_matrix(0, 0, math.pi / 2) @ [1, 0, 0], [0, 1, 0], atol=1e-12
+    )  # yaw 90: nose east
+    np.testing.assert_allclose(
+        euler_to_matrix(0, math.radians(30), 0) @ [1, 0, 0], [c := math.cos(math.radians(30)), 0, -0.5], atol=1e-12
+    )
+    np.testing.assert_allclose(
+        euler_to_matrix(math.radians(30), 0, 0) @ [0, 1, 0], [0, c, 0.5], atol=1e-12
+    )  # right wing down
     rng = np.random.default_rng(3)
     for _ in range(200):
         rpy = rng.uniform([-math.pi, -1.5, -math.pi], [math.pi, 1.5, math.pi])
@@ -84,7 +91,9 @@ def test_euler_convention_and_round_trip() -> None:
 
 def test_mount_presets_and_tilt() -> None:
     tilted = CameraMount.preset("forward", pitch_deg=-20)
-    np.testing.assert_allclose(tilted.R_body_cam[:, 2], [math.cos(math.radians(20)), 0, math.sin(math.radians(20))], atol=1e-12)
+    np.testing.assert_allclose(
+        tilted.R_body_cam[:, 2], [math.cos(math.radians(20)), 0, math.sin(math.radians(20))], atol=1e-12
+    )
     np.testing.assert_allclose(CameraMount.preset("down").R_body_cam[:, 2], [0, 0, 1])
     with pytest.raises(InputError, match="camera mount"):
         CameraMount.preset("sideways")
@@ -131,7 +140,9 @@ def test_odometry_decodes_back_with_frames_quaternion_and_quality() -> None:
     assert (msg.frame_id, msg.child_frame_id) == (20, 12)  # MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD
     np.testing.assert_allclose(msg.q, [math.sqrt(0.5), 0, 0, math.sqrt(0.5)], atol=1e-7)  # yaw 90 deg
     assert math.isnan(msg.vx) and msg.quality == 50 and msg.estimator_type == 2
-    np.testing.assert_allclose([msg.pose_covariance[i] for i in (0, 6, 11, 15, 18, 20)], [0.0025] * 3 + [0.0004] * 3, rtol=1e-6)
+    np.testing.assert_allclose(
+        [msg.pose_covariance[i] for i in (0, 6, 11, 15, 18, 20)], [0.0025] * 3 + [0.0004] * 3, rtol=1e-6
+    )
     assert covariance(0.05, 0.02)[1:6] == [0.0] * 5
 
 
@@ -201,7 +212,7 @@ class Block:
         if name.split('.')[0] == 'pymavlink':
             raise ImportError('blocked: ' + name)
 sys.meta_path.insert(0, Block())
-import firmware_bridge.sink, firmware_bridge.cli, firmware_bridge.mavlink
+import firmware_bridge.sink, acesplat.apps.bridge_cmd, firmware_bridge.mavlink
 from acesplat.core.errors import InputError
 from firmware_bridge.sink import open_sink
 try:

@@ -33,7 +33,6 @@ from firmware_bridge.protocol import (
 )
 from firmware_bridge.testing import expected_segments, fuzz_stream, reference_messages, reference_rejects
 
-
 # ---------------------------------------------------------------- COBS
 
 
@@ -83,7 +82,9 @@ def test_crc_is_crc32_ieee_check_value() -> None:
 
 
 def test_payload_layouts_match_protocol_md() -> None:
-    pose = Pose(0x0102030405060708, 0x0A0B0C0D, (1.0, 2.0, 3.0), (0.5, 0.5, 0.5, 0.5), 0x1234, TrackingState.TRACKING, 0.25)
+    pose = Pose(
+        0x0102030405060708, 0x0A0B0C0D, (1.0, 2.0, 3.0), (0.5, 0.5, 0.5, 0.5), 0x1234, TrackingState.TRACKING, 0.25
+    )
     body = encode_body(pose, 0xBEEF)
     assert body[:5] == bytes([1, 0x01, 0xEF, 0xBE, 48])
     p = body[5:-4]
@@ -96,7 +97,9 @@ def test_payload_layouts_match_protocol_md() -> None:
     assert body[-4:] == struct.pack("<I", zlib.crc32(body[:-4]))
 
     status = encode_body(Status(7, 30.0, 12.0, 5, 6, RuntimeState.PAUSED), 1)[5:-4]
-    assert status == struct.pack("<Q", 7) + struct.pack("<ff", 30.0, 12.0) + struct.pack("<II", 5, 6) + bytes([3, 0, 0, 0])
+    assert status == struct.pack("<Q", 7) + struct.pack("<ff", 30.0, 12.0) + struct.pack("<II", 5, 6) + bytes(
+        [3, 0, 0, 0]
+    )
     assert encode_body(Command(4, 30.0), 1)[5:-4] == bytes([4, 0, 0, 0]) + struct.pack("<f", 30.0)
     assert encode_body(Ack(0x0102, 4, AckResult.UNSUPPORTED), 1)[5:-4] == bytes([2, 1, 4, 2])
 
@@ -105,7 +108,12 @@ def test_wire_sizes_are_fixed() -> None:
     for seq, msg in reference_messages():
         t = {Pose: MsgType.POSE, Status: MsgType.STATUS, Command: MsgType.COMMAND, Ack: MsgType.ACK}[type(msg)]
         assert len(encode_frame(msg, seq)) == wire_size(t)
-    assert (wire_size(MsgType.POSE), wire_size(MsgType.STATUS), wire_size(MsgType.COMMAND), wire_size(MsgType.ACK)) == (59, 39, 19, 15)
+    assert (wire_size(MsgType.POSE), wire_size(MsgType.STATUS), wire_size(MsgType.COMMAND), wire_size(MsgType.ACK)) == (
+        59,
+        39,
+        19,
+        15,
+    )
 
 
 def test_every_reference_message_round_trips() -> None:
@@ -189,7 +197,9 @@ def test_decoder_result_does_not_depend_on_chunking() -> None:
 def test_decoder_resynchronises_after_garbage_and_ignores_empty_frames() -> None:
     good = encode_frame(Command(2), 5)
     dec = StreamDecoder()
-    out = dec.feed(b"\x13\x37garbage-without-delimiter" + b"\x00\x00\x00" + good + b"\x00\x00" + good[:-6] + b"\x00" + good)
+    out = dec.feed(
+        b"\x13\x37garbage-without-delimiter" + b"\x00\x00\x00" + good + b"\x00\x00" + good[:-6] + b"\x00" + good
+    )
     assert [f.seq for f in out] == [5, 5]
     assert dec.frames_rejected == 2  # the garbage and the truncated copy; empty frames are not counted
 
@@ -207,7 +217,11 @@ def test_decoder_buffer_is_bounded_and_long_noise_is_one_overflow() -> None:
 
 def test_no_single_or_double_bit_flip_is_accepted() -> None:
     """Exhaustive over one POSE frame, the delimiter excluded: every 1- and 2-bit corruption is rejected."""
-    wire = bytearray(encode_frame(Pose.from_record(PoseRecord(99, look_at(np.ones(3), np.zeros(3)), 40, TrackingState.TRACKING, 0.5)), 1)[:-1])
+    wire = bytearray(
+        encode_frame(
+            Pose.from_record(PoseRecord(99, look_at(np.ones(3), np.zeros(3)), 40, TrackingState.TRACKING, 0.5)), 1
+        )[:-1]
+    )
     nbits = len(wire) * 8
     accepted = 0
 

@@ -6,8 +6,8 @@ import os
 import select
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import pytest
@@ -17,7 +17,17 @@ from acesplat.core.errors import InputError
 from acesplat.core.geometry import look_at, pose_error
 from acesplat.core.pose import PoseRecord, TrackingState
 from firmware_bridge.decoder import StreamDecoder
-from firmware_bridge.protocol import Ack, AckResult, Command, CommandCode, Frame, Pose, RuntimeState, Status, encode_frame
+from firmware_bridge.protocol import (
+    Ack,
+    AckResult,
+    Command,
+    CommandCode,
+    Frame,
+    Pose,
+    RuntimeState,
+    Status,
+    encode_frame,
+)
 from firmware_bridge.sink import PoseSink, open_sink
 from firmware_bridge.testing import reference_messages
 from firmware_bridge.transport import serial_opener
@@ -115,7 +125,10 @@ def test_sink_over_pty_delivers_poses_and_status(peer: PtyPeer) -> None:
             sink.submit(rec)
             peer.wait(lambda fr: len([f for f in fr if isinstance(f.message, Pose)]) == i + 1, f"pose {i}")
         sink.update_status(state=RuntimeState.TRACKING, fps=29.5, latency_ms=33.0, frames_dropped=4)
-        peer.wait(lambda fr: any(isinstance(f.message, Status) and f.message.state == RuntimeState.TRACKING for f in fr), "updated STATUS")
+        peer.wait(
+            lambda fr: any(isinstance(f.message, Status) and f.message.state == RuntimeState.TRACKING for f in fr),
+            "updated STATUS",
+        )
     finally:
         sink.close()
     poses = [f.message for f in peer.of(Pose)]
@@ -123,7 +136,12 @@ def test_sink_over_pty_delivers_poses_and_status(peer: PtyPeer) -> None:
         back = pose.to_record()
         t_err, r_err = pose_error(back.T_c2w, rec.T_c2w)
         assert t_err < 1e-6 and r_err < 1e-3
-        assert (back.timestamp_us, back.frame_id, back.inliers, back.state) == (rec.timestamp_us, rec.frame_id, rec.inliers, rec.state)
+        assert (back.timestamp_us, back.frame_id, back.inliers, back.state) == (
+            rec.timestamp_us,
+            rec.frame_id,
+            rec.inliers,
+            rec.state,
+        )
     status = [f.message for f in peer.of(Status) if f.message.state == RuntimeState.TRACKING][0]
     assert (status.fps, status.latency_ms, status.frames_dropped) == (29.5, 33.0, 4)
     seqs = [f.seq for f in peer.frames]
@@ -137,9 +155,14 @@ def test_commands_arrive_as_events_and_are_acked(peer: PtyPeer) -> None:
     try:
         peer.wait(lambda fr: fr, "first frame")
         peer.send(b"\x42\x42 line noise \x00")
-        for seq, cmd in [(10, Command(CommandCode.PAUSE)), (11, Command(CommandCode.SET_RATE, 12.5)),
-                         (11, Command(CommandCode.SET_RATE, 12.5)),  # retransmission
-                         (12, Command(CommandCode.SET_RATE, 0.0)), (13, Command(99, 1.0)), (14, Command(CommandCode.RESUME))]:
+        for seq, cmd in [
+            (10, Command(CommandCode.PAUSE)),
+            (11, Command(CommandCode.SET_RATE, 12.5)),
+            (11, Command(CommandCode.SET_RATE, 12.5)),  # retransmission
+            (12, Command(CommandCode.SET_RATE, 0.0)),
+            (13, Command(99, 1.0)),
+            (14, Command(CommandCode.RESUME)),
+        ]:
             peer.send(encode_frame(cmd, seq))
         peer.wait(lambda fr: len([f for f in fr if isinstance(f.message, Ack)]) == 6, "six ACKs")
         # The writer counts an ACK after its write returns, so the peer can read it first.
@@ -152,12 +175,18 @@ def test_commands_arrive_as_events_and_are_acked(peer: PtyPeer) -> None:
         sink.close()
     acks = [(f.message.acked_seq, f.message.command, f.message.result) for f in peer.of(Ack)]
     assert acks == [
-        (10, CommandCode.PAUSE, AckResult.ACCEPTED), (11, CommandCode.SET_RATE, AckResult.ACCEPTED),
-        (11, CommandCode.SET_RATE, AckResult.ACCEPTED), (12, CommandCode.SET_RATE, AckResult.REJECTED),
-        (13, 99, AckResult.UNSUPPORTED), (14, CommandCode.RESUME, AckResult.ACCEPTED),
+        (10, CommandCode.PAUSE, AckResult.ACCEPTED),
+        (11, CommandCode.SET_RATE, AckResult.ACCEPTED),
+        (11, CommandCode.SET_RATE, AckResult.ACCEPTED),
+        (12, CommandCode.SET_RATE, AckResult.REJECTED),
+        (13, 99, AckResult.UNSUPPORTED),
+        (14, CommandCode.RESUME, AckResult.ACCEPTED),
     ]
     assert [(e.command, e.value, e.seq) for e in events] == [
-        (CommandCode.PAUSE, 0.0, 10), (CommandCode.SET_RATE, 12.5, 11), (CommandCode.RESUME, 0.0, 14)]
+        (CommandCode.PAUSE, 0.0, 10),
+        (CommandCode.SET_RATE, 12.5, 11),
+        (CommandCode.RESUME, 0.0, 14),
+    ]
     assert seen == events
     assert s.commands == 3 and s.acks == 6 and s.rx_frames_rejected == 1
 

@@ -8,7 +8,14 @@ from pathlib import Path
 import pytest
 
 from acesplat.core.bundle import (
-    BUNDLE_VERSION, MANIFEST_NAME, ROLE_SCR_FP32, ROLE_SCR_INT8, describe_file, load_bundle, sha256_of, write_manifest,
+    BUNDLE_VERSION,
+    MANIFEST_NAME,
+    ROLE_SCR_FP32,
+    ROLE_SCR_INT8,
+    describe_file,
+    load_bundle,
+    sha256_of,
+    write_manifest,
 )
 from acesplat.core.errors import InputError
 
@@ -124,6 +131,8 @@ def test_missing_precision_says_how_to_fix(tmp_path: Path) -> None:
     root = tmp_path / "b"
     root.mkdir()
     (root / "scr.onnx").write_bytes(b"x")
-    write_manifest(root, {"scr": {"input_size": [8, 8], "output_stride": 8}}, [describe_file(root, "scr.onnx", ROLE_SCR_FP32)])
+    write_manifest(
+        root, {"scr": {"input_size": [8, 8], "output_stride": 8}}, [describe_file(root, "scr.onnx", ROLE_SCR_FP32)]
+    )
     with pytest.raises(InputError, match="no INT8 model; re-export with --int8"):
         load_bundle(root).scr_model("int8")

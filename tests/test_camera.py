@@ -71,7 +71,12 @@ def test_resized_equals_scaling_projections(size: tuple[int, int]) -> None:
 
 @pytest.mark.parametrize(
     "size, interp",
-    [((64, 48), cv2.INTER_AREA), ((32, 24), cv2.INTER_AREA), ((64, 32), cv2.INTER_AREA), ((256, 192), cv2.INTER_LINEAR)],
+    [
+        ((64, 48), cv2.INTER_AREA),
+        ((32, 24), cv2.INTER_AREA),
+        ((64, 32), cv2.INTER_AREA),
+        ((256, 192), cv2.INTER_LINEAR),
+    ],
 )
 def test_resized_matches_cv2_resize(size: tuple[int, int], interp: int) -> None:
     """Brute force: a blob at a projected point, resized by OpenCV, lands where the resized intrinsics project it."""

@@ -8,22 +8,43 @@ from pathlib import Path
 
 from typer.testing import CliRunner
 
-from acesplat.cli import app
+from acesplat.apps.cli import app
 
 
 def test_tiny_demo_runs_every_stage_and_reports_refinement(tmp_path) -> None:
     out = tmp_path / "demo.json"
-    r = CliRunner().invoke(app, ["demo", "--workdir", str(tmp_path / "w"), "--size", "64x80", "--frames", "12,4",
-                                 "--map-minutes", "0.1", "--splat-iterations", "3", "--refine-budget-ms", "500",
-                                 "--json", str(out)])
+    r = CliRunner().invoke(
+        app,
+        [
+            "demo",
+            "--workdir",
+            str(tmp_path / "w"),
+            "--size",
+            "64x80",
+            "--frames",
+            "12,4",
+            "--map-minutes",
+            "0.1",
+            "--splat-iterations",
+            "3",
+            "--refine-budget-ms",
+            "500",
+            "--json",
+            str(out),
+        ],
+    )
     assert r.exit_code == 0, r.output
     s = json.loads(out.read_text())
     assert s["synth"]["train_frames"] == 12 and s["synth"]["size"] == [64, 80]
-    assert s["eval_align"]["frames"] == 4 and sum(s["eval_align"]["keyframe_alignment"].values()) == s["eval"]["localized"]
+    assert (
+        s["eval_align"]["frames"] == 4 and sum(s["eval_align"]["keyframe_alignment"].values()) == s["eval"]["localized"]
+    )
     assert "eval (torch), aligned" in r.output
     assert s["splat"]["iterations"] == 3 and s["splat"]["gaussians_final"] > 0
     checks = s["export"]["checks"]
-    assert {"fp32_vs_torch", "test_split", "splat_init_fp32_vs_torch", "splat_init_via_scr_int8_vs_torch"} <= set(checks)
+    assert {"fp32_vs_torch", "test_split", "splat_init_fp32_vs_torch", "splat_init_via_scr_int8_vs_torch"} <= set(
+        checks
+    )
     for k in ("replay_fp32", "replay_int8", "replay_refine"):
         assert s[k]["frames"] == 4
     ref = s["replay_refine"]["refine"]
@@ -41,7 +62,10 @@ def test_tiny_demo_runs_every_stage_and_reports_refinement(tmp_path) -> None:
 
 
 def test_demo_bad_options_are_one_line_errors(tmp_path) -> None:
-    for args, message in ((["--frames", "12"], "TRAIN,TEST"), (["--refine-budget-ms", "0"], "must be positive"),
-                          (["--size", "64by80"], "HxW")):
+    for args, message in (
+        (["--frames", "12"], "TRAIN,TEST"),
+        (["--refine-budget-ms", "0"], "must be positive"),
+        (["--size", "64by80"], "HxW"),
+    ):
         r = CliRunner().invoke(app, ["demo", "--workdir", str(tmp_path / "w"), *args])
         assert r.exit_code == 2 and message in r.output and "Traceback" not in r.output, r.output

@@ -6,10 +6,10 @@ import cv2
 import numpy as np
 import pytest
 
+from acesplat.align.depth_warp import warp_to_camera
 from acesplat.core.camera import Intrinsics
-from acesplat.core.depth_warp import warp_to_camera
 from acesplat.core.geometry import make_pose, rodrigues_to_matrix
-from acesplat.core.pnp import cell_centers
+from acesplat.core.grid import cell_centers
 
 H, W = 96, 128
 INTR = Intrinsics(110.0, 110.0, 63.5, 47.5, W, H)
@@ -37,11 +37,15 @@ def plane_homography(R: np.ndarray, t: np.ndarray, n: np.ndarray, d: float) -> n
     return K @ (R + np.outer(t, n) / d) @ np.linalg.inv(K)
 
 
-def compare(src_img: np.ndarray, c2w_dst: np.ndarray, n: np.ndarray, d: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def compare(
+    src_img: np.ndarray, c2w_dst: np.ndarray, n: np.ndarray, d: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     out, valid = warp_to_camera(src_img, plane_depth(n, d), INTR, STRIDE, np.eye(4), c2w_dst)
     w2c_dst = np.linalg.inv(c2w_dst)
     Hm = plane_homography(w2c_dst[:3, :3], w2c_dst[:3, 3], n, d)
-    ref = cv2.warpPerspective(src_img, Hm, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    ref = cv2.warpPerspective(
+        src_img, Hm, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+    )
     inside = cv2.warpPerspective(np.ones_like(src_img), Hm, (W, H), flags=cv2.INTER_NEAREST, borderValue=0) > 0
     return out, valid, ref, inside
 
@@ -87,7 +91,7 @@ def test_unknown_depth_is_invalid_and_bad_shapes_are_refused() -> None:
     depth = np.zeros((H // STRIDE, W // STRIDE))
     depth[:, : depth.shape[1] // 2] = 3.0
     _, valid = warp_to_camera(img, depth, INTR, STRIDE, np.eye(4), np.eye(4))
-    assert valid[:, : W // 2 - STRIDE].all() and not valid[:, W // 2 + STRIDE:].any()
+    assert valid[:, : W // 2 - STRIDE].all() and not valid[:, W // 2 + STRIDE :].any()
     _, none = warp_to_camera(img, np.zeros_like(depth), INTR, STRIDE, np.eye(4), np.eye(4))
     assert not none.any()
     with pytest.raises(ValueError, match="uint8"):

@@ -11,18 +11,17 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from acesplat.apps.edge_cli import app
 from acesplat.core.bundle import load_bundle
 from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import pose_error
 from acesplat.core.metrics import RECALL_THRESHOLDS
 from acesplat.core.pose import TrackingState
-from edge.cli import app
 from edge.loop import run_loop
 from edge.replay import replay_split, timing_summary
 from edge.runtime import STAGES, EdgeLocalizer, FrameOutcome, PnPSettings
 from edge.sources import CameraSource, ReplaySource, SourceFrame
-
-from .test_edge_scene import tiny_setup
+from tests.test_edge_scene import tiny_setup
 
 STAT_KEYS = {"mean", "p50", "p90", "p95", "p99", "max"}
 
@@ -54,10 +53,20 @@ def test_replay_localizes_like_the_desktop_path(tiny, localizer) -> None:
 
 def test_replay_command_json_has_eval_keys_and_stage_timings(tiny, tmp_path: Path) -> None:
     out = tmp_path / "r.json"
-    r = CliRunner().invoke(app, ["replay", str(tiny["bundle"]), str(tiny["scene"]), "--int8", "--threads", "1", "--json", str(out)])
+    r = CliRunner().invoke(
+        app, ["replay", str(tiny["bundle"]), str(tiny["scene"]), "--int8", "--threads", "1", "--json", str(out)]
+    )
     assert r.exit_code == 0, r.output
     s = json.loads(out.read_text())
-    for k in ("frames", "localized", "median_translation_m", "median_rotation_deg", "mean_ms", "per_frame", *RECALL_THRESHOLDS):
+    for k in (
+        "frames",
+        "localized",
+        "median_translation_m",
+        "median_rotation_deg",
+        "mean_ms",
+        "per_frame",
+        *RECALL_THRESHOLDS,
+    ):
         assert k in s
     assert set(s["timing_ms"]) == set(STAGES)
     assert all(set(v) == STAT_KEYS for v in s["timing_ms"].values())
@@ -68,9 +77,16 @@ def test_timing_statistics_against_hand_computed_values() -> None:
     """Totals 1..100 ms: mean 50.5, p50 50.5, p90 90.1, p95 95.05, p99 99.01, max 100 (linear interpolation)."""
     outs = [FrameOutcome(record=None, result=None, times_ms={s: float(v) for s in STAGES}) for v in range(1, 101)]
     t = timing_summary(outs)
-    assert t["total"] == pytest.approx({"mean": 50.5, "p50": 50.5, "p90": 90.1, "p95": 95.05, "p99": 99.01, "max": 100.0})
-    outs = [FrameOutcome(record=None, result=None, times_ms={**{s: 0.0 for s in STAGES}, "pnp": v}) for v in (4.0, 1.0, 3.0, 2.0)]
-    assert timing_summary(outs)["pnp"] == pytest.approx({"mean": 2.5, "p50": 2.5, "p90": 3.7, "p95": 3.85, "p99": 3.97, "max": 4.0})
+    assert t["total"] == pytest.approx(
+        {"mean": 50.5, "p50": 50.5, "p90": 90.1, "p95": 95.05, "p99": 99.01, "max": 100.0}
+    )
+    outs = [
+        FrameOutcome(record=None, result=None, times_ms={**{s: 0.0 for s in STAGES}, "pnp": v})
+        for v in (4.0, 1.0, 3.0, 2.0)
+    ]
+    assert timing_summary(outs)["pnp"] == pytest.approx(
+        {"mean": 2.5, "p50": 2.5, "p90": 3.7, "p95": 3.85, "p99": 3.97, "max": 4.0}
+    )
 
 
 def test_geometry_through_crop_and_resize_is_exact(tiny, tmp_path: Path) -> None:
@@ -83,8 +99,7 @@ def test_geometry_through_crop_and_resize_is_exact(tiny, tmp_path: Path) -> None
     from onnx import TensorProto, helper, numpy_helper
 
     from acesplat.core.bundle import ROLE_SCR_FP32, describe_file, write_manifest
-
-    from .test_edge_scene import ROOM, _texture, camera_poses, render
+    from tests.test_edge_scene import ROOM, _texture, camera_poses, render
 
     rng = np.random.default_rng(5)
     textures = [_texture(rng) for _ in range(6)]
@@ -92,13 +107,13 @@ def test_geometry_through_crop_and_resize_is_exact(tiny, tmp_path: Path) -> None
     k_in = Intrinsics(70.0, 70.0, 39.5, 31.5, 80, 64)
     _, depth = render(textures, T, k_in)
     from acesplat.core.geometry import transform_points
-    from acesplat.core.pnp import cell_centers
+    from acesplat.core.grid import cell_centers
 
     c = cell_centers(8, 10)
     z = depth[c[:, 1].astype(int), c[:, 0].astype(int)]
     # the cell centre is between pixels; use the exact ray depth there by re-rendering at the centres
     X = []
-    for (u, v) in c:
+    for u, v in c:
         k1 = Intrinsics(k_in.fx, k_in.fy, k_in.cx - u, k_in.cy - v, 1, 1)
         _, d1 = render(textures, T, k1)
         X.append(transform_points(T, k_in.unproject(np.array([[u, v]]), d1.reshape(1)))[0])
@@ -106,23 +121,33 @@ def test_geometry_through_crop_and_resize_is_exact(tiny, tmp_path: Path) -> None
     assert np.all(np.abs(X).max() < ROOM.max() + 1e-3) and z.shape == (80,)
     coords = numpy_helper.from_array(np.moveaxis(X, -1, 0)[None].copy(), "oracle")
     graph = helper.make_graph(
-        [helper.make_node("ReduceMean", ["gray"], ["m"], keepdims=1), helper.make_node("Mul", ["m", "zero"], ["z"]),
-         helper.make_node("Add", ["oracle", "z"], ["coords"])],
-        "oracle", [helper.make_tensor_value_info("gray", TensorProto.FLOAT, [1, 1, 64, 80])],
+        [
+            helper.make_node("ReduceMean", ["gray"], ["m"], keepdims=1),
+            helper.make_node("Mul", ["m", "zero"], ["z"]),
+            helper.make_node("Add", ["oracle", "z"], ["coords"]),
+        ],
+        "oracle",
+        [helper.make_tensor_value_info("gray", TensorProto.FLOAT, [1, 1, 64, 80])],
         [helper.make_tensor_value_info("coords", TensorProto.FLOAT, [1, 3, 8, 10])],
         [coords, numpy_helper.from_array(np.zeros((1, 1, 1, 1), np.float32), "zero")],
     )
     root = tmp_path / "oracle"
     root.mkdir()
-    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8), str(root / "scr.onnx"))
-    write_manifest(root, {"scr": {"input_size": [64, 80], "output_stride": 8}}, [describe_file(root, "scr.onnx", ROLE_SCR_FP32)])
+    onnx.save(
+        helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8), str(root / "scr.onnx")
+    )
+    write_manifest(
+        root, {"scr": {"input_size": [64, 80], "output_stride": 8}}, [describe_file(root, "scr.onnx", ROLE_SCR_FP32)]
+    )
     loc = EdgeLocalizer(load_bundle(root), "fp32", threads=1, pnp=PnPSettings(min_inliers=20))
     # capture: 128 x 200 (wider), whose centre 128 x 160 crop downsampled 2x is exactly k_in
     k_cap = Intrinsics(2 * k_in.fx, 2 * k_in.fy, (k_in.cx + 0.5) * 2 - 0.5 + 20, (k_in.cy + 0.5) * 2 - 0.5, 200, 128)
     rgb, _ = render(textures, T, k_cap)
     out = loc.localize(SourceFrame(rgb, 1.0, k_cap, 7))
     t_err, r_err = pose_error(out.result.T_c2w, T)
-    assert out.record.state == TrackingState.TRACKING and out.record.frame_id == 7 and out.record.timestamp_us == 1_000_000
+    assert (
+        out.record.state == TrackingState.TRACKING and out.record.frame_id == 7 and out.record.timestamp_us == 1_000_000
+    )
     assert t_err < 1e-3 and r_err < 0.05
 
 
@@ -142,8 +167,21 @@ def test_localize_json_lines_and_ctrl_c(tiny, tmp_path: Path, monkeypatch) -> No
     monkeypatch.setattr(rt.EdgeLocalizer, "localize", interrupting)
     log = tmp_path / "poses.jsonl"
     summary = tmp_path / "s.json"
-    r = CliRunner().invoke(app, ["localize", str(tiny["bundle"]), "--source", f"replay:{tiny['scene']}/test",
-                                 "--json-lines", str(log), "--threads", "1", "--json", str(summary)])
+    r = CliRunner().invoke(
+        app,
+        [
+            "localize",
+            str(tiny["bundle"]),
+            "--source",
+            f"replay:{tiny['scene']}/test",
+            "--json-lines",
+            str(log),
+            "--threads",
+            "1",
+            "--json",
+            str(summary),
+        ],
+    )
     assert r.exit_code == 0, r.output
     assert "interrupted" in r.output
     text = log.read_text()
@@ -192,15 +230,20 @@ def test_wrong_image_size_is_a_one_line_error(tiny, tmp_path: Path) -> None:
     folder = tmp_path / "imgs"
     folder.mkdir()
     shutil.copy(Path(tiny["scene"]) / "test" / "rgb" / "0000.png", folder / "a.png")  # 80 x 64: aspect 5:4, not 4:3
-    r = CliRunner().invoke(app, ["localize", str(tiny["bundle"]), "--source", f"replay:{folder}", "--intrinsics", str(calib)])
+    r = CliRunner().invoke(
+        app, ["localize", str(tiny["bundle"]), "--source", f"replay:{folder}", "--intrinsics", str(calib)]
+    )
     assert r.exit_code == 2
     assert "80x64 but the calibration is for 640x480" in r.output and "Traceback" not in r.output
 
 
 def test_missing_source_and_missing_intrinsics(tiny, tmp_path: Path) -> None:
     runner = CliRunner()
-    for src, msg in ((f"replay:{tmp_path}/none", "does not exist"), ("video:/no/such.mp4", "needs --intrinsics"),
-                     ("tape:3", "unknown source")):
+    for src, msg in (
+        (f"replay:{tmp_path}/none", "does not exist"),
+        ("video:/no/such.mp4", "needs --intrinsics"),
+        ("tape:3", "unknown source"),
+    ):
         r = runner.invoke(app, ["localize", str(tiny["bundle"]), "--source", src])
         assert r.exit_code == 2 and msg in r.output, (src, r.output)
     folder = tmp_path / "imgs"
@@ -290,7 +333,9 @@ def test_slow_processing_drops_old_frames_and_keeps_the_latest(tiny, localizer) 
 
 
 def test_record_reads_back_through_replay(tiny, tmp_path: Path) -> None:
-    r = CliRunner().invoke(app, ["record", str(tmp_path / "rec"), "--source", f"replay:{tiny['scene']}/test", "--frames", "3"])
+    r = CliRunner().invoke(
+        app, ["record", str(tmp_path / "rec"), "--source", f"replay:{tiny['scene']}/test", "--frames", "3"]
+    )
     assert r.exit_code == 0, r.output
     src = ReplaySource(tmp_path / "rec")
     orig = ReplaySource(Path(tiny["scene"]) / "test")
@@ -309,8 +354,22 @@ def test_record_reads_back_through_replay(tiny, tmp_path: Path) -> None:
 
 def test_profile_compare_json(tiny, tmp_path: Path) -> None:
     out = tmp_path / "p.json"
-    r = CliRunner().invoke(app, ["profile", str(tiny["bundle"]), "--frames", "3", "--warmup", "1", "--compare",
-                                 "--threads", "1", "--json", str(out)])
+    r = CliRunner().invoke(
+        app,
+        [
+            "profile",
+            str(tiny["bundle"]),
+            "--frames",
+            "3",
+            "--warmup",
+            "1",
+            "--compare",
+            "--threads",
+            "1",
+            "--json",
+            str(out),
+        ],
+    )
     assert r.exit_code == 0, r.output
     p = json.loads(out.read_text())
     assert p["precision"] == ["fp32", "int8"] and p["input_size"] == [64, 80]
@@ -358,8 +417,22 @@ def test_pose_sink_latest_wins() -> None:
 def test_localize_sends_poses_over_the_firmware_bridge(tiny, tmp_path: Path) -> None:
     """--serial with pyserial's loop:// port: every pose is handed to the bridge's non-blocking sink."""
     summary = tmp_path / "s.json"
-    r = CliRunner().invoke(app, ["localize", str(tiny["bundle"]), "--source", f"replay:{tiny['scene']}/test", "--quiet",
-                                 "--threads", "1", "--serial", "loop://", "--json", str(summary)])
+    r = CliRunner().invoke(
+        app,
+        [
+            "localize",
+            str(tiny["bundle"]),
+            "--source",
+            f"replay:{tiny['scene']}/test",
+            "--quiet",
+            "--threads",
+            "1",
+            "--serial",
+            "loop://",
+            "--json",
+            str(summary),
+        ],
+    )
     assert r.exit_code == 0, r.output
     s = json.loads(summary.read_text())
     assert s["frames"] == 4 and s["bridge"]["submitted"] == 4

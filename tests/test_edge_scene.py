@@ -93,8 +93,13 @@ def jitter(T: np.ndarray, rng: np.random.Generator, metres: float, degrees: floa
 
 
 def make_room_scene(
-    out: Path, train: int = 24, test: int = 6, size: tuple[int, int] = (64, 80), seed: int = 0,
-    test_offset_m: float = 0.02, test_offset_deg: float = 1.0,
+    out: Path,
+    train: int = 24,
+    test: int = 6,
+    size: tuple[int, int] = (64, 80),
+    seed: int = 0,
+    test_offset_m: float = 0.02,
+    test_offset_deg: float = 1.0,
 ) -> Path:
     """Write a textured-box scene in the ACE layout (train/ and test/) and return its folder.
 
@@ -123,7 +128,7 @@ _CACHE: dict[str, dict] = {}
 def cell_targets(frame) -> np.ndarray:
     """True scene coordinates (h, w, 3) of a frame's stride-8 cells, from its depth map."""
     from acesplat.core.geometry import transform_points
-    from acesplat.core.pnp import cell_centers
+    from acesplat.core.grid import cell_centers
 
     d = frame.load_depth()
     h, w = d.shape[0] // 8, d.shape[1] // 8
@@ -174,8 +179,16 @@ def train_tiny_map(scene: Path, out_dir: Path, steps: int = 300, seed: int = 0, 
     torch.save(enc.state_dict(), enc_path)
     ident = EncoderIdentity(enc_path.name, file_sha256(enc_path), str(enc_path.resolve()))
     map_path = out_dir / "tiny.map"
-    save_map(map_path, SceneMap(head.eval(), ident, mean.numpy().astype(np.float64), short_side=int(gray.shape[1]),
-                                metadata={"scene": str(scene.resolve())}))
+    save_map(
+        map_path,
+        SceneMap(
+            head.eval(),
+            ident,
+            mean.numpy().astype(np.float64),
+            short_side=int(gray.shape[1]),
+            metadata={"scene": str(scene.resolve())},
+        ),
+    )
     return map_path, enc_path
 
 
@@ -188,8 +201,14 @@ def tiny_setup(tmp_path_factory) -> dict:
         from export.bundle_export import ExportOptions, export_bundle
 
         rep = export_bundle(map_path, root / "bundle", ExportOptions(int8=True))
-        _CACHE["tiny"] = {"root": root, "scene": scene, "map": map_path, "encoder": enc_path,
-                          "bundle": root / "bundle", "manifest": rep.manifest}
+        _CACHE["tiny"] = {
+            "root": root,
+            "scene": scene,
+            "map": map_path,
+            "encoder": enc_path,
+            "bundle": root / "bundle",
+            "manifest": rep.manifest,
+        }
     return _CACHE["tiny"]
 
 

@@ -16,7 +16,7 @@ from acesplat.core.errors import InputError
 from edge.calibration import CameraCalibration, read_calibration_file
 from edge.frame_prep import FramePrep, crop_to_aspect
 from edge.oak import OakSource, resize_intrinsics
-from edge.sources import ReplaySource, SourceDisconnected, UnreadableFrame, open_source, SourceOptions
+from edge.sources import ReplaySource, SourceDisconnected, SourceOptions, UnreadableFrame, open_source
 
 K0 = np.array([[1500.0, 0, 955.3], [0, 1498.0, 541.7], [0, 0, 1]])
 
@@ -188,8 +188,19 @@ def test_oak_hardware() -> None:
 
 
 def test_calibration_formats(tmp_path: Path) -> None:
-    (tmp_path / "k.json").write_text(json.dumps({"fx": 600, "fy": 601, "cx": 319.5, "cy": 239.5, "width": 640,
-                                                 "height": 480, "distortion": [0.1, -0.05, 0, 0, 0]}))
+    (tmp_path / "k.json").write_text(
+        json.dumps(
+            {
+                "fx": 600,
+                "fy": 601,
+                "cx": 319.5,
+                "cy": 239.5,
+                "width": 640,
+                "height": 480,
+                "distortion": [0.1, -0.05, 0, 0, 0],
+            }
+        )
+    )
     c = read_calibration_file(tmp_path / "k.json")
     assert c.intrinsics_for(320, 240) == Intrinsics(600, 601, 319.5, 239.5, 640, 480).resized(320, 240)
     assert c.has_distortion
@@ -221,7 +232,7 @@ def test_undistortion_puts_points_where_the_pinhole_model_says() -> None:
     X = np.c_[gx.ravel(), gy.ravel(), np.ones(12)]
     distorted, _ = cv2.projectPoints(X, np.zeros(3), np.zeros(3), K, dist)
     img = np.zeros((240, 320), np.uint8)
-    for (u, v) in distorted.reshape(-1, 2):
+    for u, v in distorted.reshape(-1, 2):
         cv2.circle(img, (int(round(u * 16)), int(round(v * 16))), 3 * 16, 255, -1, shift=4)
     gray, intr = FramePrep((240, 320))(img, Intrinsics.from_K(K, 320, 240), dist)
     ideal = _project(intr.K, X)

@@ -12,8 +12,7 @@ from typer.testing import CliRunner
 
 from acesplat.core.bundle import load_bundle
 from acesplat.core.errors import InputError
-
-from .test_edge_scene import tiny_setup
+from tests.test_edge_scene import tiny_setup
 
 
 @pytest.fixture(scope="module")
@@ -39,8 +38,8 @@ def test_fp32_graph_matches_torch(tiny) -> None:
     """Recorded self-check, and an independent run of the bundle against the map in torch."""
     import torch
 
-    from acesplat.core.scene import read_split
     from acesplat.core.preprocess import to_gray_input
+    from acesplat.core.scene import read_split
     from acesplat.scr.mapfile import encoder_for_map, load_map
     from edge.inference import ScrSession
 
@@ -85,12 +84,16 @@ def test_int8_graph_is_quantized(tiny) -> None:
     assert [o.name for o in g.output] == ["coords", "features"]  # the quantizer keeps both outputs
     # weights are int8 per channel, activations uint8 (U8S8)
     inits = {i.name: i for i in g.initializer}
-    q_types = {inits[n.input[2]].data_type for n in g.node if n.op_type == "QuantizeLinear" and len(n.input) > 2 and n.input[2] in inits}
+    q_types = {
+        inits[n.input[2]].data_type
+        for n in g.node
+        if n.op_type == "QuantizeLinear" and len(n.input) > 2 and n.input[2] in inits
+    }
     assert onnx.TensorProto.UINT8 in q_types
 
 
 def test_bad_size_and_missing_map_are_one_line_errors(tiny, tmp_path: Path) -> None:
-    from acesplat.cli import app
+    from acesplat.apps.cli import app
     from export.bundle_export import ExportOptions, export_bundle
 
     with pytest.raises(InputError, match="multiple of 8"):
@@ -118,7 +121,9 @@ def test_int8_needs_the_training_images(tiny, tmp_path: Path) -> None:
     from export.bundle_export import ExportOptions, export_bundle
 
     with pytest.raises(InputError, match="calibrates on the map's training images"):
-        export_bundle(tiny["map"], tmp_path / "b", ExportOptions(int8=True, scene_path=tmp_path / "gone", size_hw=(64, 80)))
+        export_bundle(
+            tiny["map"], tmp_path / "b", ExportOptions(int8=True, scene_path=tmp_path / "gone", size_hw=(64, 80))
+        )
 
 
 def test_int8_keeps_the_heads_last_layers_float(tiny) -> None:
@@ -150,10 +155,11 @@ def test_dense_bundle_predicts_every_4th_pixel_and_the_edge_localizes_with_it(ti
 
 
 def test_dense_bundles_carry_no_gaussians_and_other_strides_are_refused(tiny, tmp_path: Path) -> None:
-    from acesplat.cli import app
+    from acesplat.apps.cli import app
 
-    r = CliRunner().invoke(app, ["export", str(tiny["map"]), "-o", str(tmp_path / "b"), "--dense", "--splat",
-                                 str(tmp_path / "splat")])
+    r = CliRunner().invoke(
+        app, ["export", str(tiny["map"]), "-o", str(tmp_path / "b"), "--dense", "--splat", str(tmp_path / "splat")]
+    )
     assert r.exit_code == 2 and "drop --dense" in r.output and "Traceback" not in r.output
     assert not (tmp_path / "b").exists()
     bad = tmp_path / "bad"
@@ -166,16 +172,20 @@ def test_dense_bundles_carry_no_gaussians_and_other_strides_are_refused(tiny, tm
 
 
 def test_keyframes_ride_in_the_bundle_and_the_edge_aligns_to_them(tiny, tmp_path: Path) -> None:
-    from edge.cli import app as edge_app
+    from acesplat.apps.edge_cli import app as edge_app
     from export.bundle_export import ExportOptions, export_bundle
 
     rep = export_bundle(tiny["map"], tmp_path / "kf", ExportOptions(keyframes=True))
     assert rep.manifest["keyframes"]["count"] == 12 and rep.manifest["keyframes"]["image_size"] == [64, 80]
     b = load_bundle(tmp_path / "kf")
-    ks = b.keyframes()
+    from acesplat.align.keyframe_set import bundle_keyframes
+
+    ks = bundle_keyframes(b)
     assert len(ks) == 12 and ks.gray.shape == (12, 64, 80) and ks.stride == 4 and np.mean(ks.depth > 0) > 0.5
     out = tmp_path / "replay.json"
-    r = CliRunner().invoke(edge_app, ["replay", str(tmp_path / "kf"), str(tiny["scene"]), "--align", "--json", str(out)])
+    r = CliRunner().invoke(
+        edge_app, ["replay", str(tmp_path / "kf"), str(tiny["scene"]), "--align", "--json", str(out)]
+    )
     assert r.exit_code == 0, r.output
     s = json.loads(out.read_text())
     assert sum(s["keyframe_alignment"].values()) == s["localized"] == 4

@@ -213,7 +213,13 @@ def test_rigidity_problem_cases() -> None:
         "orthonormal": make_pose(R * 1.01, [0, 0, 0]),
         "determinant": make_pose(R @ np.diag([1.0, 1.0, -1.0]), [0, 0, 0]),
     }
-    expected_words = {"shape": "4x4", "non-finite": "non-finite", "last row": "last row", "orthonormal": "orthonormal", "determinant": "determinant"}
+    expected_words = {
+        "shape": "4x4",
+        "non-finite": "non-finite",
+        "last row": "last row",
+        "orthonormal": "orthonormal",
+        "determinant": "determinant",
+    }
     for key, T in cases.items():
         problem = rigidity_problem(T)
         assert problem is not None and expected_words[key] in problem, (key, problem)

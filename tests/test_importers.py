@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from acesplat.cli import app
+from acesplat.apps.cli import app
 from acesplat.core.errors import InputError
 from acesplat.core.geometry import look_at
 from acesplat.core.scene import read_rgb, read_split
@@ -111,12 +111,16 @@ def test_transforms_camera_angle_and_extensionless_paths(tmp_path: Path) -> None
 
 
 def test_transforms_camera_angle_y_and_per_frame_override(tmp_path: Path) -> None:
-    src = make_transforms(tmp_path / "src", n=2, extra={"fl_x": None, "fl_y": None, "camera_angle_x": 1.0, "camera_angle_y": 0.8})
+    src = make_transforms(
+        tmp_path / "src", n=2, extra={"fl_x": None, "fl_y": None, "camera_angle_x": 1.0, "camera_angle_y": 0.8}
+    )
     rewrite(src, lambda d: d["frames"][1].update({"fl_x": 70.0, "fl_y": 71.0, "cx": 30.0}))
     import_transforms_json(src, tmp_path / "scene", test_every=0)
     f0, f1 = read_split(tmp_path / "scene").frames
     np.testing.assert_allclose([f0.intrinsics.fx, f0.intrinsics.fy], [32 / math.tan(0.5), 24 / math.tan(0.4)])
-    np.testing.assert_allclose([f1.intrinsics.fx, f1.intrinsics.fy, f1.intrinsics.cx, f1.intrinsics.cy], [70, 71, 29.5, 23.5])
+    np.testing.assert_allclose(
+        [f1.intrinsics.fx, f1.intrinsics.fy, f1.intrinsics.cx, f1.intrinsics.cy], [70, 71, 29.5, 23.5]
+    )
 
 
 def test_transforms_split_every_nth_in_natural_order(tmp_path: Path) -> None:
@@ -190,7 +194,9 @@ def test_transforms_non_uniform_size_mismatch_refused(tmp_path: Path) -> None:
     src = make_transforms(tmp_path / "src", n=1)
     img = tmp_path / "src" / "images" / "img0.png"
     write_image(img, w=W, h=H // 2)
-    expect_input_error(lambda: import_transforms_json(src, tmp_path / "scene", test_every=0), str(img), "64x24", "64x48")
+    expect_input_error(
+        lambda: import_transforms_json(src, tmp_path / "scene", test_every=0), str(img), "64x24", "64x48"
+    )
     assert not (tmp_path / "scene").exists()
 
 
@@ -244,7 +250,9 @@ def test_output_must_be_new_or_empty(tmp_path: Path) -> None:
     src = make_transforms(tmp_path / "src", n=2)
     (tmp_path / "scene").mkdir()
     import_transforms_json(src, tmp_path / "scene", test_every=0)  # an empty folder is fine
-    expect_input_error(lambda: import_transforms_json(src, tmp_path / "scene"), str(tmp_path / "scene"), "not an empty folder")
+    expect_input_error(
+        lambda: import_transforms_json(src, tmp_path / "scene"), str(tmp_path / "scene"), "not an empty folder"
+    )
 
 
 def test_bad_test_every(tmp_path: Path) -> None:
@@ -264,7 +272,9 @@ def write_colmap(
 ) -> Path:
     model = root / "sparse" / "0"
     model.mkdir(parents=True, exist_ok=True)
-    (model / "cameras.txt").write_text("# Camera list with one line of data per camera:\n#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n" + cameras)
+    (model / "cameras.txt").write_text(
+        "# Camera list with one line of data per camera:\n#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n" + cameras
+    )
     if images is None:
         images = "".join(f"{i + 1} {COLMAP_LINE} 1 {n}\n\n" for i, n in enumerate(names))
     (model / "images.txt").write_text("# Image list with two lines of data per image:\n" + images)
@@ -286,7 +296,9 @@ def test_colmap_rotation_about_z_with_translation(tmp_path: Path) -> None:
     # w2c: R = +90 deg about z, t = (1, 0, 0). c2w: R^T = [[0,1,0],[-1,0,0],[0,0,1]], C = -R^T t = (0, 1, 0).
     s = math.sqrt(0.5)
     write_colmap(tmp_path / "proj", images=f"7 {s} 0 0 {s} 1 0 0 1 a.png\n\n")
-    import_colmap_text(tmp_path / "proj" / "sparse" / "0", tmp_path / "proj" / "images", tmp_path / "scene", test_every=0)
+    import_colmap_text(
+        tmp_path / "proj" / "sparse" / "0", tmp_path / "proj" / "images", tmp_path / "scene", test_every=0
+    )
     expected = np.array([[0, 1, 0, 0], [-1, 0, 0, 1], [0, 0, 1, 0], [0, 0, 0, 1]], dtype=float)
     np.testing.assert_allclose(read_split(tmp_path / "scene").frames[0].pose, expected, atol=1e-12)
 
@@ -311,7 +323,9 @@ def test_colmap_points_lines_names_and_split(tmp_path: Path) -> None:
 def test_colmap_simple_pinhole(tmp_path: Path) -> None:
     write_colmap(tmp_path / "proj", cameras="3 SIMPLE_PINHOLE 64 48 50 30 20\n", images=f"1 {COLMAP_LINE} 3 a.png\n\n")
     import_colmap_text(tmp_path / "proj", None, tmp_path / "scene", test_every=0)
-    np.testing.assert_allclose(read_split(tmp_path / "scene").frames[0].intrinsics.K, [[50, 0, 29.5], [0, 50, 19.5], [0, 0, 1]])
+    np.testing.assert_allclose(
+        read_split(tmp_path / "scene").frames[0].intrinsics.K, [[50, 0, 29.5], [0, 50, 19.5], [0, 0, 1]]
+    )
 
 
 def blob_at(points: np.ndarray, w: int = 96, h: int = 72, sigma: float = 1.6) -> np.ndarray:
@@ -335,10 +349,16 @@ def local_centroid(img: np.ndarray, near: np.ndarray, r: int = 5) -> np.ndarray:
         ("SIMPLE_RADIAL", "60 {cx} {cy} -0.25", [-0.25, 0, 0, 0]),
         ("RADIAL", "60 {cx} {cy} -0.2 0.05", [-0.2, 0.05, 0, 0]),
         ("OPENCV", "60 62 {cx} {cy} -0.2 0.04 0.003 -0.002", [-0.2, 0.04, 0.003, -0.002]),
-        ("FULL_OPENCV", "60 62 {cx} {cy} -0.2 0.04 0.003 -0.002 0.01 0.02 0.0 0.01", [-0.2, 0.04, 0.003, -0.002, 0.01, 0.02, 0.0, 0.01]),
+        (
+            "FULL_OPENCV",
+            "60 62 {cx} {cy} -0.2 0.04 0.003 -0.002 0.01 0.02 0.0 0.01",
+            [-0.2, 0.04, 0.003, -0.002, 0.01, 0.02, 0.0, 0.01],
+        ),
     ],
 )
-def test_colmap_undistortion_puts_points_where_new_K_projects_them(tmp_path: Path, model: str, params: str, dist: list) -> None:
+def test_colmap_undistortion_puts_points_where_new_K_projects_them(
+    tmp_path: Path, model: str, params: str, dist: list
+) -> None:
     """Brute force: blobs drawn at OpenCV-distorted projections land at the imported K's pinhole projections."""
     w, h = 96, 72
     cx_cv, cy_cv = 47.0, 36.5
@@ -348,7 +368,11 @@ def test_colmap_undistortion_puts_points_where_new_K_projects_them(tmp_path: Pat
     X = np.array([[-0.45, -0.3, 1.0], [0.42, -0.28, 1.0], [-0.4, 0.3, 1.0], [0.44, 0.32, 1.0], [0.05, 0.02, 1.0]])
     distorted, _ = cv2.projectPoints(X, np.zeros(3), np.zeros(3), K_cv, np.array(dist))
     root = tmp_path / "proj"
-    write_colmap(root, cameras=f"1 {model} {w} {h} {params.format(cx=cx_cv + 0.5, cy=cy_cv + 0.5)}\n", images="1 1 0 0 0 0 0 0 1 a.png\n\n")
+    write_colmap(
+        root,
+        cameras=f"1 {model} {w} {h} {params.format(cx=cx_cv + 0.5, cy=cy_cv + 0.5)}\n",
+        images="1 1 0 0 0 0 0 0 1 a.png\n\n",
+    )
     cv2.imwrite(str(root / "images" / "a.png"), blob_at(distorted[:, 0], w, h))
     summary = import_colmap_text(root, None, tmp_path / "scene", test_every=0)
     assert summary.undistorted == 1
@@ -366,20 +390,28 @@ def test_colmap_undistortion_puts_points_where_new_K_projects_them(tmp_path: Pat
     "cameras, images, words",
     [
         ("1 KANNALA 64 48 1 2 3 4\n", None, ["cameras.txt", "line 3", "unknown camera model 'KANNALA'"]),
-        ("1 OPENCV_FISHEYE 64 48 40 40 32 24 0 0 0 0\n", None, ["cameras.txt", "line 3", "OPENCV_FISHEYE", "image_undistorter"]),
+        (
+            "1 OPENCV_FISHEYE 64 48 40 40 32 24 0 0 0 0\n",
+            None,
+            ["cameras.txt", "line 3", "OPENCV_FISHEYE", "image_undistorter"],
+        ),
         ("1 PINHOLE 64 48 40 41 32\n", None, ["cameras.txt", "line 3", "needs 4 parameters"]),
         ("1 PINHOLE 64 48 40 nan 32 24\n", None, ["cameras.txt", "line 3", "non-finite"]),
         ("1 PINHOLE 64 48 40 4l 32 24\n", None, ["cameras.txt", "line 3", "must be numbers"]),
         ("1 SIMPLE_PINHOLE 64 48 -5 32 24\n", None, ["cameras.txt", "line 3", "focal length must be positive"]),
         ("1 PINHOLE 0 48 40 41 32 24\n", None, ["cameras.txt", "line 3", "size must be positive"]),
         ("x PINHOLE 64 48 40 41 32 24\n", None, ["cameras.txt", "line 3", "CAMERA_ID"]),
-        ("1 PINHOLE 64 48 40 41 32 24\n1 PINHOLE 64 48 40 41 32 24\n", None, ["cameras.txt", "line 4", "defined twice"]),
+        (
+            "1 PINHOLE 64 48 40 41 32 24\n1 PINHOLE 64 48 40 41 32 24\n",
+            None,
+            ["cameras.txt", "line 4", "defined twice"],
+        ),
         ("# nothing\n", None, ["cameras.txt", "no cameras"]),
         (None, f"1 {COLMAP_LINE} 2 a.png\n\n", ["images.txt", "line 2", "CAMERA_ID 2 is not defined"]),
         (None, "1 0.5 0.5 -0.5 0.5 2 3 1\n\n", ["images.txt", "line 2", "expected IMAGE_ID"]),
-        (None, f"1 0.5 0.5 -0.5 0.5 2 3 inf 1 a.png\n\n", ["images.txt", "line 2", "non-finite"]),
-        (None, f"1 0.5 0.5 -0.5 zero 2 3 1 1 a.png\n\n", ["images.txt", "line 2", "must be numbers"]),
-        (None, f"1 0 0 0 0 2 3 1 1 a.png\n\n", ["images.txt", "line 2", "quaternion is zero"]),
+        (None, "1 0.5 0.5 -0.5 0.5 2 3 inf 1 a.png\n\n", ["images.txt", "line 2", "non-finite"]),
+        (None, "1 0.5 0.5 -0.5 zero 2 3 1 1 a.png\n\n", ["images.txt", "line 2", "must be numbers"]),
+        (None, "1 0 0 0 0 2 3 1 1 a.png\n\n", ["images.txt", "line 2", "quaternion is zero"]),
         (None, f"1 {COLMAP_LINE} 1 a.png\n2 {COLMAP_LINE} 1 a.png\n", ["images.txt", "line 3", "2D points line"]),
         (None, f"1 {COLMAP_LINE} 1 a.png\n\n2 {COLMAP_LINE} 1 a.png\n\n", ["listed twice"]),
         (None, "# none\n", ["images.txt", "no images"]),
@@ -414,7 +446,9 @@ def test_colmap_image_size_differs_from_camera(tmp_path: Path) -> None:
     intr = read_split(tmp_path / "scene").frames[0].intrinsics
     np.testing.assert_allclose([intr.fx, intr.fy, intr.cx, intr.cy], [20.0, 20.5, 15.5, 11.5])
     write_image(tmp_path / "proj" / "images" / "a.png", w=40, h=24)  # not a uniform rescale: refused
-    expect_input_error(lambda: import_colmap_text(tmp_path / "proj", None, tmp_path / "scene2", test_every=0), "a.png", "40x24")
+    expect_input_error(
+        lambda: import_colmap_text(tmp_path / "proj", None, tmp_path / "scene2", test_every=0), "a.png", "40x24"
+    )
 
 
 def test_colmap_model_discovery_errors(tmp_path: Path) -> None:
@@ -422,13 +456,17 @@ def test_colmap_model_discovery_errors(tmp_path: Path) -> None:
     expect_input_error(lambda: import_colmap_text(tmp_path / "empty", None, tmp_path / "s"), "no COLMAP text model")
     (tmp_path / "bin" / "sparse" / "0").mkdir(parents=True)
     (tmp_path / "bin" / "sparse" / "0" / "cameras.bin").write_bytes(b"\x01\x00")
-    expect_input_error(lambda: import_colmap_text(tmp_path / "bin", None, tmp_path / "s"), "binary COLMAP model", "model_converter")
+    expect_input_error(
+        lambda: import_colmap_text(tmp_path / "bin", None, tmp_path / "s"), "binary COLMAP model", "model_converter"
+    )
     model = write_colmap(tmp_path / "noimg")
     for f in (tmp_path / "noimg" / "images").iterdir():
         f.unlink()
     (tmp_path / "noimg" / "images").rmdir()
     expect_input_error(lambda: import_colmap_text(model, None, tmp_path / "s"), str(model), "no images/ folder")
-    expect_input_error(lambda: import_colmap_text(model, tmp_path / "nowhere", tmp_path / "s"), "nowhere", "does not exist")
+    expect_input_error(
+        lambda: import_colmap_text(model, tmp_path / "nowhere", tmp_path / "s"), "nowhere", "does not exist"
+    )
 
 
 # ============================================================ dispatch and CLI
@@ -438,24 +476,56 @@ def test_detect_format(tmp_path: Path) -> None:
     src = make_transforms(tmp_path / "t", n=1)
     write_colmap(tmp_path / "c")
     assert detect_format(src) == "transforms" and detect_format(src.parent) == "transforms"
-    assert detect_format(tmp_path / "c") == "colmap" and detect_format(tmp_path / "c" / "sparse" / "0" / "images.txt") == "colmap"
+    assert (
+        detect_format(tmp_path / "c") == "colmap"
+        and detect_format(tmp_path / "c" / "sparse" / "0" / "images.txt") == "colmap"
+    )
     expect_input_error(lambda: detect_format(tmp_path / "missing"), "does not exist")
     (tmp_path / "x.txt").write_text("hi")
     expect_input_error(lambda: detect_format(tmp_path / "x.txt"), "not a transforms")
-    summary = import_scene(tmp_path / "c" / "sparse" / "0" / "images.txt", tmp_path / "scene", images_dir=tmp_path / "c" / "images", test_every=0)
+    summary = import_scene(
+        tmp_path / "c" / "sparse" / "0" / "images.txt",
+        tmp_path / "scene",
+        images_dir=tmp_path / "c" / "images",
+        test_every=0,
+    )
     assert summary.format == "colmap"
 
 
 def test_cli_import_transforms_and_colmap(tmp_path: Path) -> None:
     runner = CliRunner()
     make_transforms(tmp_path / "t", n=4)
-    res = runner.invoke(app, ["import", str(tmp_path / "t"), "-o", str(tmp_path / "s1"), "--test-every", "2", "--json", str(tmp_path / "r.json")])
+    res = runner.invoke(
+        app,
+        [
+            "import",
+            str(tmp_path / "t"),
+            "-o",
+            str(tmp_path / "s1"),
+            "--test-every",
+            "2",
+            "--json",
+            str(tmp_path / "r.json"),
+        ],
+    )
     assert res.exit_code == 0, res.output
     report = json.loads((tmp_path / "r.json").read_text())
     assert (report["format"], report["train"], report["test"]) == ("transforms", 2, 2)
     assert len(read_split(tmp_path / "s1", "test")) == 2
     write_colmap(tmp_path / "c", names=("a.png", "b.png"))
-    res = runner.invoke(app, ["import", str(tmp_path / "c"), "-o", str(tmp_path / "s2"), "--format", "colmap", "--images", str(tmp_path / "c" / "images")])
+    res = runner.invoke(
+        app,
+        [
+            "import",
+            str(tmp_path / "c"),
+            "-o",
+            str(tmp_path / "s2"),
+            "--format",
+            "colmap",
+            "--images",
+            str(tmp_path / "c" / "images"),
+        ],
+    )
     assert res.exit_code == 0, res.output
     assert "train 1, test 1" in res.stdout
 
@@ -471,7 +541,7 @@ def test_cli_bad_input_is_one_line_exit_2(tmp_path: Path) -> None:
 
 
 def test_importers_do_not_import_torch() -> None:
-    code = "import sys, acesplat.importers, acesplat.importers.cli_cmd; print('torch' in sys.modules)"
+    code = "import sys, acesplat.importers, acesplat.apps.import_cmd; print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "False"

@@ -12,15 +12,15 @@ import cv2
 import numpy as np
 import pytest
 
-from acesplat.core.camera import Intrinsics
-from acesplat.core.geometry import make_pose, pose_error, rodrigues_to_matrix
-from acesplat.core.keyframe_align import (
+from acesplat.align.keyframe_align import (
     Keyframe,
     _depth_at,
     align_to_keyframes,
     nearest_keyframes,
     resample_to,
 )
+from acesplat.core.camera import Intrinsics
+from acesplat.core.geometry import make_pose, pose_error, rodrigues_to_matrix
 from acesplat.synth import default_intrinsics, make_room, make_trajectory, render_view
 from acesplat.synth.dataset import texel_density_for
 

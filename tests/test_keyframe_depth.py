@@ -6,12 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from acesplat.align.keyframe_align import Keyframe
+from acesplat.align.keyframe_depth import depth_neighbours, refine_depth, triangulate_along_rays
 from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import look_at, make_pose
-from acesplat.core.keyframe_align import Keyframe
-from acesplat.core.keyframe_depth import depth_neighbours, refine_depth, triangulate_along_rays
-
-from .test_keyframe_align import room  # noqa: F401  (the module fixture: rendered keyframes with true depth)
+from tests.test_keyframe_align import room  # noqa: F401  (the module fixture: rendered keyframes with true depth)
 
 
 def test_triangulation_along_the_ray_recovers_the_depth_exactly() -> None:

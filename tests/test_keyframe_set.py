@@ -7,19 +7,26 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from acesplat.align.keyframe_align import Keyframe
+from acesplat.align.keyframe_set import KeyframeSet, load_keyframes, save_keyframes
 from acesplat.core.camera import Intrinsics
 from acesplat.core.errors import InputError
 from acesplat.core.geometry import look_at
-from acesplat.core.keyframe_align import Keyframe
-from acesplat.core.keyframe_set import KeyframeSet, load_keyframes, save_keyframes
 
 
 def small_set(n: int = 3) -> KeyframeSet:
     rng = np.random.default_rng(0)
     K = Intrinsics(50.0, 51.0, 20.0, 15.0, 40, 30)
-    kfs = [Keyframe(rng.integers(0, 256, (30, 40), dtype=np.uint8), K,
-                    look_at(np.array([i * 0.5, 0.0, 0.0]), np.array([i * 0.5, 0.0, 5.0])),
-                    rng.uniform(1.0, 5.0, (7, 10)).astype(np.float32), 4) for i in range(n)]
+    kfs = [
+        Keyframe(
+            rng.integers(0, 256, (30, 40), dtype=np.uint8),
+            K,
+            look_at(np.array([i * 0.5, 0.0, 0.0]), np.array([i * 0.5, 0.0, 5.0])),
+            rng.uniform(1.0, 5.0, (7, 10)).astype(np.float32),
+            4,
+        )
+        for i in range(n)
+    ]
     return KeyframeSet.stack(kfs)
 
 
@@ -43,15 +50,18 @@ def write(path: Path, **over) -> Path:
     return path
 
 
-@pytest.mark.parametrize("over, message", [
-    ({"c2w": np.stack([np.eye(4), np.eye(4) * 2, np.eye(4)])}, "keyframe 1: pose"),
-    ({"c2w": np.stack([np.eye(4), np.full((4, 4), np.nan), np.eye(4)])}, "non-finite"),
-    ({"K": np.stack([np.diag([0.0, 50.0, 1.0])] * 3)}, "focal length"),
-    ({"depth": np.ones((2, 7, 10))}, "3 images but depth"),
-    ({"depth": np.ones((3, 2, 2))}, "does not cover"),
-    ({"gray": np.zeros((3, 30, 40), np.float32)}, "uint8"),
-    ({"stride": np.int64(5)}, "stride must be"),
-])
+@pytest.mark.parametrize(
+    "over, message",
+    [
+        ({"c2w": np.stack([np.eye(4), np.eye(4) * 2, np.eye(4)])}, "keyframe 1: pose"),
+        ({"c2w": np.stack([np.eye(4), np.full((4, 4), np.nan), np.eye(4)])}, "non-finite"),
+        ({"K": np.stack([np.diag([0.0, 50.0, 1.0])] * 3)}, "focal length"),
+        ({"depth": np.ones((2, 7, 10))}, "3 images but depth"),
+        ({"depth": np.ones((3, 2, 2))}, "does not cover"),
+        ({"gray": np.zeros((3, 30, 40), np.float32)}, "uint8"),
+        ({"stride": np.int64(5)}, "stride must be"),
+    ],
+)
 def test_malformed_files_are_refused_naming_the_file(tmp_path: Path, over: dict, message: str) -> None:
     p = write(tmp_path / "bad.npz", **over)
     with pytest.raises(InputError, match=message) as e:
@@ -62,8 +72,14 @@ def test_malformed_files_are_refused_naming_the_file(tmp_path: Path, over: dict,
 def test_missing_pickled_and_garbage_files_are_one_line_errors(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="not found"):
         load_keyframes(tmp_path / "none.npz")
-    np.savez(tmp_path / "obj.npz", gray=np.array([{"a": 1}], dtype=object), depth=np.ones(1), c2w=np.ones(1),
-             K=np.ones(1), stride=np.int64(4))
+    np.savez(
+        tmp_path / "obj.npz",
+        gray=np.array([{"a": 1}], dtype=object),
+        depth=np.ones(1),
+        c2w=np.ones(1),
+        K=np.ones(1),
+        stride=np.int64(4),
+    )
     with pytest.raises(InputError, match="not a keyframe file"):
         load_keyframes(tmp_path / "obj.npz")  # object arrays would need unpickling: refused
     (tmp_path / "junk.npz").write_bytes(b"not a zip")

@@ -29,8 +29,13 @@ def _header_and_body(path: Path) -> tuple[list[str], bytes]:
     return data[:end].decode("ascii").splitlines(), data[end:]
 
 
-def _write_raw(path: Path, names: list[str], rows: np.ndarray, fmt: str = "binary_little_endian 1.0",
-               types: dict[str, str] | None = None) -> None:
+def _write_raw(
+    path: Path,
+    names: list[str],
+    rows: np.ndarray,
+    fmt: str = "binary_little_endian 1.0",
+    types: dict[str, str] | None = None,
+) -> None:
     types = types or {}
     header = f"ply\nformat {fmt}\nelement vertex {rows.shape[0]}\n"
     header += "".join(f"property {types.get(p, 'float')} {p}\n" for p in names) + "end_header\n"
@@ -172,8 +177,7 @@ def test_wrong_format_and_types(tmp_path: Path) -> None:
     path.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement face 3\nproperty float x\nend_header\n")
     _expect(path, "unexpected PLY element 'face 3'")
     path.write_bytes(
-        b"ply\nformat binary_little_endian 1.0\nelement vertex 1\n"
-        b"property list uchar int vertex_indices\nend_header\n"
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty list uchar int vertex_indices\nend_header\n"
     )
     _expect(path, "unsupported PLY property line")
 

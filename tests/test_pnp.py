@@ -7,8 +7,9 @@ import pytest
 
 from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import invert_pose, look_at, pose_error, transform_points
+from acesplat.core.grid import cell_centers
 from acesplat.core.metrics import FrameResult, accuracy_summary, timing_stats
-from acesplat.core.pnp import PNP_METHODS, cell_centers, solve_from_grid, solve_pnp
+from acesplat.core.pnp import PNP_METHODS, solve_from_grid, solve_pnp
 
 INTR = Intrinsics(200.0, 200.0, 79.5, 59.5, 160, 120)
 

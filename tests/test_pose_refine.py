@@ -8,7 +8,8 @@ import pytest
 
 from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import invert_pose, look_at, make_pose, pose_error, rodrigues_to_matrix, transform_points
-from acesplat.core.pnp import cell_centers, solve_pnp
+from acesplat.core.grid import cell_centers
+from acesplat.core.pnp import solve_pnp
 from acesplat.core.pose_refine import cauchy_cost, cauchy_weights, refine_pose_robust
 
 INTR = Intrinsics(200.0, 200.0, 79.5, 59.5, 160, 120)

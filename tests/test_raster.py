@@ -10,7 +10,7 @@ import torch
 
 from acesplat.core.camera import Intrinsics
 from acesplat.core.gaussians import SH_C0, Gaussians
-from acesplat.core.raster import (
+from acesplat.raster import (
     RenderResult,
     get_num_threads,
     ndc_grad_norm,
@@ -18,7 +18,7 @@ from acesplat.core.raster import (
     rasterize_backward,
     set_num_threads,
 )
-from acesplat.core.raster._project_kernels import sh_basis
+from acesplat.raster._project_kernels import sh_basis
 from tests.raster_reference import random_scene, render_reference
 
 PARAMS = ("means", "log_scales", "quats", "opacity_logits", "sh")
@@ -46,7 +46,8 @@ def _compare_with_reference(params, pose, k, bg, sh_degree, seed, tol_value, tol
     t = {n: torch.tensor(params[n], dtype=torch.float64, requires_grad=True) for n in PARAMS}
     ref = render_reference(**t, pose_c2w=pose, k=k, background=bg, sh_degree=sh_degree)
     loss = (
-        (ref.color * torch.tensor(wc)).sum() + (ref.alpha * torch.tensor(wa)).sum()
+        (ref.color * torch.tensor(wc)).sum()
+        + (ref.alpha * torch.tensor(wa)).sum()
         + (ref.depth * torch.tensor(wd)).sum()
     )
     loss.backward()
@@ -111,8 +112,11 @@ def test_finite_differences() -> None:
     picks = []
     for i in rng.choice(visible, size=6, replace=False):
         picks += [
-            ("means", (i, rng.integers(3))), ("log_scales", (i, rng.integers(3))), ("quats", (i, rng.integers(4))),
-            ("opacity_logits", (i,)), ("sh", (i, 0, rng.integers(3))),
+            ("means", (i, rng.integers(3))),
+            ("log_scales", (i, rng.integers(3))),
+            ("quats", (i, rng.integers(4))),
+            ("opacity_logits", (i,)),
+            ("sh", (i, 0, rng.integers(3))),
             ("sh", (i, rng.integers(1, 16), rng.integers(3))),
         ]
     eps = 1e-6
@@ -134,8 +138,11 @@ def test_single_gaussian_closed_form() -> None:
     f, x, y, z, sigma, op, dc = 50.0, 0.02, -0.01, 2.0, 0.04, 0.8, np.array([0.3, -0.2, 1.0])
     k = Intrinsics(f, f, 15.0, 12.0, 31, 25)
     g = Gaussians(
-        np.array([[x, y, z]]), np.full((1, 3), math.log(sigma)), np.array([[1.0, 0.0, 0.0, 0.0]]),
-        np.array([math.log(op / (1 - op))]), dc.reshape(1, 1, 3),
+        np.array([[x, y, z]]),
+        np.full((1, 3), math.log(sigma)),
+        np.array([[1.0, 0.0, 0.0, 0.0]]),
+        np.array([math.log(op / (1 - op))]),
+        dc.reshape(1, 1, 3),
     )
     bg = np.array([0.5, 0.25, 0.0])
     res = rasterize(g, np.eye(4), k, bg)
@@ -261,7 +268,7 @@ def test_non_contiguous_inputs_are_accepted() -> None:
 
 
 def test_polynomial_exp_over_the_cut_off_range() -> None:
-    from acesplat.core.raster._tile_kernels import exp_neg
+    from acesplat.raster._tile_kernels import exp_neg
 
     xs = np.linspace(-4.5, 0.0, 2001)
     got = np.array([exp_neg(x) for x in xs])
@@ -290,7 +297,7 @@ def test_thread_pool_survives_fork() -> None:
 
 
 def test_parallel_for_covers_every_index_once_and_reraises() -> None:
-    from acesplat.core.raster._threads import parallel_for
+    from acesplat.raster._threads import parallel_for
 
     before = get_num_threads()
     set_num_threads(3)

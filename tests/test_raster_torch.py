@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from acesplat.core.gaussians import Gaussians
-from acesplat.core.raster import ndc_grad_norm, rasterize
+from acesplat.raster import ndc_grad_norm, rasterize
 from acesplat.splat import render, screen_grad_norm
 from tests.raster_reference import random_scene, render_reference
 

@@ -8,9 +8,8 @@ import pytest
 import edge.refine.refiner as refiner_mod
 from edge.refine.deadline import Deadline
 from edge.refine.refiner import RefineConfig, Refiner
-
-from .refine_scene import keyframe, mean_psnr, perturbed_map, tiny_room
-from .test_edge_scene import jitter
+from tests.refine_scene import keyframe, mean_psnr, perturbed_map, tiny_room
+from tests.test_edge_scene import jitter
 
 
 @pytest.fixture(scope="module")

@@ -36,17 +36,21 @@ def pose_at(x: float, yaw_deg: float = 0.0) -> np.ndarray:
 # ----------------------------------------------------------------------------------- keyframes
 def test_keyframe_sequence_by_hand() -> None:
     """A hand-made walk: first frame, small moves skipped, a 12 cm move, a 10 degree turn, a lost frame, few inliers."""
-    sel = KeyframeSelector(KeyframePolicy(min_inliers=100, min_inlier_ratio=0.0, min_translation_m=0.10, min_rotation_deg=8.0, min_coverage=0.8))
+    sel = KeyframeSelector(
+        KeyframePolicy(
+            min_inliers=100, min_inlier_ratio=0.0, min_translation_m=0.10, min_rotation_deg=8.0, min_coverage=0.8
+        )
+    )
     seq = [
-        (pose_at(0.00), 300, True, None, True),      # first
-        (pose_at(0.05), 300, True, None, False),     # 5 cm: redundant
-        (pose_at(0.09), 300, True, None, False),     # 9 cm from the keyframe: still redundant
-        (pose_at(0.12), 300, True, None, True),      # 12 cm: new viewpoint
-        (pose_at(0.12, 5.0), 300, True, None, False),   # 5 degrees
-        (pose_at(0.12, 10.0), 300, True, None, True),   # 10 degrees
-        (pose_at(0.50), 300, False, None, False),    # lost
-        (pose_at(0.50), 60, True, None, False),      # passed the PnP gate but too few inliers for refinement
-        (pose_at(0.13, 10.0), 300, True, 0.5, True),    # no motion, but the map covers half the view
+        (pose_at(0.00), 300, True, None, True),  # first
+        (pose_at(0.05), 300, True, None, False),  # 5 cm: redundant
+        (pose_at(0.09), 300, True, None, False),  # 9 cm from the keyframe: still redundant
+        (pose_at(0.12), 300, True, None, True),  # 12 cm: new viewpoint
+        (pose_at(0.12, 5.0), 300, True, None, False),  # 5 degrees
+        (pose_at(0.12, 10.0), 300, True, None, True),  # 10 degrees
+        (pose_at(0.50), 300, False, None, False),  # lost
+        (pose_at(0.50), 60, True, None, False),  # passed the PnP gate but too few inliers for refinement
+        (pose_at(0.13, 10.0), 300, True, 0.5, True),  # no motion, but the map covers half the view
         (pose_at(0.13, 10.0), 300, True, 0.95, False),  # no motion, well covered
     ]
     for pose, inl, tracking, cov, expected in seq:

@@ -12,16 +12,15 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from acesplat.apps.edge_cli import app
 from acesplat.core.gaussians import Gaussians, concat_gaussians
 from acesplat.core.ply import read_ply, write_ply
 from acesplat.core.scene import read_split
-from edge.cli import app
 from edge.refine.keyframes import KeyframePolicy, KeyframeSelector
 from edge.refine.refiner import BatchReport
 from edge.refine.worker import Candidate, RefineWorker
-
-from .refine_scene import depth_gaussians
-from .test_edge_scene import tiny_setup
+from tests.refine_scene import depth_gaussians
+from tests.test_edge_scene import tiny_setup
 
 
 @pytest.fixture(scope="module")
@@ -49,8 +48,25 @@ def test_replay_refine_reports_psnr_gain_and_saves_the_map(tiny, bundle_with_gau
     """A generous budget, so the quality check does not depend on how busy the machine is (the deadline
     itself is tested with a fake clock in test_refine_batches)."""
     out, saved = tmp_path / "r.json", tmp_path / "refined.ply"
-    r = CliRunner().invoke(app, ["replay", str(bundle_with_gaussians), str(tiny["scene"]), "--split", "train", "--refine",
-                                 "--budget-ms", "2000", "--threads", "1", "--json", str(out), "--save-splat", str(saved)])
+    r = CliRunner().invoke(
+        app,
+        [
+            "replay",
+            str(bundle_with_gaussians),
+            str(tiny["scene"]),
+            "--split",
+            "train",
+            "--refine",
+            "--budget-ms",
+            "2000",
+            "--threads",
+            "1",
+            "--json",
+            str(out),
+            "--save-splat",
+            str(saved),
+        ],
+    )
     assert r.exit_code == 0, r.output
     s = json.loads(out.read_text())
     assert s["localized"] == s["frames"] == 12
@@ -62,7 +78,10 @@ def test_replay_refine_reports_psnr_gain_and_saves_the_map(tiny, bundle_with_gau
     assert "refine" in s["timing_ms"]  # beside the localization stages
     assert ref["keyframes"] >= 3 and ref["keyframes_committed"] >= 2 and ref["steps"] >= 1
     assert ref["psnr_after"] > ref["psnr_before"] + 1.0
-    assert ref["gaussians_final"] == ref["gaussians_initial"] + ref["gaussians_added"] - ref["gaussians_pruned"] - ref["gaussians_capped"]
+    assert (
+        ref["gaussians_final"]
+        == ref["gaussians_initial"] + ref["gaussians_added"] - ref["gaussians_pruned"] - ref["gaussians_capped"]
+    )
     assert ref["errors"] == []
     assert len(read_ply(saved)) == ref["gaussians_final"] and ref["save"]["failures"] == 0
     assert "refine: PSNR" in r.output
@@ -70,8 +89,9 @@ def test_replay_refine_reports_psnr_gain_and_saves_the_map(tiny, bundle_with_gau
 
 def test_refine_on_a_bundle_without_gaussians_says_so_and_localizes(tiny, tmp_path) -> None:
     out = tmp_path / "r.json"
-    r = CliRunner().invoke(app, ["replay", str(tiny["bundle"]), str(tiny["scene"]), "--refine", "--threads", "1",
-                                 "--json", str(out)])
+    r = CliRunner().invoke(
+        app, ["replay", str(tiny["bundle"]), str(tiny["scene"]), "--refine", "--threads", "1", "--json", str(out)]
+    )
     assert r.exit_code == 0, r.output
     assert "no Gaussian model" in r.output
     s = json.loads(out.read_text())
@@ -114,14 +134,20 @@ class _StepRefiner:
 def _candidate(name: str, seconds: float, moved: float) -> Candidate:
     pose = np.eye(4)
     pose[0, 3] = moved
-    return Candidate(pose, 500, True, time.perf_counter() + seconds, lambda: type("K", (), {"name": name})(), None, name)
+    return Candidate(
+        pose, 500, True, time.perf_counter() + seconds, lambda: type("K", (), {"name": name})(), None, name
+    )
 
 
 def _run_preempted(max_windows: int) -> tuple[_StepRefiner, RefineWorker]:
     """Keyframe 'a' runs; 'b', 'c', 'd' arrive meanwhile (only 'd' survives); then two preemptions."""
     ref = _StepRefiner()
-    w = RefineWorker(ref, KeyframeSelector(KeyframePolicy(min_inliers=0, min_translation_m=0.0)), max_windows=max_windows,
-                     step_windows=2)
+    w = RefineWorker(
+        ref,
+        KeyframeSelector(KeyframePolicy(min_inliers=0, min_translation_m=0.0)),
+        max_windows=max_windows,
+        step_windows=2,
+    )
     try:
         w.submit(_candidate("a", 30.0, 0.0))
         assert ref.started.wait(5.0)
@@ -166,11 +192,24 @@ def test_worker_skips_a_frame_whose_deadline_passed() -> None:
 @pytest.fixture(scope="module")
 def splat_bundle(tiny, tmp_path_factory) -> Path:
     """`acesplat splat` (a few iterations) and export --splat on the tiny room."""
-    from acesplat.cli import app as desktop
+    from acesplat.apps.cli import app as desktop
 
     root = tmp_path_factory.mktemp("splat_export")
-    r = CliRunner().invoke(desktop, ["splat", str(tiny["scene"]), "--map", str(tiny["map"]), "-o", str(root / "splat"),
-                                     "--iterations", "5", "--max-gaussians", "4000"])
+    r = CliRunner().invoke(
+        desktop,
+        [
+            "splat",
+            str(tiny["scene"]),
+            "--map",
+            str(tiny["map"]),
+            "-o",
+            str(root / "splat"),
+            "--iterations",
+            "5",
+            "--max-gaussians",
+            "4000",
+        ],
+    )
     assert r.exit_code == 0, r.output
     b = root / "bundle"
     shutil.copytree(tiny["bundle"], b)
@@ -205,13 +244,11 @@ def test_export_splat_lists_models_checked_against_torch(splat_bundle) -> None:
 def test_onnx_seeder_places_gaussians_on_scr_rays(splat_bundle, tiny) -> None:
     from acesplat.core.bundle import load_bundle
     from acesplat.core.preprocess import to_gray_input
+    from edge.inference import ScrSession
     from edge.refine.onnx_seeder import onnx_seeder_for
     from edge.refine.refiner import Keyframe
     from edge.refine.seeding import pixel_depths
-
-    from .refine_scene import true_cells
-
-    from edge.inference import ScrSession
+    from tests.refine_scene import true_cells
 
     b = load_bundle(splat_bundle)
     seeder = onnx_seeder_for(b)
@@ -228,7 +265,9 @@ def test_onnx_seeder_places_gaussians_on_scr_rays(splat_bundle, tiny) -> None:
     d = np.linalg.norm(pix.centres.reshape(-1, 3)[None] - g.means[:, None], axis=2).min(axis=1)
     assert d.max() < 1e-4  # every centre is a pixel's SCR point
     # Zero residuals decode to the analytic start: the pixel's colour, the prior opacity, identity rotation.
-    z = seeder.decode(np.zeros((1, seeder.channels)), np.array([[0.2, 0.4, 0.6]]), np.zeros((1, 3)), np.array([2.0]), 100.0, 2.0, 3)
+    z = seeder.decode(
+        np.zeros((1, seeder.channels)), np.array([[0.2, 0.4, 0.6]]), np.zeros((1, 3)), np.array([2.0]), 100.0, 2.0, 3
+    )
     assert np.allclose(g.sh.shape[1:], (16, 3))
     assert np.allclose(z.sh[0, 0] * 0.28209479177387814 + 0.5, [0.2, 0.4, 0.6], atol=1e-6)
     assert np.allclose(z.opacities(), 0.8, atol=1e-6) and np.allclose(z.quats, [[1, 0, 0, 0]])
@@ -236,7 +275,9 @@ def test_onnx_seeder_places_gaussians_on_scr_rays(splat_bundle, tiny) -> None:
 
 
 def test_bad_refine_inputs_give_one_line_errors(bundle_with_gaussians, tiny, tmp_path) -> None:
-    r = CliRunner().invoke(app, ["replay", str(bundle_with_gaussians), str(tiny["scene"]), "--refine", "--budget-ms", "0"])
+    r = CliRunner().invoke(
+        app, ["replay", str(bundle_with_gaussians), str(tiny["scene"]), "--refine", "--budget-ms", "0"]
+    )
     assert r.exit_code == 2 and "--budget-ms must be positive" in r.output
     from acesplat.core.errors import InputError
     from export.splat_export import add_gaussians, export_splat
@@ -263,8 +304,23 @@ def test_replay_refine_seeds_through_the_initializer_with_the_localizer_features
     write_ply(tmp_path / "sparse.ply", g.subset(np.arange(0, len(g), 10)))
     add_gaussians(sparse, tmp_path / "sparse.ply")
     out = tmp_path / "r.json"
-    r = CliRunner().invoke(app, ["replay", str(sparse), str(tiny["scene"]), "--split", "test", "--refine",
-                                 "--budget-ms", "2000", "--threads", "1", "--json", str(out)])
+    r = CliRunner().invoke(
+        app,
+        [
+            "replay",
+            str(sparse),
+            str(tiny["scene"]),
+            "--split",
+            "test",
+            "--refine",
+            "--budget-ms",
+            "2000",
+            "--threads",
+            "1",
+            "--json",
+            str(out),
+        ],
+    )
     assert r.exit_code == 0, r.output
     ref = json.loads(out.read_text())["refine"]
     assert ref["seeder"] == "onnx_initializer" and ref["calibration_ms"]["initializer_ms"] > 0
@@ -355,8 +411,8 @@ def blas_threads() -> dict[str, int]:
 def test_refinement_runs_blas_on_one_thread_and_restores_it(bundle_with_gaussians) -> None:
     """OpenBLAS workers busy-wait after a call: left multi-threaded, the worker's numpy work kept both cores
     spinning into the next localization. A session holds BLAS to one thread and gives the setting back."""
+    from acesplat.apps.refine_cmd import refine_session
     from acesplat.core.bundle import load_bundle
-    from edge.refine.cli_hooks import refine_session
     from edge.runtime import EdgeLocalizer
 
     before = blas_threads()
@@ -375,7 +431,7 @@ def test_refinement_runs_blas_on_one_thread_and_restores_it(bundle_with_gaussian
 def test_a_session_that_fails_to_start_gives_the_thread_settings_back(bundle_with_gaussians) -> None:
     """The constructor limits BLAS and the rasterizer's threads first; if a later step raises, both come back."""
     from acesplat.core.bundle import load_bundle
-    from acesplat.core.raster import get_num_threads
+    from acesplat.raster import get_num_threads
     from edge.refine.bundle_models import bundle_gaussians
     from edge.refine.session import RefineOptions, RefineSession
     from edge.runtime import EdgeLocalizer

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from acesplat.core.scene import read_split
-from acesplat.scr.mapping import cell_targets
 from acesplat.scr.augment import augment
+from acesplat.scr.mapping import cell_targets
 from acesplat.scr.targets import triangulate_targets
 from acesplat.synth import synthesize
 
@@ -41,7 +41,7 @@ def test_cell_targets_follow_the_augmentation(tiny_scene) -> None:
 
     f = read_split(tiny_scene, "train").frames[0]
     depth = f.load_depth()
-    ys, xs = np.mgrid[4:SIZE[0]:16, 4:SIZE[1]:16]
+    ys, xs = np.mgrid[4 : SIZE[0] : 16, 4 : SIZE[1] : 16]
     px = np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float64)
     z = depth[ys.ravel(), xs.ravel()].astype(np.float64)
     X = f.intrinsics.unproject(px, z) @ f.pose[:3, :3].T + f.pose[:3, 3]
@@ -53,7 +53,7 @@ def test_cell_targets_follow_the_augmentation(tiny_scene) -> None:
     assert has.sum() > 10
     # Each target sits on its cell centre's ray in the augmented camera.
     from acesplat.core.geometry import invert_pose, transform_points
-    from acesplat.core.pnp import cell_centers
+    from acesplat.core.grid import cell_centers
 
     uv = view.intrinsics.project(transform_points(invert_pose(view.c2w), tg[has]))
     np.testing.assert_allclose(uv, cell_centers(gh, gw)[has], atol=1e-3)
@@ -78,8 +78,14 @@ def test_tiny_scene_maps_and_localizes_most_test_frames(tmp_path) -> None:
     scene = tmp_path / "scene"
     synthesize(scene, seed=3, train_frames=60, test_frames=12, size=E2E_SIZE, supersample=1)
     enc, _ = load_encoder(None)  # the shipped encoder: what a user maps with
-    cfg = MappingConfig(iterations=E2E_ITERATIONS, short_side=E2E_SIZE[0], batch_size=1024, buffer_size=60_000,
-                        samples_per_image=512, precision="fp32")
+    cfg = MappingConfig(
+        iterations=E2E_ITERATIONS,
+        short_side=E2E_SIZE[0],
+        batch_size=1024,
+        buffer_size=60_000,
+        samples_per_image=512,
+        precision="fp32",
+    )
     torch.manual_seed(0)
     res = map_scene(read_split(scene, "train"), enc, cfg)
     assert res.iterations == E2E_ITERATIONS and res.target_features > 1000
@@ -90,8 +96,9 @@ def test_tiny_scene_maps_and_localizes_most_test_frames(tmp_path) -> None:
     # The dense prediction (every 4th pixel) runs the same map and must localize most test frames too.
     dense = Localizer(SCRNetwork(enc, res.head).eval(), E2E_SIZE[0], {}, output_stride=4)
     d = evaluate(read_split(scene, "test"), dense)
-    within_dense = [f for f in d["per_frame"]
-                    if f["localized"] and f["translation_m"] < 0.25 and f["rotation_deg"] < 10]
+    within_dense = [
+        f for f in d["per_frame"] if f["localized"] and f["translation_m"] < 0.25 and f["rotation_deg"] < 10
+    ]
     assert len(within_dense) >= E2E_MIN_WITHIN, d["per_frame"]
     # Refined against the nearest training images (warped with this map's own depth), poses get better.
     from acesplat.scr.keyframes import MapKeyframes
@@ -106,7 +113,7 @@ def test_tiny_scene_maps_and_localizes_most_test_frames(tmp_path) -> None:
 def test_map_command_rejects_a_bad_precision(tmp_path) -> None:
     from typer.testing import CliRunner
 
-    from acesplat.cli import app
+    from acesplat.apps.cli import app
 
     res = CliRunner().invoke(app, ["map", str(tmp_path), "-o", str(tmp_path / "m.pt"), "--precision", "fp64"])
     assert res.exit_code == 2, res.output
@@ -139,7 +146,7 @@ def test_bf16_buffer_features_match_fp32_and_leave_the_encoder_as_it_was(tiny_sc
 def test_map_command_rejects_an_unknown_augmentation(tmp_path) -> None:
     from typer.testing import CliRunner
 
-    from acesplat.cli import app
+    from acesplat.apps.cli import app
 
     res = CliRunner().invoke(app, ["map", str(tmp_path), "-o", str(tmp_path / "m.pt"), "--augment", "flip"])
     assert res.exit_code == 2, res.output
@@ -187,7 +194,7 @@ def test_eval_command_dense_reports_its_output_stride(tiny_scene, tmp_path) -> N
     import torch
     from typer.testing import CliRunner
 
-    from acesplat.cli import app
+    from acesplat.apps.cli import app
     from acesplat.scr.encoders import load_encoder
     from acesplat.scr.mapfile import SceneMap, save_map
     from acesplat.scr.network import Encoder, EncoderConfig, Head, HeadConfig
@@ -197,8 +204,9 @@ def test_eval_command_dense_reports_its_output_stride(tiny_scene, tmp_path) -> N
     torch.save(Encoder(EncoderConfig(4, 8, 8, 16, 16, 32)).state_dict(), enc_path)
     _, ident = load_encoder(enc_path)
     mean = np.mean([f.pose[:3, 3] for f in read_split(tiny_scene, "train").frames], axis=0)
-    save_map(tmp_path / "m.pt", SceneMap(Head(torch.from_numpy(mean).float(), 32, HeadConfig(16, 1)), ident, mean,
-                                         SIZE[0]))
+    save_map(
+        tmp_path / "m.pt", SceneMap(Head(torch.from_numpy(mean).float(), 32, HeadConfig(16, 1)), ident, mean, SIZE[0])
+    )
     for flag, stride in (([], 8), (["--dense"], 4), (["--align"], 8)):
         out = tmp_path / f"eval{stride}{flag}.json"
         res = CliRunner().invoke(app, ["eval", str(tmp_path / "m.pt"), str(tiny_scene), "--json", str(out), *flag])
@@ -217,8 +225,15 @@ def test_novel_views_join_the_buffer_late_and_the_run_keeps_its_iteration_count(
     from acesplat.scr.mapping import MappingConfig, map_scene
 
     enc, _ = load_encoder(None)
-    cfg = MappingConfig(iterations=40, short_side=SIZE[0], batch_size=256, buffer_size=4000, samples_per_image=200,
-                        precision="fp32", novel_views=6)
+    cfg = MappingConfig(
+        iterations=40,
+        short_side=SIZE[0],
+        batch_size=256,
+        buffer_size=4000,
+        samples_per_image=200,
+        precision="fp32",
+        novel_views=6,
+    )
     torch.manual_seed(0)
     res = map_scene(read_split(tiny_scene, "train"), enc, cfg)
     assert res.iterations == 40 and res.buffer_features == 4000
@@ -229,7 +244,7 @@ def test_novel_views_join_the_buffer_late_and_the_run_keeps_its_iteration_count(
 def test_map_command_rejects_a_negative_novel_view_count(tmp_path) -> None:
     from typer.testing import CliRunner
 
-    from acesplat.cli import app
+    from acesplat.apps.cli import app
 
     r = CliRunner().invoke(app, ["map", str(tmp_path), "-o", str(tmp_path / "m.pt"), "--novel-views", "-1"])
     assert r.exit_code == 2 and "--novel-views" in r.output and "Traceback" not in r.output

@@ -31,8 +31,9 @@ def test_dense_output_holds_the_stride_8_cells_and_those_of_the_half_cell_shifte
     # Odd cells are the cells of the image cropped by 4 px, away from the borders whose zero padding differs.
     m = 6
     odd = dense[:, :, 1::2, 1::2]
-    torch.testing.assert_close(odd[:, :, m:-m, m:-m], shifted[:, :, m:odd.shape[2] - m, m:odd.shape[3] - m],
-                               rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(
+        odd[:, :, m:-m, m:-m], shifted[:, :, m : odd.shape[2] - m, m : odd.shape[3] - m], rtol=1e-5, atol=1e-5
+    )
     net = SCRNetwork(enc, Head(torch.zeros(3), 32, HeadConfig(16, 1))).eval()
     assert net(torch.zeros(1, 1, 48, 64), output_stride=4).shape == (1, 3, 12, 16)
     with pytest.raises(ValueError, match="output_stride"):
@@ -95,9 +96,16 @@ def test_macs_match_ace_published_figure() -> None:
 def _ace_shaped_state_dict() -> dict[str, torch.Tensor]:
     # The names and shapes of ACE's published encoder file, filled with random numbers.
     shapes = {
-        "conv1": (32, 1, 3, 3), "conv2": (64, 32, 3, 3), "conv3": (128, 64, 3, 3), "conv4": (256, 128, 3, 3),
-        "res1_conv1": (256, 256, 3, 3), "res1_conv2": (256, 256, 1, 1), "res1_conv3": (256, 256, 3, 3),
-        "res2_conv1": (512, 256, 3, 3), "res2_conv2": (512, 512, 1, 1), "res2_conv3": (512, 512, 3, 3),
+        "conv1": (32, 1, 3, 3),
+        "conv2": (64, 32, 3, 3),
+        "conv3": (128, 64, 3, 3),
+        "conv4": (256, 128, 3, 3),
+        "res1_conv1": (256, 256, 3, 3),
+        "res1_conv2": (256, 256, 1, 1),
+        "res1_conv3": (256, 256, 3, 3),
+        "res2_conv1": (512, 256, 3, 3),
+        "res2_conv2": (512, 512, 1, 1),
+        "res2_conv3": (512, 512, 3, 3),
         "res2_skip": (512, 256, 1, 1),
     }
     g = torch.Generator().manual_seed(0)

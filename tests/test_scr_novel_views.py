@@ -45,7 +45,7 @@ def test_warping_a_rendered_frame_to_its_neighbour_reproduces_the_neighbour(tmp_
     the next frame (occlusions and lighting included), far more than the unwarped frame does."""
     import cv2
 
-    from acesplat.core.depth_warp import warp_to_camera
+    from acesplat.align.depth_warp import warp_to_camera
     from acesplat.core.scene import read_split
     from acesplat.synth import synthesize
 
@@ -84,7 +84,9 @@ def test_novel_view_buffer_holds_cells_of_novel_cameras_and_leaves_the_head_as_i
     head = Head(torch.from_numpy(centre).float(), in_channels=8).train()
     with buffer_encoding(enc, MappingConfig(precision="fp32")) as encode:
         buf = novel_view_buffer(images, enc, encode, head, 20, np.random.default_rng(1), deadline=float("inf"))
-        spent = novel_view_buffer(images, enc, encode, head, 20, np.random.default_rng(1), deadline=time.monotonic() - 1)
+        spent = novel_view_buffer(
+            images, enc, encode, head, 20, np.random.default_rng(1), deadline=time.monotonic() - 1
+        )
     assert head.training
     assert buf is not None
     n = buf["pixels"].shape[0]

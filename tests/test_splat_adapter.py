@@ -7,9 +7,9 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from acesplat.core.pnp import cell_centers
+from acesplat.core.grid import cell_centers
 from acesplat.splat.adapter import AdapterConfig, FeatureAdapter
-from acesplat.splat.pixel_coords import corner_range, upsample_cells
+from acesplat.splatcore.pixel_coords import corner_range, upsample_cells
 
 
 @pytest.fixture(autouse=True)

@@ -15,7 +15,7 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from acesplat.cli import app
+from acesplat.apps.cli import app
 from acesplat.core.ply import ply_property_names, read_ply
 from acesplat.core.scene import read_split
 from acesplat.scr.encoders import load_encoder

@@ -31,8 +31,8 @@ from acesplat.splat.instantiate import (
     view_pixels,
 )
 from acesplat.splat.params import check_tensors, gaussians_from_params, params_from_tensors
-from acesplat.splat.validity import cell_pixels, cell_validity
 from acesplat.splat.views import SplatView
+from acesplat.splatcore.validity import cell_pixels, cell_validity
 
 K = Intrinsics(40.0, 40.0, 23.5, 15.5, 48, 32)
 POSE = look_at(np.array([0.0, 0.0, 1.0]), np.array([0.0, 4.0, 1.0]))

@@ -12,8 +12,7 @@ from acesplat.splat.init_head import InitHeadConfig, SceneNorm
 from acesplat.splat.instantiate import GaussianInitializer, merge_views, view_pixels
 from acesplat.splat.optimize import OptimizeConfig, finite_gradients, make_optimizer, optimise_gaussians
 from acesplat.splat.params import PARAM_NAMES, gaussians_from_params, params_from_tensors
-
-from .test_splat_init import planar_view
+from tests.test_splat_init import planar_view
 
 
 @pytest.fixture(autouse=True)

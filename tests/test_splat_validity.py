@@ -7,9 +7,9 @@ import pytest
 
 from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import look_at, make_pose
-from acesplat.splat.fusion import covered_by, novel_masks
-from acesplat.splat.pixel_coords import filled_depths, pixel_coordinates, pixel_rays
-from acesplat.splat.validity import (
+from acesplat.splatcore.fusion import covered_by, novel_masks
+from acesplat.splatcore.pixel_coords import filled_depths, pixel_coordinates, pixel_rays
+from acesplat.splatcore.validity import (
     ValidityConfig,
     cell_pixels,
     cell_validity,

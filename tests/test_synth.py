@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from acesplat.cli import app
+from acesplat.apps.cli import app
 from acesplat.core.errors import InputError
 from acesplat.core.geometry import invert_pose, look_at, rigidity_problem, transform_points
 from acesplat.core.scene import read_split
@@ -319,13 +319,15 @@ def test_built_in_scene_matches_its_stored_reference() -> None:
     """The benchmarks' and tests' numbers hold for this scene only: a dependency that draws it differently (OpenCV 5's
     putText moved the labels' pixels, mean 5/255 per pixel) must fail here, not as a quality floor elsewhere. The
     tolerance (0.5/255 mean) admits last-bit float differences between CPUs."""
-    from .data.make_synth_reference import FRAMES, render
+    from tests.data.make_synth_reference import FRAMES, render
 
     ref = np.load(Path(__file__).parent / "data" / "synth_reference.npz")
     got = render()
     for f in FRAMES:
         d = np.abs(got[f].astype(np.float64) - ref[f.replace("/", "__")].astype(np.float64))
-        assert d.mean() < 0.5, f"{f}: mean |diff| {d.mean():.2f}/255 against the reference (OpenCV {ref['opencv']}, here {cv2.__version__})"
+        assert d.mean() < 0.5, (
+            f"{f}: mean |diff| {d.mean():.2f}/255 against the reference (OpenCV {ref['opencv']}, here {cv2.__version__})"
+        )
 
 
 def test_synthesize_rejects_bad_input_and_protects_existing_folders(tmp_path: Path) -> None:
@@ -426,7 +428,7 @@ def test_synth_imports_without_torch_and_degrades_without_photo_packages() -> No
         "        if name.split('.')[0] in ('torch', 'onnx', 'skimage', 'matplotlib'):\n"
         "            raise ImportError('blocked: ' + name)\n"
         "sys.meta_path.insert(0, Block())\n"
-        "import acesplat.synth.cli_cmd\n"
+        "import acesplat.apps.synth_cmd\n"
         "from acesplat.synth import default_intrinsics, make_room, make_trajectory, render_view, TRAIN_PASS\n"
         "scene = make_room(0, texel_density=20.0)\n"
         "pose = make_trajectory(scene.path, 2, **TRAIN_PASS)[0]\n"

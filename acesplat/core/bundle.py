@@ -16,10 +16,9 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any
 
-from .atomic import write_json
-from .errors import InputError
-from .keyframe_set import KeyframeSet, load_keyframes
-from .pnp import DENSE_OUTPUT_STRIDE, OUTPUT_STRIDE
+from acesplat.core.atomic import write_json
+from acesplat.core.errors import InputError
+from acesplat.core.grid import DENSE_OUTPUT_STRIDE, OUTPUT_STRIDE
 
 BUNDLE_FORMAT = "acesplat-bundle"
 BUNDLE_VERSION = 2
@@ -37,7 +36,7 @@ SCR_FEATURES_OUTPUT = "features"
 ROLE_SCR_FP32 = "scr_fp32"
 ROLE_SCR_INT8 = "scr_int8"
 ROLE_KEYFRAMES = "keyframes"
-"""Mapping images with their poses and depth (acesplat.core.keyframe_set), for pose refinement."""
+"""Mapping images with their poses and depth (acesplat.align.keyframe_set), for pose refinement."""
 PRECISION_ROLES = {"fp32": ROLE_SCR_FP32, "int8": ROLE_SCR_INT8}
 
 
@@ -110,12 +109,6 @@ class Bundle:
     def output_stride(self) -> int:
         return int(self.scr["output_stride"])
 
-    def keyframes(self) -> KeyframeSet:
-        """The keyframes for pose refinement (acesplat.core.keyframe_align); InputError if the bundle has none."""
-        if ROLE_KEYFRAMES not in self.files:
-            raise InputError(self.root / MANIFEST_NAME, "bundle has no keyframes to align to; re-export with --keyframes")
-        return load_keyframes(self.path(ROLE_KEYFRAMES))
-
     def scr_model(self, precision: str) -> Path:
         """Path of the SCR model for 'fp32' or 'int8'."""
         if precision not in PRECISION_ROLES:
@@ -130,8 +123,9 @@ class Bundle:
         return self.root / self.files[role].path
 
 
-def write_manifest(root: str | Path, manifest: dict[str, Any], files: list[BundleFile],
-                   version: int = BUNDLE_VERSION) -> dict[str, Any]:
+def write_manifest(
+    root: str | Path, manifest: dict[str, Any], files: list[BundleFile], version: int = BUNDLE_VERSION
+) -> dict[str, Any]:
     """Write ``manifest.json`` with the format header and the file list (atomically); returns what was written.
 
     ``version``: an older bundle given a file that does not depend on the newer contract keeps its version.
@@ -188,7 +182,9 @@ def verify_file(root: Path, f: BundleFile) -> None:
         raise InputError(p, f"{what}: {size} bytes, manifest says {f.bytes}; re-copy or re-export the bundle")
     digest = sha256_of(p)
     if digest != f.sha256:
-        raise InputError(p, f"sha256 {digest[:12]}... does not match the manifest ({f.sha256[:12]}...): file was modified")
+        raise InputError(
+            p, f"sha256 {digest[:12]}... does not match the manifest ({f.sha256[:12]}...): file was modified"
+        )
 
 
 def read_manifest(bundle_dir: str | Path) -> tuple[Path, dict[str, Any]]:
@@ -232,8 +228,9 @@ def load_bundle(bundle_dir: str | Path, verify: bool = True, roles: list[str] | 
         if h <= 0 or w <= 0:
             raise InputError(mpath, f"scr input_size must be positive, got {scr['input_size']}")
         if int(scr["output_stride"]) not in (OUTPUT_STRIDE, DENSE_OUTPUT_STRIDE):
-            raise InputError(mpath, f"scr output_stride must be {OUTPUT_STRIDE} or {DENSE_OUTPUT_STRIDE}, "
-                             f"got {scr['output_stride']}")
+            raise InputError(
+                mpath, f"scr output_stride must be {OUTPUT_STRIDE} or {DENSE_OUTPUT_STRIDE}, got {scr['output_stride']}"
+            )
     if verify:
         for f in files.values():
             if roles is None or f.role in roles:

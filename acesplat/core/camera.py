@@ -24,16 +24,16 @@ class Intrinsics:
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
     @classmethod
-    def from_K(cls, K: np.ndarray, width: int, height: int) -> "Intrinsics":
+    def from_K(cls, K: np.ndarray, width: int, height: int) -> Intrinsics:
         K = np.asarray(K, dtype=np.float64)
         return cls(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), int(width), int(height))
 
     @classmethod
-    def from_focal(cls, f: float, width: int, height: int) -> "Intrinsics":
+    def from_focal(cls, f: float, width: int, height: int) -> Intrinsics:
         """ACE's single-focal calibration: square pixels, principal point at the image centre."""
         return cls(float(f), float(f), width / 2.0, height / 2.0, int(width), int(height))
 
-    def resized(self, width: int, height: int) -> "Intrinsics":
+    def resized(self, width: int, height: int) -> Intrinsics:
         """Intrinsics of the same camera after resizing the image to ``width`` x ``height``.
 
         Uses the pixel-corner convention (a pixel centre at i + 0.5 maps to (i + 0.5) * s).

@@ -7,8 +7,8 @@ an optimiser can step on them freely and the standard 3DGS PLY stores exactly th
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Iterable, Sequence
 
 import numpy as np
 
@@ -131,11 +131,11 @@ class Gaussians:
 
     # --- construction helpers ----------------------------------------------------------------
     @classmethod
-    def empty(cls, sh_degree: int = MAX_SH_DEGREE, dtype: type = np.float32) -> "Gaussians":
+    def empty(cls, sh_degree: int = MAX_SH_DEGREE, dtype: type = np.float32) -> Gaussians:
         return cls.zeros(0, sh_degree, dtype)
 
     @classmethod
-    def zeros(cls, n: int, sh_degree: int = MAX_SH_DEGREE, dtype: type = np.float32) -> "Gaussians":
+    def zeros(cls, n: int, sh_degree: int = MAX_SH_DEGREE, dtype: type = np.float32) -> Gaussians:
         """n Gaussians at the origin with unit scale, identity rotation, opacity 0.5 and grey colour."""
         quats = np.zeros((n, 4), dtype)
         quats[:, 0] = 1.0
@@ -147,13 +147,13 @@ class Gaussians:
             np.zeros((n, sh_coeff_count(sh_degree), 3), dtype),
         )
 
-    def astype(self, dtype: type) -> "Gaussians":
+    def astype(self, dtype: type) -> Gaussians:
         return Gaussians(*(np.ascontiguousarray(a, dtype=dtype) for a in self._arrays()))
 
-    def copy(self) -> "Gaussians":
+    def copy(self) -> Gaussians:
         return Gaussians(*(a.copy() for a in self._arrays()))
 
-    def subset(self, index: np.ndarray | Sequence[int] | slice) -> "Gaussians":
+    def subset(self, index: np.ndarray | Sequence[int] | slice) -> Gaussians:
         """Gaussians selected by a boolean mask (N,), integer indices or a slice (copies)."""
         if isinstance(index, slice):
             return Gaussians(*(a[index].copy() for a in self._arrays()))
@@ -165,7 +165,7 @@ class Gaussians:
             raise TypeError(f"index must be a boolean mask or integers, got dtype {idx.dtype}")
         return Gaussians(*(a[idx] for a in self._arrays()))
 
-    def with_sh_degree(self, degree: int) -> "Gaussians":
+    def with_sh_degree(self, degree: int) -> Gaussians:
         """Same Gaussians with SH truncated or zero-padded to ``degree``."""
         k = sh_coeff_count(degree)
         sh = np.zeros((len(self), k, 3), self.dtype)

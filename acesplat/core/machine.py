@@ -18,7 +18,9 @@ def cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
-def library_versions(names: tuple[str, ...] = ("numpy", "opencv-python-headless", "onnxruntime", "torch", "numba")) -> dict[str, str]:
+def library_versions(
+    names: tuple[str, ...] = ("numpy", "opencv-python-headless", "onnxruntime", "torch", "numba"),
+) -> dict[str, str]:
     """Installed versions read from package metadata, without importing the packages (the edge has no torch)."""
     out = {}
     for n in names:

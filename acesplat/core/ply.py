@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_path
-from .errors import InputError
-from .gaussians import MAX_SH_DEGREE, Gaussians, sh_coeff_count
+from acesplat.core.atomic import atomic_path
+from acesplat.core.errors import InputError
+from acesplat.core.gaussians import MAX_SH_DEGREE, Gaussians, sh_coeff_count
 
 _FORMAT = "binary_little_endian 1.0"
 _FLOAT_TYPES = ("float", "float32")

@@ -10,17 +10,20 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .camera import Intrinsics
-from .geometry import invert_pose, make_pose, rodrigues_to_matrix
-from .pose_refine import ROBUST_SCALES, refine_pose_robust, reprojection
+from acesplat.core.camera import Intrinsics
+from acesplat.core.geometry import invert_pose, make_pose, rodrigues_to_matrix
+from acesplat.core.grid import OUTPUT_STRIDE, grid_correspondences
+from acesplat.core.pose_refine import ROBUST_SCALES, refine_pose_robust, reprojection
 
-OUTPUT_STRIDE = 8
-"""SCR predictions are made for every 8th pixel; cell (i, j) belongs to pixel (8 j + 4, 8 i + 4)."""
-DENSE_OUTPUT_STRIDE = 4
-"""A dense prediction (half the cell spacing) has cell (i, j) at pixel (4 j + 4, 4 i + 4): its even cells are the
-stride-8 cells, its odd ones those of the image shifted by half a cell."""
-
-PNP_METHODS = ("usac_magsac", "usac_default", "usac_accurate", "ransac_p3p", "ransac_ap3p", "ransac_sqpnp", "ransac_epnp")
+PNP_METHODS = (
+    "usac_magsac",
+    "usac_default",
+    "usac_accurate",
+    "ransac_p3p",
+    "ransac_ap3p",
+    "ransac_sqpnp",
+    "ransac_epnp",
+)
 DEFAULT_METHOD = "ransac_ap3p"
 FALLBACK_METHOD = "usac_magsac"
 """Tried when the default's pose fails the inlier gate: on the built-in scene's test frame 0 AP3P returned the
@@ -49,17 +52,7 @@ class PnPResult:
         return self.inliers / self.correspondences if self.correspondences else 0.0
 
 
-def cell_centers(grid_h: int, grid_w: int, stride: int = OUTPUT_STRIDE) -> np.ndarray:
-    """Pixel coordinates (grid_h * grid_w, 2) of the prediction cells, row-major, for a grid spaced ``stride``
-    pixels apart (OUTPUT_STRIDE or DENSE_OUTPUT_STRIDE): cell k at stride * k + OUTPUT_STRIDE / 2."""
-    if stride not in (OUTPUT_STRIDE, DENSE_OUTPUT_STRIDE):
-        raise ValueError(f"stride must be {OUTPUT_STRIDE} or {DENSE_OUTPUT_STRIDE}, got {stride}")
-    ys, xs = np.mgrid[0:grid_h, 0:grid_w]
-    half = OUTPUT_STRIDE / 2.0
-    return np.stack([xs.ravel() * stride + half, ys.ravel() * stride + half], axis=1).astype(np.float64)
-
-
-def _usac_params(method: str, threshold: float, iterations: int, confidence: float) -> "cv2.UsacParams":
+def _usac_params(method: str, threshold: float, iterations: int, confidence: float) -> cv2.UsacParams:
     params = cv2.UsacParams()
     params.threshold = threshold
     params.maxIterations = iterations
@@ -104,14 +97,17 @@ def solve_pnp(
     n = pixels.shape[0]
     if n < 6:
         return PnPResult(None, 0, n, False)
-    first = _ransac_and_refine(pixels, points, intrinsics.K, method, threshold_px, iterations, confidence, robust_scales)
+    first = _ransac_and_refine(
+        pixels, points, intrinsics.K, method, threshold_px, iterations, confidence, robust_scales
+    )
     if first[1] >= min_inliers or fallback is None or fallback == method:
         best = first
     else:
         # P3P-family RANSAC scores hypotheses without a cheirality check and can return the mirror pose with the
         # scene behind the camera; the final recount then finds no inliers. Retry once with another solver.
-        second = _ransac_and_refine(pixels, points, intrinsics.K, fallback, threshold_px, iterations, confidence,
-                                    robust_scales)
+        second = _ransac_and_refine(
+            pixels, points, intrinsics.K, fallback, threshold_px, iterations, confidence, robust_scales
+        )
         best = second if second[1] > first[1] else first
     T_c2w, inliers = best
     return PnPResult(T_c2w, inliers, n, T_c2w is not None and inliers >= min_inliers)
@@ -143,8 +139,14 @@ def _ransac_and_refine(
                 "ransac_epnp": cv2.SOLVEPNP_EPNP,
             }[method]
             ok, rvec, tvec, inl = cv2.solvePnPRansac(
-                points, pixels, K, dist, iterationsCount=iterations, reprojectionError=threshold_px,
-                confidence=confidence, flags=flag,
+                points,
+                pixels,
+                K,
+                dist,
+                iterationsCount=iterations,
+                reprojectionError=threshold_px,
+                confidence=confidence,
+                flags=flag,
             )
     except cv2.error:
         return None, 0
@@ -164,20 +166,7 @@ def _ransac_and_refine(
     return invert_pose(make_pose(R, t)), int(np.count_nonzero(err < threshold_px))
 
 
-def grid_correspondences(coords: np.ndarray, stride: int = OUTPUT_STRIDE) -> tuple[np.ndarray, np.ndarray]:
-    """Scene points (h * w, 3) and their cells' pixels (h * w, 2) of a coordinate grid (3, h, w) or (h, w, 3)."""
-    coords = np.asarray(coords)
-    if coords.ndim != 3:
-        raise ValueError(f"coordinate grid must be 3-D, got shape {coords.shape}")
-    if coords.shape[0] == 3 and coords.shape[2] != 3:
-        coords = np.moveaxis(coords, 0, -1)
-    h, w, _ = coords.shape
-    return coords.reshape(-1, 3), cell_centers(h, w, stride)
-
-
-def solve_from_grid(
-    coords: np.ndarray, intrinsics: Intrinsics, stride: int = OUTPUT_STRIDE, **kwargs
-) -> PnPResult:
+def solve_from_grid(coords: np.ndarray, intrinsics: Intrinsics, stride: int = OUTPUT_STRIDE, **kwargs) -> PnPResult:
     """Pose from a scene-coordinate grid (3, h, w) or (h, w, 3) predicted for an image with ``intrinsics``."""
     points, pixels = grid_correspondences(coords, stride)
     return solve_pnp(pixels, points, intrinsics, **kwargs)

@@ -114,7 +114,9 @@ def refine_pose_robust(
             H = J.T @ (J * w2[:, None])
             g = J.T @ (w2 * res[keep].reshape(-1))
             for _attempt in range(4):
-                step = cv2.solve(H + damping * np.diag(np.diag(H) + 1e-12), -g.reshape(6, 1), flags=cv2.DECOMP_CHOLESKY)[1].reshape(6)
+                step = cv2.solve(
+                    H + damping * np.diag(np.diag(H) + 1e-12), -g.reshape(6, 1), flags=cv2.DECOMP_CHOLESKY
+                )[1].reshape(6)
                 dR = cv2.Rodrigues(step[:3].reshape(3, 1))[0]
                 R_new, t_new = dR @ R, dR @ t + step[3:]
                 Xc_new, res_new, e_new = reprojection(pts, pix, K, R_new, t_new)

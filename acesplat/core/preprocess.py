@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .camera import Intrinsics
+from acesplat.core.camera import Intrinsics
 
 
 def size_for_short_side(height: int, width: int, short_side: int) -> tuple[int, int]:

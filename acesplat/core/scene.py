@@ -13,10 +13,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .atomic import atomic_path, write_text
-from .camera import Intrinsics
-from .errors import InputError
-from .geometry import rigidity_problem
+from acesplat.core.atomic import atomic_path, write_text
+from acesplat.core.camera import Intrinsics
+from acesplat.core.errors import InputError
+from acesplat.core.geometry import rigidity_problem
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm", ".jp2", ".exr"}
 SPLITS = ("train", "test")

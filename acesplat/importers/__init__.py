@@ -8,10 +8,10 @@ Conventions on import (see ``common``): OpenCV camera axes and pixel centres; na
 every 8th frame to test unless the source ships a split.
 """
 
-from .colmap_text import import_colmap_text
-from .common import DEFAULT_TEST_EVERY, ImportSummary
-from .dispatch import detect_format, import_scene
-from .transforms_json import import_transforms_json
+from acesplat.importers.colmap_text import import_colmap_text
+from acesplat.importers.common import DEFAULT_TEST_EVERY, ImportSummary
+from acesplat.importers.dispatch import detect_format, import_scene
+from acesplat.importers.transforms_json import import_transforms_json
 
 __all__ = [
     "DEFAULT_TEST_EVERY",

@@ -20,9 +20,18 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.errors import InputError
-from ..core.geometry import invert_pose, make_pose, quat_to_matrix, rigidity_problem
-from .common import DEFAULT_TEST_EVERY, CameraSpec, ImportSummary, Progress, SourceFrame, check_output, check_test_every, write_scene
+from acesplat.core.errors import InputError
+from acesplat.core.geometry import invert_pose, make_pose, quat_to_matrix, rigidity_problem
+from acesplat.importers.common import (
+    DEFAULT_TEST_EVERY,
+    CameraSpec,
+    ImportSummary,
+    Progress,
+    SourceFrame,
+    check_output,
+    check_test_every,
+    write_scene,
+)
 
 MODEL_PARAMS = {
     "SIMPLE_PINHOLE": ("f", "cx", "cy"),
@@ -46,7 +55,9 @@ def _data_lines(path: Path) -> list[tuple[int, str]]:
     try:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError:
-        raise InputError(path, "not a text file (binary COLMAP model? convert with colmap model_converter --output_type TXT)") from None
+        raise InputError(
+            path, "not a text file (binary COLMAP model? convert with colmap model_converter --output_type TXT)"
+        ) from None
     return [(n, line.rstrip("\r\n")) for n, line in enumerate(text.split("\n"), 1) if not line.lstrip().startswith("#")]
 
 
@@ -85,7 +96,9 @@ def read_cameras_txt(path: Path) -> dict[int, CameraSpec]:
                 "and import its output (PINHOLE cameras)",
             )
         if model not in MODEL_PARAMS:
-            raise InputError(path, f"line {n}: unknown camera model {tokens[1]!r} (supported: {', '.join(MODEL_PARAMS)})")
+            raise InputError(
+                path, f"line {n}: unknown camera model {tokens[1]!r} (supported: {', '.join(MODEL_PARAMS)})"
+            )
         width, height = _int(tokens[2], path, n, "WIDTH"), _int(tokens[3], path, n, "HEIGHT")
         if width <= 0 or height <= 0:
             raise InputError(path, f"line {n}: image size must be positive, got {width}x{height}")
@@ -147,7 +160,9 @@ def read_images_txt(path: Path, cameras: dict[int, CameraSpec], images_dir: Path
         problem = rigidity_problem(T)
         if problem:  # not reachable with a normalised quaternion and finite t; kept as a guard
             raise InputError(path, f"line {n}: {problem}")
-        frames.append(SourceFrame(name=name, image_path=image, pose=T, camera=cameras[cam_id], where=f"{path} line {n}"))
+        frames.append(
+            SourceFrame(name=name, image_path=image, pose=T, camera=cameras[cam_id], where=f"{path} line {n}")
+        )
         i += 2
     if not frames:
         raise InputError(path, "no images listed")

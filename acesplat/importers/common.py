@@ -16,16 +16,16 @@ import os
 import re
 import shutil
 import tempfile
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
 
-from ..core.camera import Intrinsics
-from ..core.errors import InputError
-from ..core.scene import read_rgb, write_frame
+from acesplat.core.camera import Intrinsics
+from acesplat.core.errors import InputError
+from acesplat.core.scene import read_rgb, write_frame
 
 DEFAULT_TEST_EVERY = 8
 SIZE_RATIO_TOL = 0.01

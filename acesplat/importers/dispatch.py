@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..core.errors import InputError
-from .colmap_text import find_colmap_model, import_colmap_text
-from .common import DEFAULT_TEST_EVERY, ImportSummary, Progress
-from .transforms_json import SPLIT_FILES, import_transforms_json
+from acesplat.core.errors import InputError
+from acesplat.importers.colmap_text import find_colmap_model, import_colmap_text
+from acesplat.importers.common import DEFAULT_TEST_EVERY, ImportSummary, Progress
+from acesplat.importers.transforms_json import SPLIT_FILES, import_transforms_json
 
 FORMATS = ("auto", "transforms", "colmap")
 

@@ -20,9 +20,9 @@ from typing import Any
 
 import numpy as np
 
-from ..core.errors import InputError
-from ..core.geometry import OPENGL_TO_OPENCV, rigidity_problem
-from .common import (
+from acesplat.core.errors import InputError
+from acesplat.core.geometry import OPENGL_TO_OPENCV, rigidity_problem
+from acesplat.importers.common import (
     DEFAULT_TEST_EVERY,
     CameraSpec,
     ImportSummary,
@@ -145,7 +145,9 @@ def read_transforms_frames(
         if image is None and images_dir is not None:
             image = find_image(images_dir / rel_path.name)  # --images pointing at a flat (e.g. downscaled) copy
         if image is None:
-            raise InputError(path, f"{where}: image {str(base / rel_path)!r} not found (tried with and without extension)")
+            raise InputError(
+                path, f"{where}: image {str(base / rel_path)!r} not found (tried with and without extension)"
+            )
         name = rel_path.as_posix()
         name = name[2:] if name.startswith("./") else name
         frames.append(
@@ -185,7 +187,9 @@ def import_transforms_json(
     summary = ImportSummary(source=str(src), format="transforms", scene=str(out_scene))
     if src.is_dir() and not (src / "transforms.json").is_file():
         if not all((src / f).is_file() for f in SPLIT_FILES):
-            raise InputError(src, "no transforms.json (nor transforms_train.json + transforms_test.json) in this folder")
+            raise InputError(
+                src, "no transforms.json (nor transforms_train.json + transforms_test.json) in this folder"
+            )
         frames, tops = [], []
         for fname, is_test in zip(SPLIT_FILES, (False, True)):
             part, top = read_transforms_frames(src / fname, images, test=is_test)

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 from acesplat.core.camera import Intrinsics
-from acesplat.core.pnp import OUTPUT_STRIDE
+from acesplat.core.grid import OUTPUT_STRIDE
 
 SCALE_MIN = 2.0 / 3.0
 SCALE_MAX = 3.0 / 2.0

@@ -23,7 +23,12 @@ class BufferBuilder:
         self.features = 0
 
     def add_view(
-        self, feats: torch.Tensor, take: np.ndarray, pixels: np.ndarray, c2w: np.ndarray, K: np.ndarray,
+        self,
+        feats: torch.Tensor,
+        take: np.ndarray,
+        pixels: np.ndarray,
+        c2w: np.ndarray,
+        K: np.ndarray,
         targets: np.ndarray | None = None,
     ) -> None:
         """Cells ``take`` (k,) of a view's features (C, h, w), at ``pixels`` (k, 2), with their targets (k, 3)."""

@@ -13,14 +13,22 @@ from pathlib import Path
 import torch
 
 from acesplat.core.errors import InputError
-
-from .network import Encoder
+from acesplat.scr.network import Encoder
 
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights"
 DEFAULT_ENCODER = WEIGHTS_DIR / "encoder_default.pt"
 ENCODER_KEYS = (
-    "conv1", "conv2", "conv3", "conv4", "res1_conv1", "res1_conv2", "res1_conv3",
-    "res2_conv1", "res2_conv2", "res2_conv3", "res2_skip",
+    "conv1",
+    "conv2",
+    "conv3",
+    "conv4",
+    "res1_conv1",
+    "res1_conv2",
+    "res1_conv3",
+    "res2_conv1",
+    "res2_conv2",
+    "res2_conv3",
+    "res2_skip",
 )
 
 

@@ -1,40 +1,46 @@
-"""The mapping images as keyframes for pose refinement (acesplat.core.keyframe_align), with their depth.
+"""The mapping images as keyframes for pose refinement (acesplat.align.keyframe_align), with their depth.
 
 Depth is made once per training image, on its first use: predicted by the head on the dense grid (half the cell
 spacing) and median-filtered as the novel views use it (acesplat.scr.novel_views.head_depth), then re-measured
-by triangulation with two neighbours (acesplat.core.keyframe_depth). A query needs only its few nearest training
+by triangulation with two neighbours (acesplat.align.keyframe_depth). A query needs only its few nearest training
 images, so a long mapping sequence costs only what is used.
 """
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
-from acesplat.core.keyframe_align import KEYFRAMES, Keyframe, nearest_keyframes
-from acesplat.core.keyframe_depth import depth_neighbours, refine_depth
-from acesplat.core.keyframe_set import KeyframeSet
-from acesplat.core.pnp import DENSE_OUTPUT_STRIDE
+from acesplat.align.keyframe_align import KEYFRAMES, Keyframe, nearest_keyframes
+from acesplat.align.keyframe_depth import depth_neighbours, refine_depth
+from acesplat.align.keyframe_set import KeyframeSet
+from acesplat.core.grid import DENSE_OUTPUT_STRIDE
 from acesplat.core.preprocess import to_gray_input
 from acesplat.core.scene import SceneSplit
-
-from .mapping import TrainingImage, load_training_images
-from .network import SCRNetwork
-from .novel_views import head_depth
+from acesplat.scr.mapping import TrainingImage, load_training_images
+from acesplat.scr.network import SCRNetwork
+from acesplat.scr.novel_views import head_depth
 
 
 class MapKeyframes:
     """The training split of a scene at the map's resolution; ``near(pose)`` gives the keyframes to align to."""
 
-    def __init__(self, split: SceneSplit, network: SCRNetwork, short_side: int, k: int = KEYFRAMES,
-                 input_size: tuple[int, int] | None = None):
+    def __init__(
+        self,
+        split: SceneSplit,
+        network: SCRNetwork,
+        short_side: int,
+        k: int = KEYFRAMES,
+        input_size: tuple[int, int] | None = None,
+    ):
         """``input_size`` (H, W): the exact size queries run at (a bundle's), instead of the short side's."""
         if input_size is None:
             self.images = load_training_images(split, short_side)
         else:
-            self.images = [TrainingImage(*to_gray_input(f.load_rgb(), f.intrinsics, input_size), f.pose)
-                           for f in split.frames]
+            self.images = [
+                TrainingImage(*to_gray_input(f.load_rgb(), f.intrinsics, input_size), f.pose) for f in split.frames
+            ]
         self.c2ws = np.stack([im.c2w for im in self.images])
         self.network = network
         self.k = k
@@ -47,7 +53,7 @@ class MapKeyframes:
         return self._head[i]
 
     def depth(self, i: int) -> np.ndarray:
-        """The head's depth, re-measured where neighbouring keyframes triangulate it (acesplat.core.keyframe_depth)."""
+        """The head's depth, re-measured where neighbouring keyframes triangulate it (acesplat.align.keyframe_depth)."""
         if i not in self._depth:
             z = self.head_depth(i)
             known = z[z > 0]
@@ -70,7 +76,7 @@ class MapKeyframes:
                 progress(i + 1, len(self.images))
 
     def to_set(self) -> KeyframeSet:
-        """Every keyframe with its depth, as the arrays a bundle carries (acesplat.core.keyframe_set)."""
+        """Every keyframe with its depth, as the arrays a bundle carries (acesplat.align.keyframe_set)."""
         self.prepare()
         return KeyframeSet.stack([self.keyframe(i) for i in range(len(self.images))])
 

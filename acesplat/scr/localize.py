@@ -1,27 +1,28 @@
 """Desktop localization and evaluation: SCR prediction at 1/8 resolution, the shared PnP solver, and optionally
-the pose refined against the nearest mapping images (acesplat.core.keyframe_align)."""
+the pose refined against the nearest mapping images (acesplat.align.keyframe_align)."""
 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
+from acesplat.align.keyframe_align import KeyframeAlignment, align_scr_pose
 from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import pose_error
-from acesplat.core.keyframe_align import KeyframeAlignment, align_scr_pose
+from acesplat.core.grid import OUTPUT_STRIDE
 from acesplat.core.metrics import FrameResult, accuracy_summary
-from acesplat.core.pnp import OUTPUT_STRIDE, PnPResult, solve_from_grid
+from acesplat.core.pnp import PnPResult, solve_from_grid
 from acesplat.core.preprocess import size_for_short_side, to_gray_input
 from acesplat.core.scene import SceneSplit
-
-from .network import SCRNetwork
+from acesplat.scr.network import SCRNetwork
 
 if TYPE_CHECKING:
-    from .keyframes import MapKeyframes
+    from acesplat.scr.keyframes import MapKeyframes
 
 
 @dataclass
@@ -36,8 +37,8 @@ class Localizer:
     output_stride: int = OUTPUT_STRIDE
     """DENSE_OUTPUT_STRIDE predicts four times the cells (half-cell shifts) at about four times the network's
     cost; the errors of shifted cells are partly independent, so PnP averages more of them out."""
-    keyframes: "MapKeyframes | None" = None
-    """The mapping images: a localized pose is then refined against its nearest ones (acesplat.core.keyframe_align)."""
+    keyframes: MapKeyframes | None = None
+    """The mapping images: a localized pose is then refined against its nearest ones (acesplat.align.keyframe_align)."""
 
     def network_input(self, rgb: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, Intrinsics]:
         """The grayscale network input (H', W') uint8 of an RGB image (H, W, 3), and its intrinsics."""
@@ -69,9 +70,7 @@ class Localizer:
         return replace(res, T_c2w=al.pose), al
 
 
-def evaluate(
-    split: SceneSplit, localizer: Localizer, progress: Callable[[int, int], None] | None = None
-) -> dict:
+def evaluate(split: SceneSplit, localizer: Localizer, progress: Callable[[int, int], None] | None = None) -> dict:
     """Localize every frame of a split and compare with its pose; the `acesplat eval` JSON."""
     results = []
     estimates = []

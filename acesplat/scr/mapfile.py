@@ -15,9 +15,8 @@ import torch
 from acesplat import __version__
 from acesplat.core.atomic import atomic_path
 from acesplat.core.errors import InputError
-
-from .encoders import EncoderIdentity, file_sha256, load_encoder
-from .network import Encoder, Head, HeadConfig, SCRNetwork
+from acesplat.scr.encoders import EncoderIdentity, file_sha256, load_encoder
+from acesplat.scr.network import Encoder, Head, HeadConfig, SCRNetwork
 
 MAP_FORMAT = "acesplat-map"
 MAP_VERSION = 1
@@ -82,7 +81,7 @@ def encoder_for_map(m: SceneMap, map_path: str | Path, encoder_path: str | Path 
     """
     candidates = [Path(encoder_path)] if encoder_path else [Path(m.encoder_identity.path)]
     if not encoder_path:
-        from .encoders import DEFAULT_ENCODER
+        from acesplat.scr.encoders import DEFAULT_ENCODER
 
         candidates.append(DEFAULT_ENCODER)
     for c in candidates:

@@ -16,24 +16,23 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Callable, Iterator
 
 import numpy as np
 import torch
 
 from acesplat.core.camera import Intrinsics
-from acesplat.core.pnp import OUTPUT_STRIDE, cell_centers
+from acesplat.core.grid import OUTPUT_STRIDE, cell_centers
 from acesplat.core.preprocess import size_for_short_side, to_gray_input
 from acesplat.core.scene import SceneSplit
-
-from .augment import augment, augment_ranges
-from .buffer import Buffer, BufferBuilder, merge_buffers
-from .loss import DEPTH_MIN, curriculum_threshold, reprojection_loss
-from .network import Encoder, Head, HeadConfig, normalize_gray
-from .novel_views import NOVEL_VIEWS_AT, NOVEL_VIEWS_TIME_FRACTION, novel_view_buffer
-from .targets import ImageTargets, triangulate_targets
+from acesplat.scr.augment import augment, augment_ranges
+from acesplat.scr.buffer import Buffer, BufferBuilder, merge_buffers
+from acesplat.scr.loss import DEPTH_MIN, curriculum_threshold, reprojection_loss
+from acesplat.scr.network import Encoder, Head, HeadConfig, normalize_gray
+from acesplat.scr.novel_views import NOVEL_VIEWS_AT, NOVEL_VIEWS_TIME_FRACTION, novel_view_buffer
+from acesplat.scr.targets import ImageTargets, triangulate_targets
 
 # ACE's defaults, and where this project departs from them for a CPU budget.
 MAP_MINUTES = 4.5
@@ -240,8 +239,9 @@ def fill_buffer(
             take = rng.choice(valid, size=min(cfg.samples_per_image, valid.size, room), replace=False)
             if take.size == 0:
                 continue
-            builder.add_view(f, take, cell_centers(gh, gw)[take], view.c2w, view.intrinsics.K,
-                             cell_targets(im, view, (gh, gw))[take])
+            builder.add_view(
+                f, take, cell_centers(gh, gw)[take], view.c2w, view.intrinsics.K, cell_targets(im, view, (gh, gw))[take]
+            )
             if progress:
                 progress("buffer", builder.features / cfg.buffer_size, {"features": builder.features})
             if time.monotonic() > deadline:
@@ -330,8 +330,17 @@ def train_head(
         it += 1
         loss_v, valid_frac = float(loss.detach()), parts.valid_fraction
         if it % 50 == 0 or it == 1:
-            history.append({"iteration": it, "progress": p, "lr": lr, "threshold": tau, "loss": loss_v,
-                            "valid": valid_frac, "reproj_px": parts.mean_reproj_px})
+            history.append(
+                {
+                    "iteration": it,
+                    "progress": p,
+                    "lr": lr,
+                    "threshold": tau,
+                    "loss": loss_v,
+                    "valid": valid_frac,
+                    "reproj_px": parts.mean_reproj_px,
+                }
+            )
         if progress:
             progress("train", p, {"iteration": it, "loss": loss_v, "threshold": tau})
     head.eval()
@@ -354,7 +363,9 @@ def map_scene(
     images = load_training_images(split, cfg.short_side)
     if cfg.triangulate and len(images) > 1:
         tg = triangulate_targets(
-            [im.gray for im in images], [im.intrinsics for im in images], [im.c2w for im in images],
+            [im.gray for im in images],
+            [im.intrinsics for im in images],
+            [im.c2w for im in images],
             deadline=t0 + TARGETS_TIME_FRACTION * cfg.minutes * 60.0,
         )
         for im, t in zip(images, tg):
@@ -370,6 +381,7 @@ def map_scene(
     extend = None
     novel_features = 0
     if cfg.novel_views > 0 and len(images) > 1:
+
         def extend(h: Head) -> Buffer | None:
             nonlocal novel_features
             if progress:
@@ -381,6 +393,7 @@ def map_scene(
             if progress:
                 progress("novel views", 1.0, {"features": novel_features})
             return extra
+
     its, loss_v, valid, history = train_head(head, buffer, cfg, remaining, progress, extend)
     return MappingResult(
         head=head.cpu(),

@@ -8,14 +8,14 @@ State-dict names follow ACE's so a user's ``ace_encoder_pretrained.pt`` loads in
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
-from typing import Callable
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from acesplat.core.pnp import DENSE_OUTPUT_STRIDE, OUTPUT_STRIDE
+from acesplat.core.grid import DENSE_OUTPUT_STRIDE, OUTPUT_STRIDE
 
 GRAY_MEAN = 0.4
 GRAY_STD = 0.25
@@ -37,7 +37,7 @@ class EncoderConfig:
     out: int = 512
 
     @classmethod
-    def from_state_dict(cls, sd: dict[str, torch.Tensor]) -> "EncoderConfig":
+    def from_state_dict(cls, sd: dict[str, torch.Tensor]) -> EncoderConfig:
         return cls(
             c1=sd["conv1.weight"].shape[0],
             c2=sd["conv2.weight"].shape[0],
@@ -126,7 +126,7 @@ class Encoder(nn.Module):
         return conv(self.res2_skip, res) + x
 
     @classmethod
-    def from_state_dict(cls, sd: dict[str, torch.Tensor]) -> "Encoder":
+    def from_state_dict(cls, sd: dict[str, torch.Tensor]) -> Encoder:
         enc = cls(EncoderConfig.from_state_dict(sd))
         enc.load_state_dict(sd)
         return enc

@@ -5,7 +5,7 @@ encoder's features of those exact views, and a query from in between shows the s
 slant the head never saw; its coordinates there are off by a few pixels, coherently over whole regions,
 which no pose solver averages out (bench/herz_gap.md). Late in training the head already knows
 the depth of every training pixel, so each training image can be warped to a camera between it and a
-neighbour (acesplat.core.depth_warp) and its features, with that camera's pose, join the buffer. Nothing
+neighbour (acesplat.align.depth_warp) and its features, with that camera's pose, join the buffer. Nothing
 but the training images and their poses is used.
 
 Measured on herzjesu25 (bench/herz_gap.md, session 9). Continuing two saved maps for 1,500 head steps at a
@@ -21,22 +21,22 @@ seeds tried (mean 4.50 vs 4.99 cm) with less harm to the fit. Two seeds are not 
 from __future__ import annotations
 
 import time
-from typing import TYPE_CHECKING, Callable
+from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 import torch
 
-from acesplat.core.depth_warp import warp_to_camera
+from acesplat.align.depth_warp import warp_to_camera
 from acesplat.core.geometry import interpolate_pose, invert_pose, rotation_angle_deg
-from acesplat.core.pnp import DENSE_OUTPUT_STRIDE, OUTPUT_STRIDE, cell_centers
-
-from .buffer import Buffer, BufferBuilder
-from .loss import DEPTH_MIN
-from .network import Encoder, Head, SCRNetwork
+from acesplat.core.grid import DENSE_OUTPUT_STRIDE, OUTPUT_STRIDE, cell_centers
+from acesplat.scr.buffer import Buffer, BufferBuilder
+from acesplat.scr.loss import DEPTH_MIN
+from acesplat.scr.network import Encoder, Head, SCRNetwork
 
 if TYPE_CHECKING:
-    from .mapping import TrainingImage
+    from acesplat.scr.mapping import TrainingImage
 
 NOVEL_VIEWS = 300
 """Warped views to add when asked for (about 2,000 cells each at 360 px); mapping's default is none."""
@@ -58,7 +58,9 @@ EDGE_MARGIN_PX = 4
 """A cell is used only if the warp is valid this far around its centre (the encoder sees a neighbourhood)."""
 
 
-def neighbour_pairs(c2ws: np.ndarray, k: int = NEIGHBOURS, max_angle_deg: float = MAX_PAIR_ANGLE_DEG) -> list[tuple[int, int]]:
+def neighbour_pairs(
+    c2ws: np.ndarray, k: int = NEIGHBOURS, max_angle_deg: float = MAX_PAIR_ANGLE_DEG
+) -> list[tuple[int, int]]:
     """Index pairs (i < j) of cameras c2ws (N, 4, 4) that are among each other's k nearest and look alike."""
     centres = c2ws[:, :3, 3]
     pairs: set[tuple[int, int]] = set()
@@ -71,9 +73,7 @@ def neighbour_pairs(c2ws: np.ndarray, k: int = NEIGHBOURS, max_angle_deg: float 
     return sorted(pairs)
 
 
-def sample_novel_cameras(
-    c2ws: np.ndarray, n: int, rng: np.random.Generator
-) -> list[tuple[int, np.ndarray]]:
+def sample_novel_cameras(c2ws: np.ndarray, n: int, rng: np.random.Generator) -> list[tuple[int, np.ndarray]]:
     """``n`` (source image, camera-to-world (4, 4)) between neighbouring cameras; the source is the nearer one
     more often (chosen with probability 1 - t)."""
     pairs = neighbour_pairs(c2ws)
@@ -87,7 +87,7 @@ def sample_novel_cameras(
 
 
 @torch.no_grad()
-def head_depth(network: SCRNetwork, image: "TrainingImage") -> np.ndarray:
+def head_depth(network: SCRNetwork, image: TrainingImage) -> np.ndarray:
     """z-depth (h, w) of the image's dense cells (stride DENSE_OUTPUT_STRIDE) as the head predicts them."""
     device = next(network.parameters()).device
     coords = network(torch.from_numpy(image.gray)[None, None].to(device), DENSE_OUTPUT_STRIDE)[0].cpu()
@@ -101,7 +101,7 @@ def head_depth(network: SCRNetwork, image: "TrainingImage") -> np.ndarray:
 
 @torch.no_grad()
 def novel_view_buffer(
-    images: list["TrainingImage"],
+    images: list[TrainingImage],
     encoder: Encoder,
     encode: Callable[[np.ndarray], torch.Tensor],
     head: Head,

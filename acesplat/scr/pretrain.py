@@ -16,9 +16,9 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -27,10 +27,9 @@ import torch.nn.functional as F
 
 from acesplat.core.atomic import atomic_path, write_json
 from acesplat.core.camera import Intrinsics
-from acesplat.core.pnp import OUTPUT_STRIDE
-
-from .augment import rotation_z
-from .network import Encoder, EncoderConfig, normalize_gray
+from acesplat.core.grid import OUTPUT_STRIDE
+from acesplat.scr.augment import rotation_z
+from acesplat.scr.network import Encoder, EncoderConfig, normalize_gray
 
 EDGE_ENCODER = EncoderConfig(c1=16, c2=32, c3=64, c4=128, res2=256, out=512)
 """The project's default encoder: a fifth of ACE's multiply-accumulates (bench/encoder_choice.md)."""
@@ -223,8 +222,14 @@ def pretrain(
         opt.load_state_dict(ck["optimizer"])
         step, elapsed_before, history = int(ck["step"]), float(ck["elapsed"]), list(ck["history"])
         sessions = list(ck.get("sessions", []))
-    this_session = {"command": command, "start_step": step, "end_step": step, "steps_planned": cfg.steps,
-                    "seconds": 0.0, "threads": torch.get_num_threads()}
+    this_session = {
+        "command": command,
+        "start_step": step,
+        "end_step": step,
+        "steps_planned": cfg.steps,
+        "seconds": 0.0,
+        "threads": torch.get_num_threads(),
+    }
     sessions.append(this_session)
     rng = np.random.default_rng([cfg.seed, step])
     t_train = time.monotonic()
@@ -232,9 +237,17 @@ def pretrain(
     def save_checkpoint() -> None:
         this_session.update(end_step=step, seconds=round(time.monotonic() - t_train, 1))
         with atomic_path(ckpt_path) as tmp:
-            torch.save({"encoder": encoder.state_dict(), "optimizer": opt.state_dict(), "step": step,
-                        "elapsed": elapsed_before + time.monotonic() - t_train, "history": history,
-                        "sessions": sessions}, tmp)
+            torch.save(
+                {
+                    "encoder": encoder.state_dict(),
+                    "optimizer": opt.state_dict(),
+                    "step": step,
+                    "elapsed": elapsed_before + time.monotonic() - t_train,
+                    "history": history,
+                    "sessions": sessions,
+                },
+                tmp,
+            )
 
     last_ckpt = t_train
     running: list[tuple[float, float]] = []
@@ -269,8 +282,15 @@ def pretrain(
     save_checkpoint()
     finished = step >= cfg.steps
     total_s = elapsed_before + time.monotonic() - t_train
-    summary = {"finished": finished, "step": step, "steps": cfg.steps, "train_seconds": total_s,
-               "last": history[-1] if history else None, "config": _cfg_dict(cfg), "sessions": sessions}
+    summary = {
+        "finished": finished,
+        "step": step,
+        "steps": cfg.steps,
+        "train_seconds": total_s,
+        "last": history[-1] if history else None,
+        "config": _cfg_dict(cfg),
+        "sessions": sessions,
+    }
     with atomic_path(out / "encoder.pt") as tmp:
         torch.save(encoder.state_dict(), tmp)
     write_json(out / "pretrain_summary.json", {**summary, "history": history})
@@ -281,7 +301,7 @@ def install_default(out_dir: str | Path, command: str) -> Path:
     """Copy a pretraining run's encoder into the package as the shipped default, with its provenance beside it."""
     import platform
 
-    from .encoders import DEFAULT_ENCODER, file_sha256
+    from acesplat.scr.encoders import DEFAULT_ENCODER, file_sha256
 
     out = Path(out_dir)
     summary = json.loads((out / "pretrain_summary.json").read_text())
@@ -294,7 +314,7 @@ def install_default(out_dir: str | Path, command: str) -> Path:
         "sessions": summary.get("sessions", []),
         "objective": "dense InfoNCE over exact correspondences of nearby views (acesplat/scr/pretrain.py)",
         "data": f"{summary['config']['scenes']} procedural rooms from acesplat.synth.random_scene_frames, "
-                f"{summary['config']['frames_per_scene']} frames each at {summary['config']['image_hw']}",
+        f"{summary['config']['frames_per_scene']} frames each at {summary['config']['image_hw']}",
         "seed": summary["config"]["seed"],
         "steps": summary["step"],
         "steps_planned": summary["steps"],

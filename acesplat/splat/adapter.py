@@ -45,7 +45,7 @@ class AdapterConfig:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict) -> "AdapterConfig":
+    def from_dict(cls, d: dict) -> AdapterConfig:
         return cls(in_channels=int(d["in_channels"]), widths=tuple(int(v) for v in d["widths"]))  # type: ignore[arg-type]
 
 

@@ -5,9 +5,9 @@ Renders go through the numpy rasterizer (no autograd), exactly what the edge wou
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable, Sequence
 
 import cv2
 import numpy as np
@@ -16,10 +16,9 @@ import torch
 from acesplat.core.atomic import atomic_path
 from acesplat.core.errors import InputError
 from acesplat.core.gaussians import Gaussians
-from acesplat.core.raster import rasterize
-
-from .losses import psnr, ssim
-from .views import SplatView
+from acesplat.raster import rasterize
+from acesplat.splat.losses import psnr, ssim
+from acesplat.splat.views import SplatView
 
 
 @dataclass

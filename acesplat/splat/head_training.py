@@ -8,16 +8,16 @@ opacities and scales that hold up away from the view they came from.
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import torch
 
-from .init_head import SceneNorm
-from .instantiate import GaussianInitializer, ViewPixels, lattice_pixels, view_pixels
-from .losses import rendering_loss
-from .raster_torch import render
-from .views import SplatView
+from acesplat.splat.init_head import SceneNorm
+from acesplat.splat.instantiate import GaussianInitializer, ViewPixels, lattice_pixels, view_pixels
+from acesplat.splat.losses import rendering_loss
+from acesplat.splat.raster_torch import render
+from acesplat.splat.views import SplatView
 
 HEAD_STRIDE = 2
 """Lattice stride of the Gaussians a head step renders (finer than the scene set's; one view only)."""

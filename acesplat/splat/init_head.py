@@ -56,7 +56,7 @@ class SceneNorm:
     scale: float
 
     @classmethod
-    def from_views(cls, camera_centres: np.ndarray, depths: np.ndarray) -> "SceneNorm":
+    def from_views(cls, camera_centres: np.ndarray, depths: np.ndarray) -> SceneNorm:
         c = np.asarray(camera_centres, np.float64).reshape(-1, 3)
         d = np.asarray(depths, np.float64).reshape(-1)
         spread = float(np.max(np.linalg.norm(c - c.mean(0), axis=1))) if len(c) else 0.0

@@ -10,21 +10,21 @@ the block's colour (the image low-passed at the stride), not one aliased pixel's
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import cv2
 import numpy as np
 import torch
 import torch.nn as nn
 
-from .adapter import AdapterConfig, FeatureAdapter
-from .fusion import DEPTH_TOLERANCE, novel_masks
-from .init_head import InitHead, InitHeadConfig, SceneNorm, coordinate_prior, decode_gaussians
-from .params import cat_tensors
-from .pixel_coords import filled_depths, pixel_coordinates
-from .validity import MAX_DEPTH_RATIO
-from .views import SplatView
+from acesplat.splat.adapter import AdapterConfig, FeatureAdapter
+from acesplat.splat.init_head import InitHead, InitHeadConfig, SceneNorm, coordinate_prior, decode_gaussians
+from acesplat.splat.params import cat_tensors
+from acesplat.splat.views import SplatView
+from acesplat.splatcore.fusion import DEPTH_TOLERANCE, novel_masks
+from acesplat.splatcore.pixel_coords import filled_depths, pixel_coordinates
+from acesplat.splatcore.validity import MAX_DEPTH_RATIO
 
 
 @dataclass

@@ -24,9 +24,8 @@ import torch
 from acesplat.core.camera import Intrinsics
 from acesplat.core.gaussians import MAX_SH_DEGREE
 from acesplat.core.geometry import quat_to_matrix
-
-from .params import PARAM_NAMES, GaussianParams
-from .raster_torch import RenderOutput, screen_grad_norm
+from acesplat.splat.params import PARAM_NAMES, GaussianParams
+from acesplat.splat.raster_torch import RenderOutput, screen_grad_norm
 
 REFERENCE_ITERATIONS = 30_000
 """3DGS's iteration count, the unit of the counts below."""
@@ -64,7 +63,7 @@ class LifecycleSchedule:
     sh_up_every: int
 
     @classmethod
-    def scaled(cls, total_iterations: int) -> "LifecycleSchedule":
+    def scaled(cls, total_iterations: int) -> LifecycleSchedule:
         """3DGS's schedule shrunk (or stretched) to ``total_iterations``."""
         if total_iterations < 1:
             raise ValueError(f"total_iterations must be >= 1, got {total_iterations}")
@@ -103,7 +102,7 @@ class LifecycleState:
     seen: torch.Tensor  # (N,) int64 number of those views
 
     @classmethod
-    def zeros(cls, n: int) -> "LifecycleState":
+    def zeros(cls, n: int) -> LifecycleState:
         return cls(torch.zeros(n, dtype=torch.float64), torch.zeros(n, dtype=torch.int64))
 
     def mean_grad(self) -> torch.Tensor:

@@ -8,8 +8,8 @@ Both load with ``weights_only=True``.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import torch
 import torch.nn as nn

@@ -11,19 +11,19 @@ no optimiser moment ever sees a NaN or an infinity.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
 
 import numpy as np
 import torch
 
-from .head_training import HeadTrainer
-from .lifecycle import GaussianLifecycle, LifecycleConfig, LifecycleSchedule, LifecycleState
-from .losses import psnr_from_mse, rendering_loss
-from .params import GaussianParams, render_tensors
-from .raster_torch import render
-from .schedule import NET_LR_MAX, gaussian_factor, one_cycle_factor
-from .views import SplatView
+from acesplat.splat.head_training import HeadTrainer
+from acesplat.splat.lifecycle import GaussianLifecycle, LifecycleConfig, LifecycleSchedule, LifecycleState
+from acesplat.splat.losses import psnr_from_mse, rendering_loss
+from acesplat.splat.params import GaussianParams, render_tensors
+from acesplat.splat.raster_torch import render
+from acesplat.splat.schedule import NET_LR_MAX, gaussian_factor, one_cycle_factor
+from acesplat.splat.views import SplatView
 
 LR_MEANS = 1.6e-4
 """Peak position learning rate per metre of scene extent (3DGS's spatial scaling)."""

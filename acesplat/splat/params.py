@@ -6,7 +6,7 @@ rate and the lifecycle can grow and shrink them together with their optimiser st
 
 from __future__ import annotations
 
-from typing import Mapping
+from collections.abc import Mapping
 
 import numpy as np
 import torch

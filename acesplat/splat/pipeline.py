@@ -13,26 +13,30 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
 
 import numpy as np
 import torch
 
 from acesplat.core.errors import InputError
 from acesplat.core.scene import Frame
-
-from .adapter import AdapterConfig
-from .fusion import DEPTH_TOLERANCE
-from .head_training import HeadTrainer
-from .init_head import InitHeadConfig, SceneNorm
-from .instantiate import GaussianInitializer, merge_views
-from .optimize import HEAD_EVERY, EvalFn, OptimizeConfig, OptimizeResult, optimise_gaussians
-from .params import GaussianParams, params_from_tensors
-from .schedule import NET_LR_MAX, NET_LR_MIN, one_cycle
-from .validity import CROSS_VIEW_NEIGHBOURS, CROSS_VIEW_TOLERANCE, ValidityConfig, confirm_across_views
-from .views import SplatView, load_views, run_scr
+from acesplat.splat.adapter import AdapterConfig
+from acesplat.splat.head_training import HeadTrainer
+from acesplat.splat.init_head import InitHeadConfig, SceneNorm
+from acesplat.splat.instantiate import GaussianInitializer, merge_views
+from acesplat.splat.optimize import HEAD_EVERY, EvalFn, OptimizeConfig, OptimizeResult, optimise_gaussians
+from acesplat.splat.params import GaussianParams, params_from_tensors
+from acesplat.splat.schedule import NET_LR_MAX, NET_LR_MIN, one_cycle
+from acesplat.splat.views import SplatView, load_views, run_scr
+from acesplat.splatcore.fusion import DEPTH_TOLERANCE
+from acesplat.splatcore.validity import (
+    CROSS_VIEW_NEIGHBOURS,
+    CROSS_VIEW_TOLERANCE,
+    ValidityConfig,
+    confirm_across_views,
+)
 
 PROTOCOLS = ("static", "sparse")
 MAX_INIT_VIEWS = 48
@@ -260,7 +264,7 @@ def splat_scene(
 
 
 def _valid_depths(v: SplatView) -> np.ndarray:
-    from .pixel_coords import cell_depths
+    from acesplat.splatcore.pixel_coords import cell_depths
 
     assert v.coords is not None and v.validity is not None
     return cell_depths(v.coords.astype(np.float64), v.pose)[v.validity.valid]
@@ -270,7 +274,7 @@ def _warm_up(
     head: HeadTrainer, cfg: SplatConfig, deadline: float, rng: np.random.Generator, progress: ProgressFn | None
 ) -> tuple[int, int]:
     """Train the adapter and head alone (their own AdamW and one-cycle) until ``deadline`` or cfg.head_iterations."""
-    from .optimize import finite_gradients
+    from acesplat.splat.optimize import finite_gradients
 
     opt = torch.optim.AdamW(head.init.parameters(), lr=NET_LR_MIN, weight_decay=0.01)
     start = time.monotonic()

@@ -8,7 +8,7 @@ SfM-style points (features matched between the images and triangulated with the 
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 from scipy.spatial import cKDTree

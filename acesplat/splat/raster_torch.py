@@ -1,6 +1,6 @@
 """Torch autograd wrapper around the numba Gaussian rasterizer, for Stage 2 training on the CPU.
 
-The forward and backward are the torch-free kernels in :mod:`acesplat.core.raster`; this module
+The forward and backward are the torch-free kernels in :mod:`acesplat.raster`; this module
 only converts tensors to numpy views and back, so training and the edge render identically.
 """
 
@@ -14,8 +14,8 @@ import torch
 
 from acesplat.core.camera import Intrinsics
 from acesplat.core.gaussians import Gaussians
-from acesplat.core.raster import RenderResult, ndc_grad_norm, rasterize, rasterize_backward
-from acesplat.core.raster.rasterizer import DEFAULT_FAR, DEFAULT_NEAR
+from acesplat.raster import RenderResult, ndc_grad_norm, rasterize, rasterize_backward
+from acesplat.raster.rasterizer import DEFAULT_FAR, DEFAULT_NEAR
 
 
 @dataclass
@@ -26,7 +26,7 @@ class RenderOutput:
     parameter passed to :func:`render`. means2d (N, 2): projected centres in pixels, a leaf tensor
     whose ``.grad`` after ``loss.backward()`` is dL/d(projected centre), the densification signal
     (use :func:`screen_grad_norm` for 3DGS's NDC-scaled norm). radii (N,) int and visible (N,) bool,
-    as in :class:`acesplat.core.raster.RenderResult`.
+    as in :class:`acesplat.raster.RenderResult`.
     """
 
     color: torch.Tensor

@@ -17,10 +17,9 @@ from acesplat.core.atomic import atomic_path, write_json
 from acesplat.core.errors import InputError
 from acesplat.core.gaussians import Gaussians
 from acesplat.core.ply import read_ply, write_ply
-
-from .adapter import AdapterConfig
-from .init_head import InitHeadConfig
-from .instantiate import GaussianInitializer
+from acesplat.splat.adapter import AdapterConfig
+from acesplat.splat.init_head import InitHeadConfig
+from acesplat.splat.instantiate import GaussianInitializer
 
 SPLAT_FORMAT = "acesplat-splat"
 SPLAT_VERSION = 1

@@ -6,8 +6,8 @@ the 1/8 feature grid lines up with the pixels exactly; ground truth is resized t
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Sequence
 
 import cv2
 import numpy as np
@@ -16,8 +16,7 @@ import torch
 from acesplat.core.camera import Intrinsics
 from acesplat.core.preprocess import size_for_short_side, to_gray_input
 from acesplat.core.scene import Frame
-
-from .validity import CellValidity, ValidityConfig, cell_validity
+from acesplat.splatcore.validity import CellValidity, ValidityConfig, cell_validity
 
 
 @dataclass

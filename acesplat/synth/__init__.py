@@ -5,7 +5,7 @@ Torch-free. ``make_room`` builds a room from a seed, ``make_trajectory`` a camer
 layout, ``random_scene_frames`` yields varied in-memory scenes for encoder pretraining.
 """
 
-from .dataset import (
+from acesplat.synth.dataset import (
     DEFAULT_IMAGE_SIZE,
     DEFAULT_TEST_FRAMES,
     DEFAULT_TRAIN_FRAMES,
@@ -16,9 +16,9 @@ from .dataset import (
     render_frames,
     synthesize,
 )
-from .render import render_view
-from .room import RoomScene, make_room
-from .trajectory import TEST_PASS, TRAIN_PASS, CameraPath, make_trajectory
+from acesplat.synth.render import render_view
+from acesplat.synth.room import RoomScene, make_room
+from acesplat.synth.trajectory import TEST_PASS, TRAIN_PASS, CameraPath, make_trajectory
 
 __all__ = [
     "DEFAULT_IMAGE_SIZE",

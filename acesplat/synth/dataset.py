@@ -20,10 +20,9 @@ from acesplat.core.atomic import write_json
 from acesplat.core.camera import Intrinsics
 from acesplat.core.errors import InputError
 from acesplat.core.scene import write_frame
-
-from .render import render_view
-from .room import RoomScene, make_room
-from .trajectory import TEST_PASS, TRAIN_PASS, make_trajectory
+from acesplat.synth.render import render_view
+from acesplat.synth.room import RoomScene, make_room
+from acesplat.synth.trajectory import TEST_PASS, TRAIN_PASS, make_trajectory
 
 DEFAULT_IMAGE_SIZE = (240, 320)
 """(H, W) of the built-in scene's images."""

@@ -11,8 +11,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .primitives import Scalar, hit_box, hit_cylinder, hit_sphere, sdf_box, sdf_box_xy, sdf_cylinder, sdf_sphere
-from .trajectory import CameraPath, band_points, random_path
+from acesplat.synth.primitives import (
+    Scalar,
+    hit_box,
+    hit_cylinder,
+    hit_sphere,
+    sdf_box,
+    sdf_box_xy,
+    sdf_cylinder,
+    sdf_sphere,
+)
+from acesplat.synth.trajectory import CameraPath, band_points, random_path
 
 CAMERA_CLEARANCE = 0.35
 """Minimum floor distance (metres) between any object and the band the camera passes may use."""

@@ -13,9 +13,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .layout import RoomLayout
-from .primitives import MISS
-from .surfaces import PLANAR, SurfaceTable, surface_grid
+from acesplat.synth.layout import RoomLayout
+from acesplat.synth.primitives import MISS
+from acesplat.synth.surfaces import PLANAR, SurfaceTable, surface_grid
 
 LIGHT_SPACING = 0.05
 """Finest grid spacing (metres) at which lighting is evaluated before upsampling to texture resolution."""

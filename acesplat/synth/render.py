@@ -14,11 +14,10 @@ import numpy as np
 
 from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import rigidity_problem
-
-from .atlas import sample
-from .primitives import MISS, exit_room
-from .room import RoomScene
-from .surfaces import surface_coords
+from acesplat.synth.atlas import sample
+from acesplat.synth.primitives import MISS, exit_room
+from acesplat.synth.room import RoomScene
+from acesplat.synth.surfaces import surface_coords
 
 MIP_BIAS = 0.0
 """Added to the mip level: positive blurs more, negative sharpens (and aliases) more."""

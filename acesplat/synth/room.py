@@ -7,13 +7,21 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .atlas import TextureAtlas, build_atlas
-from .layout import Objects, RoomLayout, make_layout
-from .lighting import LIGHT_SPACING, light_map
-from .photos import load_photos
-from .surfaces import CYLINDER_SIDE, ROLE_CEILING, ROLE_FLOOR, ROLE_WALL, SPHERE, SurfaceTable, build_surfaces
-from .textures import ceiling_texture, floor_texture, object_texture, wall_texture
-from .trajectory import CameraPath
+from acesplat.synth.atlas import TextureAtlas, build_atlas
+from acesplat.synth.layout import Objects, RoomLayout, make_layout
+from acesplat.synth.lighting import LIGHT_SPACING, light_map
+from acesplat.synth.photos import load_photos
+from acesplat.synth.surfaces import (
+    CYLINDER_SIDE,
+    ROLE_CEILING,
+    ROLE_FLOOR,
+    ROLE_WALL,
+    SPHERE,
+    SurfaceTable,
+    build_surfaces,
+)
+from acesplat.synth.textures import ceiling_texture, floor_texture, object_texture, wall_texture
+from acesplat.synth.trajectory import CameraPath
 
 DEFAULT_SIZE = (6.0, 4.0, 3.0)
 DEFAULT_TEXEL_DENSITY = 160.0

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .layout import RoomLayout
+from acesplat.synth.layout import RoomLayout
 
 PLANAR, CYLINDER_SIDE, SPHERE = 0, 1, 2
 ROLE_WALL, ROLE_FLOOR, ROLE_CEILING, ROLE_OBJECT = 0, 1, 2, 3

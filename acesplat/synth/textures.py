@@ -15,7 +15,7 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from .photos import Photo
+from acesplat.synth.photos import Photo
 
 FONTS = (
     cv2.FONT_HERSHEY_SIMPLEX,

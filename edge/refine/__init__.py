@@ -10,12 +10,22 @@ timed work pieces), ``worker`` (the refinement thread, carrying a batch over fra
 carries for refinement).
 """
 
-from .deadline import CostEstimate, Deadline
-from .keyframes import KeyframePolicy, KeyframeSelector, keyframe_decision
-from .refiner import BatchReport, Keyframe, RefineConfig, Refiner
-from .session import RefineOptions, RefineSession, start_refinement
+from edge.refine.deadline import CostEstimate, Deadline
+from edge.refine.keyframes import KeyframePolicy, KeyframeSelector, keyframe_decision
+from edge.refine.refiner import BatchReport, Keyframe, RefineConfig, Refiner
+from edge.refine.session import RefineOptions, RefineSession, start_refinement
 
 __all__ = [
-    "BatchReport", "CostEstimate", "Deadline", "Keyframe", "KeyframePolicy", "KeyframeSelector", "RefineConfig",
-    "RefineOptions", "RefineSession", "Refiner", "keyframe_decision", "start_refinement",
+    "BatchReport",
+    "CostEstimate",
+    "Deadline",
+    "Keyframe",
+    "KeyframePolicy",
+    "KeyframeSelector",
+    "RefineConfig",
+    "RefineOptions",
+    "RefineSession",
+    "Refiner",
+    "keyframe_decision",
+    "start_refinement",
 ]

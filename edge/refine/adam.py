@@ -32,14 +32,18 @@ class LearningRates:
     sh_dc: float = 2.5e-3
     sh_rest: float = 1.25e-4
 
-    def scaled(self, scene_extent: float) -> "LearningRates":
-        return LearningRates(self.means * scene_extent, self.log_scales, self.quats, self.opacity_logits, self.sh_dc, self.sh_rest)
+    def scaled(self, scene_extent: float) -> LearningRates:
+        return LearningRates(
+            self.means * scene_extent, self.log_scales, self.quats, self.opacity_logits, self.sh_dc, self.sh_rest
+        )
 
 
 class RowAdam:
     """Adam (beta1 0.9, beta2 0.999) whose moments follow a Gaussian set of fixed size."""
 
-    def __init__(self, gaussians: Gaussians, lr: LearningRates, beta1: float = 0.9, beta2: float = 0.999, eps: float = 1e-15):
+    def __init__(
+        self, gaussians: Gaussians, lr: LearningRates, beta1: float = 0.9, beta2: float = 0.999, eps: float = 1e-15
+    ):
         self.lr = lr
         self.beta1, self.beta2, self.eps = beta1, beta2, eps
         self.m = {p: np.zeros(getattr(gaussians, p).shape, np.float32) for p in PARAMS}
@@ -74,8 +78,9 @@ class RowAdam:
             np.copyto(m, b1 * m + c1 * grad, where=live)
             np.copyto(v, b2 * v + c2 * grad * grad, where=live)
             # Adam with the bias corrections folded into the step: m_hat / (sqrt(v_hat) + eps).
-            update = (step_scale.reshape(shape) * m) / (np.sqrt(v) + np.float32(self.eps) * np.sqrt(
-                (1.0 - self.beta2**t).astype(np.float32)).reshape(shape))
+            update = (step_scale.reshape(shape) * m) / (
+                np.sqrt(v) + np.float32(self.eps) * np.sqrt((1.0 - self.beta2**t).astype(np.float32)).reshape(shape)
+            )
             update = np.where(live, update, np.float32(0.0))
             arr = getattr(g, p)
             if p == "sh":

@@ -67,15 +67,29 @@ def _gray8(rgb: np.ndarray) -> np.ndarray:
 
 
 def align_pose(
-    render_rgb: np.ndarray, render_alpha: np.ndarray, render_depth: np.ndarray, image: np.ndarray, k: Intrinsics,
-    pose_c2w: np.ndarray, max_shift_m: float = MAX_SHIFT_M, max_shift_deg: float = MAX_SHIFT_DEG, max_mse: float = MAX_MSE,
+    render_rgb: np.ndarray,
+    render_alpha: np.ndarray,
+    render_depth: np.ndarray,
+    image: np.ndarray,
+    k: Intrinsics,
+    pose_c2w: np.ndarray,
+    max_shift_m: float = MAX_SHIFT_M,
+    max_shift_deg: float = MAX_SHIFT_DEG,
+    max_mse: float = MAX_MSE,
 ) -> Alignment:
     """Correct ``pose_c2w`` (4, 4) from a render of the map at that pose (rgb (H, W, 3), alpha (H, W), camera
     depth (H, W)) and the captured ``image`` (H, W, 3) in [0, 1], both with intrinsics ``k``."""
     h, w = k.height, k.width
-    if render_rgb.shape != (h, w, 3) or image.shape != (h, w, 3) or render_alpha.shape != (h, w) or render_depth.shape != (h, w):
-        raise ValueError(f"render {render_rgb.shape}, alpha {render_alpha.shape}, depth {render_depth.shape} and image "
-                         f"{image.shape} must all match the {h}x{w} intrinsics")
+    if (
+        render_rgb.shape != (h, w, 3)
+        or image.shape != (h, w, 3)
+        or render_alpha.shape != (h, w)
+        or render_depth.shape != (h, w)
+    ):
+        raise ValueError(
+            f"render {render_rgb.shape}, alpha {render_alpha.shape}, depth {render_depth.shape} and image "
+            f"{image.shape} must all match the {h}x{w} intrinsics"
+        )
     pose = np.asarray(pose_c2w, np.float64)
     a, b = _gray8(render_rgb), _gray8(image)
     ys, xs = np.mgrid[0:h:SAMPLE_STEP, 0:w:SAMPLE_STEP]
@@ -96,11 +110,24 @@ def align_pose(
     seen = np.stack([u + flow[ys, xs, 0][use], v + flow[ys, xs, 1][use]], axis=1)
     w2c = invert_pose(pose)
     rvec0, _ = cv2.Rodrigues(w2c[:3, :3])
-    ok, rvec, tvec, inl = cv2.solvePnPRansac(X, seen, k.K, None, rvec0, w2c[:3, 3].reshape(3, 1).copy(),
-                                             useExtrinsicGuess=True, iterationsCount=100, reprojectionError=REPROJ_PX,
-                                             flags=cv2.SOLVEPNP_ITERATIVE)
+    ok, rvec, tvec, inl = cv2.solvePnPRansac(
+        X,
+        seen,
+        k.K,
+        None,
+        rvec0,
+        w2c[:3, 3].reshape(3, 1).copy(),
+        useExtrinsicGuess=True,
+        iterationsCount=100,
+        reprojectionError=REPROJ_PX,
+        flags=cv2.SOLVEPNP_ITERATIVE,
+    )
     n_in = 0 if inl is None else len(inl)
-    if not ok or n_in < max(MIN_POINTS, MIN_INLIER_RATIO * n) or not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
+    if (
+        not ok
+        or n_in < max(MIN_POINTS, MIN_INLIER_RATIO * n)
+        or not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec)))
+    ):
         return Alignment(pose, "no_fit", mse, n, n_in)
     new = invert_pose(make_pose(cv2.Rodrigues(rvec)[0], tvec))
     dt, dr = pose_error(new, pose)

@@ -26,8 +26,10 @@ def bundle_gaussians(bundle: Bundle) -> Gaussians | None:
 
 
 def no_models_message(bundle: Bundle) -> str:
-    return (f"{bundle.root}: bundle has no Gaussian model (gaussians.ply); --refine is off and localization runs on "
-            "(re-export with `acesplat export MAP --splat SPLAT`)")
+    return (
+        f"{bundle.root}: bundle has no Gaussian model (gaussians.ply); --refine is off and localization runs on "
+        "(re-export with `acesplat export MAP --splat SPLAT`)"
+    )
 
 
 def splat_section(bundle: Bundle) -> dict:

@@ -39,13 +39,16 @@ def analyse_render(
     """color (H, W, 3) and alpha (H, W) of a render, target (H, W, 3) in [0, 1]."""
     color = np.asarray(color)
     if color.ndim != 3 or color.shape[2] != 3 or alpha.shape != color.shape[:2] or target.shape != color.shape:
-        raise ValueError(f"need color (H, W, 3), alpha (H, W), target (H, W, 3); got {color.shape}, {alpha.shape}, {target.shape}")
+        raise ValueError(
+            f"need color (H, W, 3), alpha (H, W), target (H, W, 3); got {color.shape}, {alpha.shape}, {target.shape}"
+        )
     diff = np.asarray(color, np.float32) - np.asarray(target, np.float32)
     err = np.abs(diff).mean(axis=2)
     covered = alpha >= alpha_min
     need = ~covered | (err > error_max)
-    return RenderAnalysis(need=need, coverage=float(covered.mean()), mse=float(np.mean(diff * diff)),
-                          mean_abs_error=float(err.mean()))
+    return RenderAnalysis(
+        need=need, coverage=float(covered.mean()), mse=float(np.mean(diff * diff)), mean_abs_error=float(err.mean())
+    )
 
 
 def camera_points(means: np.ndarray, pose_c2w: np.ndarray) -> np.ndarray:
@@ -55,7 +58,12 @@ def camera_points(means: np.ndarray, pose_c2w: np.ndarray) -> np.ndarray:
 
 
 def frustum_mask(
-    means: np.ndarray, log_scales: np.ndarray, pose_c2w: np.ndarray, k: Intrinsics, near: float = 0.01, sigmas: float = 3.0
+    means: np.ndarray,
+    log_scales: np.ndarray,
+    pose_c2w: np.ndarray,
+    k: Intrinsics,
+    near: float = 0.01,
+    sigmas: float = 3.0,
 ) -> np.ndarray:
     """Gaussians (N,) that can touch the image: in front of the camera and within ``sigmas`` of their
     largest scale of the image rectangle (a conservative test, so rendering only these changes nothing).
@@ -80,7 +88,11 @@ def frustum_mask(
 
 
 def projected_coverage(
-    means: np.ndarray, pose_c2w: np.ndarray, k: Intrinsics, cell_depth: np.ndarray, stride: int = 8,
+    means: np.ndarray,
+    pose_c2w: np.ndarray,
+    k: Intrinsics,
+    cell_depth: np.ndarray,
+    stride: int = 8,
     depth_ratio: float = DEPTH_RATIO,
 ) -> float:
     """Share of the cells (h, w) with a finite positive SCR depth ``cell_depth`` that receive a Gaussian

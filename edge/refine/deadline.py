@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -27,7 +27,7 @@ class Deadline:
         self.clock = clock
 
     @classmethod
-    def after(cls, seconds: float, clock: Clock = time.perf_counter) -> "Deadline":
+    def after(cls, seconds: float, clock: Clock = time.perf_counter) -> Deadline:
         return cls(clock() + seconds, clock)
 
     def remaining(self) -> float:

@@ -17,9 +17,8 @@ import numpy as np
 
 from acesplat.core.camera import Intrinsics
 from acesplat.core.gaussians import Gaussians
-from acesplat.core.raster import rasterize
-
-from .coverage import frustum_mask
+from acesplat.raster import rasterize
+from edge.refine.coverage import frustum_mask
 
 HELD_TOLERANCE = 0.3
 """Largest relative MSE increase allowed on any held keyframe. Measured on the synthetic room (10 steps,
@@ -29,7 +28,9 @@ view cannot pin down geometry), wrong ones by 49% to 680%."""
 
 def all_finite(grads) -> bool:
     """True if every gradient array of ``grads`` (a RasterGradients) is finite."""
-    return all(bool(np.all(np.isfinite(getattr(grads, p)))) for p in ("means", "log_scales", "quats", "opacity_logits", "sh"))
+    return all(
+        bool(np.all(np.isfinite(getattr(grads, p)))) for p in ("means", "log_scales", "quats", "opacity_logits", "sh")
+    )
 
 
 def render_view(g: Gaussians, pose_c2w: np.ndarray, k: Intrinsics, background: np.ndarray):
@@ -94,8 +95,9 @@ class HeldViews:
         return iter(list(self.views))
 
 
-def held_verdict(kf_before: float, kf_after: float, before: list[float], after: list[float],
-                 tolerance: float = HELD_TOLERANCE) -> bool:
+def held_verdict(
+    kf_before: float, kf_after: float, before: list[float], after: list[float], tolerance: float = HELD_TOLERANCE
+) -> bool:
     """True if the summed error over the keyframe and the held views fell, and no held view's error rose
     by more than ``tolerance`` (relative)."""
     if len(before) != len(after):

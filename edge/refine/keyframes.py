@@ -77,8 +77,14 @@ class KeyframeSelector:
         self.last_pose: np.ndarray | None = None
         self.counts: dict[str, int] = {}
 
-    def consider(self, pose_c2w: np.ndarray | None, inliers: int, tracking: bool, coverage: float | None = None,
-                 inlier_ratio: float = 1.0) -> bool:
+    def consider(
+        self,
+        pose_c2w: np.ndarray | None,
+        inliers: int,
+        tracking: bool,
+        coverage: float | None = None,
+        inlier_ratio: float = 1.0,
+    ) -> bool:
         ok, reason = keyframe_decision(pose_c2w, inliers, tracking, self.last_pose, coverage, self.policy, inlier_ratio)
         self.counts[reason] = self.counts.get(reason, 0) + 1
         return ok

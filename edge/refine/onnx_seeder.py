@@ -13,8 +13,8 @@ says so) and refinement seeds from SCR coordinates.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -23,9 +23,8 @@ import onnxruntime as ort
 from acesplat.core.bundle import Bundle, verify_file
 from acesplat.core.errors import InputError
 from acesplat.core.gaussians import SH_C0, Gaussians, logit, sh_coeff_count
-
-from .bundle_models import ROLE_SPLAT_INIT, splat_section
-from .seeding import block_colours, pixel_depths, seed_pixels
+from edge.refine.bundle_models import ROLE_SPLAT_INIT, splat_section
+from edge.refine.seeding import block_colours, pixel_depths, seed_pixels
 
 PRIOR_CHANNELS = 7
 CALIBRATION_RUNS = 3
@@ -51,7 +50,9 @@ class OnnxSeeder:
             self.centre = np.asarray(norm["centre"], np.float64).reshape(3)
             self.scale = float(norm["scale"])
         except (KeyError, TypeError, ValueError):
-            raise InputError(self.path, "bundle manifest's 'splat' section lacks the initializer's description") from None
+            raise InputError(
+                self.path, "bundle manifest's 'splat' section lacks the initializer's description"
+            ) from None
         so = ort.SessionOptions()
         so.intra_op_num_threads = threads
         so.inter_op_num_threads = 1
@@ -59,10 +60,14 @@ class OnnxSeeder:
         try:
             self.sess = ort.InferenceSession(str(self.path), sess_options=so, providers=["CPUExecutionProvider"])
         except Exception as e:  # onnxruntime raises its own types
-            raise InputError(self.path, f"onnxruntime cannot load the initializer ({str(e).splitlines()[0][:200]})") from None
+            raise InputError(
+                self.path, f"onnxruntime cannot load the initializer ({str(e).splitlines()[0][:200]})"
+            ) from None
         names = [i.name for i in self.sess.get_inputs()]
         if tuple(names) != INPUTS:
-            raise InputError(self.path, f"initializer takes {names}, expected {list(INPUTS)} (a bundle format 1 graph?)")
+            raise InputError(
+                self.path, f"initializer takes {names}, expected {list(INPUTS)} (a bundle format 1 graph?)"
+            )
         self.features_shape = tuple(int(d) for d in self.sess.get_inputs()[0].shape[1:])
         self.spacing = spacing
         self.channels = 1 + 3 * sh_coeff_count(self.head_degree) + 7
@@ -89,11 +94,15 @@ class OnnxSeeder:
         """(H, W, K) head residuals for SCR features (C, h, w) and a prior (PRIOR_CHANNELS, H, W)."""
         if features.shape != self.features_shape:
             raise ValueError(f"features must have shape {self.features_shape}, got {features.shape}")
-        feed = {INPUTS[0]: np.ascontiguousarray(features, dtype=np.float32)[None],
-                INPUTS[1]: np.ascontiguousarray(prior, dtype=np.float32)[None]}
+        feed = {
+            INPUTS[0]: np.ascontiguousarray(features, dtype=np.float32)[None],
+            INPUTS[1]: np.ascontiguousarray(prior, dtype=np.float32)[None],
+        }
         out = self.sess.run(None, feed)[0]
         if out.shape != (1, self.channels, *self.size):
-            raise InputError(self.path, f"initializer output {out.shape} is not (1, {self.channels}, {self.size[0]}, {self.size[1]})")
+            raise InputError(
+                self.path, f"initializer output {out.shape} is not (1, {self.channels}, {self.size[0]}, {self.size[1]})"
+            )
         return np.ascontiguousarray(np.moveaxis(out[0], 0, -1))
 
     def __call__(self, kf, need: np.ndarray, max_new: int, sh_degree: int, rng: np.random.Generator) -> Gaussians:
@@ -108,9 +117,15 @@ class OnnxSeeder:
         raw_in = self.residuals(kf.features, self.prior(kf))
         # One call over all channels (cv2 resizes up to 512 channels at once).
         raw = cv2.resize(raw_in, (kf.k.width, kf.k.height), interpolation=cv2.INTER_AREA).reshape(-1, raw_in.shape[2])
-        return self.decode(raw[idx], block_colours(kf.rgb, float(s)).reshape(-1, 3)[idx],
-                           pix.centres.reshape(-1, 3)[idx], pix.depth.reshape(-1)[idx],
-                           0.5 * (kf.k.fx + kf.k.fy), float(s), sh_degree)
+        return self.decode(
+            raw[idx],
+            block_colours(kf.rgb, float(s)).reshape(-1, 3)[idx],
+            pix.centres.reshape(-1, 3)[idx],
+            pix.depth.reshape(-1)[idx],
+            0.5 * (kf.k.fx + kf.k.fy),
+            float(s),
+            sh_degree,
+        )
 
     def prior(self, kf) -> np.ndarray:
         """The head's prior (PRIOR_CHANNELS, H, W) float32 at the network input size: rgb - 0.5, normalised
@@ -127,8 +142,16 @@ class OnnxSeeder:
         prior[6] = np.log(np.maximum(pix.depth, 1e-6) / self.scale)
         return np.nan_to_num(prior, copy=False)
 
-    def decode(self, raw: np.ndarray, rgb: np.ndarray, centres: np.ndarray, depth: np.ndarray, focal_px: float,
-               spacing_px: float, sh_degree: int) -> Gaussians:
+    def decode(
+        self,
+        raw: np.ndarray,
+        rgb: np.ndarray,
+        centres: np.ndarray,
+        depth: np.ndarray,
+        focal_px: float,
+        spacing_px: float,
+        sh_degree: int,
+    ) -> Gaussians:
         """Gaussians from residuals raw (N, C), colours (N, 3), centres (N, 3), camera depths (N,)."""
         n, kh = raw.shape[0], sh_coeff_count(self.head_degree)
         g = Gaussians.zeros(n, sh_degree, np.float32)
@@ -143,16 +166,19 @@ class OnnxSeeder:
         return g
 
 
-def onnx_seeder_for(bundle: Bundle, threads: int = 1, spacing: int = 2,
-                    warn: Callable[[str], None] | None = None) -> OnnxSeeder | None:
+def onnx_seeder_for(
+    bundle: Bundle, threads: int = 1, spacing: int = 2, warn: Callable[[str], None] | None = None
+) -> OnnxSeeder | None:
     """The bundle's initializer as a seeder, or None when the bundle has none or only a format 1 one (which runs
     its own encoder; ``warn`` gets one line): the SCR seeder is used then."""
     if not bundle.has(ROLE_SPLAT_INIT):
         return None
     if bundle.format_version < 2:
         if warn is not None:
-            warn(f"{bundle.root}: bundle format {bundle.format_version}: its initializer runs its own encoder; seeding "
-                 "from SCR coordinates instead (re-export with `acesplat export MAP --splat SPLAT` to use it)")
+            warn(
+                f"{bundle.root}: bundle format {bundle.format_version}: its initializer runs its own encoder; seeding "
+                "from SCR coordinates instead (re-export with `acesplat export MAP --splat SPLAT` to use it)"
+            )
         return None
     f = bundle.files[ROLE_SPLAT_INIT]
     verify_file(bundle.root, f)

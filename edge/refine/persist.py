@@ -12,8 +12,7 @@ from pathlib import Path
 
 from acesplat.core.gaussians import Gaussians
 from acesplat.core.ply import write_ply
-
-from .deadline import Clock
+from edge.refine.deadline import Clock
 
 SAVE_EVERY_S = 30.0
 

@@ -17,7 +17,11 @@ PRUNE_OPACITY = 0.005
 def transparent(g: Gaussians, min_opacity: float = PRUNE_OPACITY) -> np.ndarray:
     """Mask (N,) of Gaussians whose opacity fell below ``min_opacity`` (or became non-finite)."""
     op = sigmoid(g.opacity_logits.astype(np.float64))
-    bad = ~np.all(np.isfinite(g.means), axis=1) | ~np.isfinite(g.opacity_logits) | ~np.all(np.isfinite(g.log_scales), axis=1)
+    bad = (
+        ~np.all(np.isfinite(g.means), axis=1)
+        | ~np.isfinite(g.opacity_logits)
+        | ~np.all(np.isfinite(g.log_scales), axis=1)
+    )
     return (op < min_opacity) | bad
 
 

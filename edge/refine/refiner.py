@@ -19,28 +19,28 @@ from __future__ import annotations
 
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Callable, Protocol
+from typing import Protocol
 
 import cv2
 import numpy as np
 
 from acesplat.core.camera import Intrinsics
 from acesplat.core.gaussians import Gaussians, concat_gaussians
-from acesplat.core.raster import rasterize, rasterize_backward
-
-from .adam import LearningRates, RowAdam
-from .align import MAX_SHIFT_DEG as ALIGN_MAX_DEG
-from .align import MAX_MSE as ALIGN_MAX_MSE
-from .align import MAX_SHIFT_M as ALIGN_MAX_M
-from .align import MIN_COVERAGE as ALIGN_MIN_COVERAGE
-from .align import align_pose
-from .coverage import ALPHA_MIN, analyse_render, frustum_mask
-from .deadline import Clock, CostEstimate, Deadline
-from .guard import HELD_TOLERANCE, HeldView, HeldViews, all_finite, downsample, held_verdict, view_mse
-from .prune import PRUNE_OPACITY, transparent
-from .seeding import seed_from_scr
-from .store import GaussianStore
+from acesplat.raster import rasterize, rasterize_backward
+from edge.refine.adam import LearningRates, RowAdam
+from edge.refine.align import MAX_MSE as ALIGN_MAX_MSE
+from edge.refine.align import MAX_SHIFT_DEG as ALIGN_MAX_DEG
+from edge.refine.align import MAX_SHIFT_M as ALIGN_MAX_M
+from edge.refine.align import MIN_COVERAGE as ALIGN_MIN_COVERAGE
+from edge.refine.align import align_pose
+from edge.refine.coverage import ALPHA_MIN, analyse_render, frustum_mask
+from edge.refine.deadline import Clock, CostEstimate, Deadline
+from edge.refine.guard import HELD_TOLERANCE, HeldView, HeldViews, all_finite, downsample, held_verdict, view_mse
+from edge.refine.prune import PRUNE_OPACITY, transparent
+from edge.refine.seeding import seed_from_scr
+from edge.refine.store import GaussianStore
 
 DIVERGE = 1.5
 """A step whose measured error exceeds the batch's best by this factor ends the batch (keeping the best)."""
@@ -100,7 +100,16 @@ class RefineConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if self.cap < 1 or self.max_new < 0 or self.seed_spacing < 1 or self.max_steps < 0 or self.held < 0 or self.tiles < 1 or self.align_tiles < 1 or self.crop_side < 4:
+        if (
+            self.cap < 1
+            or self.max_new < 0
+            or self.seed_spacing < 1
+            or self.max_steps < 0
+            or self.held < 0
+            or self.tiles < 1
+            or self.align_tiles < 1
+            or self.crop_side < 4
+        ):
             raise ValueError(f"invalid RefineConfig {self}")
 
 
@@ -128,11 +137,14 @@ class Keyframe:
 
 
 class Seeder(Protocol):
-    def __call__(self, kf: Keyframe, need: np.ndarray, max_new: int, sh_degree: int, rng: np.random.Generator) -> Gaussians: ...
+    def __call__(
+        self, kf: Keyframe, need: np.ndarray, max_new: int, sh_degree: int, rng: np.random.Generator
+    ) -> Gaussians: ...
 
 
-def scr_seeder(kf: Keyframe, need: np.ndarray, max_new: int, sh_degree: int, rng: np.random.Generator,
-               spacing: int = 2) -> Gaussians:
+def scr_seeder(
+    kf: Keyframe, need: np.ndarray, max_new: int, sh_degree: int, rng: np.random.Generator, spacing: int = 2
+) -> Gaussians:
     """Seed from the SCR coordinates upsampled along pixel rays, coloured from the keyframe."""
     if kf.coords is None or kf.k_input is None:
         return Gaussians.empty(sh_degree)
@@ -178,8 +190,13 @@ class BatchReport:
 class Refiner:
     """Owns the map (a float32 Gaussian set) and refines it one keyframe batch at a time (not thread-safe)."""
 
-    def __init__(self, gaussians: Gaussians, cfg: RefineConfig = RefineConfig(), seeder: Callable | None = None,
-                 clock: Clock = time.perf_counter) -> None:
+    def __init__(
+        self,
+        gaussians: Gaussians,
+        cfg: RefineConfig = RefineConfig(),
+        seeder: Callable | None = None,
+        clock: Clock = time.perf_counter,
+    ) -> None:
         self.store = GaussianStore(gaussians.astype(np.float32), cfg.cap)
         self.cfg = cfg
         self.clock = clock
@@ -211,8 +228,17 @@ class Refiner:
         """Selecting the map's Gaussians in a keyframe's view (a copy of them)."""
         self.guard_view_cost = CostEstimate(cfg.render_prior_s)
         """One held-view render at guard resolution."""
-        self.totals = {"keyframes": 0, "committed": 0, "rolled_back": 0, "no_time": 0, "steps": 0,
-                       "nonfinite_skipped": 0, "gaussians_added": 0, "pruned": 0, "capped": 0}
+        self.totals = {
+            "keyframes": 0,
+            "committed": 0,
+            "rolled_back": 0,
+            "no_time": 0,
+            "steps": 0,
+            "nonfinite_skipped": 0,
+            "gaussians_added": 0,
+            "pruned": 0,
+            "capped": 0,
+        }
 
     # ------------------------------------------------------------------------------------------
     def warm_up(self, k: Intrinsics | None = None, k_detail: Intrinsics | None = None) -> dict:
@@ -262,7 +288,9 @@ class Refiner:
             r = rasterize(sub.subset(m), pose, k_crop, self.bg)
             grads = rasterize_backward(r, (2.0 / crop.size) * (r.color - crop))
             vis = r.visible
-            RowAdam(sub, self.cfg.lr).step_rows(sub, _Grads(**{p: getattr(grads, p)[vis] for p in _PARAMS}), np.flatnonzero(m)[vis])
+            RowAdam(sub, self.cfg.lr).step_rows(
+                sub, _Grads(**{p: getattr(grads, p)[vis] for p in _PARAMS}), np.flatnonzero(m)[vis]
+            )
             t4 = self.clock()
             view_mse(self.map, pose, held_k, held_rgb, self.bg)
             t5 = self.clock()
@@ -275,8 +303,12 @@ class Refiner:
         self.step_cost.record(step_s)
         self.step_per_render = step_s / max(render_s, 1e-6)
         self.guard_view_cost.record(guard_s)
-        return {"cull_ms": 1000 * cull_s, "tile_render_ms": 1000 * render_s, "step_ms": 1000 * step_s,
-                "guard_view_ms": 1000 * guard_s}
+        return {
+            "cull_ms": 1000 * cull_s,
+            "tile_render_ms": 1000 * render_s,
+            "step_ms": 1000 * step_s,
+            "guard_view_ms": 1000 * guard_s,
+        }
 
     def refine(self, kf: Keyframe, deadline: Deadline) -> BatchReport:
         """Run one batch for ``kf`` within one deadline; the map changes only if the batch is committed.
@@ -337,8 +369,9 @@ class Refiner:
             yield ("must", self.cull_cost.predict(), 0.0)
             k_al, img = _align_image(kf, cfg.align_side)
             near = np.flatnonzero(frustum_mask(self.map.means, self.map.log_scales, kf.pose, k_al))
-            c_al, a_al, _, d_al = yield from self._render_tiles(self.map, kf.pose, k_al, 0.0, near, cfg.align_tiles,
-                                                                self.align_render_cost)
+            c_al, a_al, _, d_al = yield from self._render_tiles(
+                self.map, kf.pose, k_al, 0.0, near, cfg.align_tiles, self.align_render_cost
+            )
             yield ("must", self.align_cost.predict(), 0.0)
             t1 = clock()
             al = align_pose(c_al, a_al, d_al, img, k_al, kf.pose, cfg.align_max_m, cfg.align_max_deg)
@@ -372,8 +405,11 @@ class Refiner:
             # recent keyframes' is taken for a wrong pose. (It also rejects some views of new territory the map
             # covers only from afar: on the half-trajectory replay at 100 ms PSNR reached 17.94 dB with this test
             # on every unaligned keyframe, 17.71 dB without it for 'unlike'/'no_fit' ones.)
-            if (rep.align != "aligned" and len(self.covered_history) >= POSE_CHECK_MIN_HISTORY
-                    and rep.covered_mse > POSE_CHECK_FACTOR * float(np.median(self.covered_history))):
+            if (
+                rep.align != "aligned"
+                and len(self.covered_history) >= POSE_CHECK_MIN_HISTORY
+                and rep.covered_mse > POSE_CHECK_FACTOR * float(np.median(self.covered_history))
+            ):
                 rep.outcome = "rolled_back_pose"
                 self.totals["rolled_back"] += 1
                 rep.ms["total"] = 1000.0 * (clock() - t_start)
@@ -385,13 +421,18 @@ class Refiner:
         new = Gaussians.empty(self.map.sh_degree)
         if room and an.need.any():  # nothing to seed: no piece (an empty run would also spoil the seeders' estimates)
             primary = self.seeder is not self.scr_seeder and (
-                yield ("option", self.seed_cost.predict(), self.guard_reserve(kf_px) + self.kf_check_reserve()))
+                yield ("option", self.seed_cost.predict(), self.guard_reserve(kf_px) + self.kf_check_reserve())
+            )
             if not primary:
                 yield ("must", self.scr_seed_cost.predict(), 0.0)
             t0 = clock()
             seeder, cost = (self.seeder, self.seed_cost) if primary else (self.scr_seeder, self.scr_seed_cost)
             new = seeder(kf, an.need, room, self.map.sh_degree, self.rng)
-            new = new.with_sh_degree(self.map.sh_degree).astype(np.float32) if len(new) else Gaussians.empty(self.map.sh_degree)
+            new = (
+                new.with_sh_degree(self.map.sh_degree).astype(np.float32)
+                if len(new)
+                else Gaussians.empty(self.map.sh_degree)
+            )
             cost.record(clock() - t0)
             rep.seeded_by = "primary" if primary else "scr"
             rep.ms["seed"] = 1000.0 * (clock() - t0)
@@ -561,15 +602,26 @@ class Refiner:
         """Cull the map to the keyframe's view and render it there (tiled); returns (in_view (M,) rows, color, alpha,
         seen (M,), the RenderAnalysis). The first piece (the cull) was granted by the caller."""
         t0 = self.clock()
-        in_view = (np.flatnonzero(frustum_mask(self.map.means, self.map.log_scales, kf.pose, kf.k)) if len(self.map)
-                   else np.zeros(0, np.int64))
+        in_view = (
+            np.flatnonzero(frustum_mask(self.map.means, self.map.log_scales, kf.pose, kf.k))
+            if len(self.map)
+            else np.zeros(0, np.int64)
+        )
         self.cull_cost.record(self.clock() - t0)
         color, alpha, seen, _ = yield from self._render_tiles(self.map, kf.pose, kf.k, reserve, in_view)
         an = analyse_render(color, alpha, kf.rgb, self.cfg.alpha_min, self.cfg.error_max)
         return in_view, color, alpha, seen, an
 
-    def _render_tiles(self, g: Gaussians, pose: np.ndarray, k: Intrinsics, reserve: float, idx: np.ndarray | None = None,
-                      tiles: int | None = None, cost: CostEstimate | None = None):
+    def _render_tiles(
+        self,
+        g: Gaussians,
+        pose: np.ndarray,
+        k: Intrinsics,
+        reserve: float,
+        idx: np.ndarray | None = None,
+        tiles: int | None = None,
+        cost: CostEstimate | None = None,
+    ):
         """Render ``g`` (only its rows ``idx`` (M,) int when given) tile by tile (``tiles`` x ``tiles``, default the
         config's), each tile a required piece of work predicted by ``cost`` (default a keyframe tile's); returns
         (color (H, W, 3), alpha (H, W), seen (M,) which rows any tile drew, depth (H, W)). The same pixels as one
@@ -624,7 +676,7 @@ def random_crop(k: Intrinsics, image: np.ndarray, side: int, rng: np.random.Gene
     s = min(1.0, side / max(k.width, k.height))
     w, h = max(1, int(round(k.width * s))), max(1, int(round(k.height * s)))
     x0, y0 = int(rng.integers(0, k.width - w + 1)), int(rng.integers(0, k.height - h + 1))
-    return window_intrinsics(k, y0, y0 + h, x0, x0 + w), image[y0:y0 + h, x0:x0 + w]
+    return window_intrinsics(k, y0, y0 + h, x0, x0 + w), image[y0 : y0 + h, x0 : x0 + w]
 
 
 _PARAMS = ("means", "log_scales", "quats", "opacity_logits", "sh")
@@ -641,8 +693,12 @@ def tile_bounds(height: int, width: int, tiles: int) -> list[tuple[int, int, int
     """(y0, y1, x0, x1) of a ``tiles`` x ``tiles`` grid over an image (empty tiles left out)."""
     ys = np.linspace(0, height, tiles + 1).round().astype(int)
     xs = np.linspace(0, width, tiles + 1).round().astype(int)
-    return [(int(ys[i]), int(ys[i + 1]), int(xs[j]), int(xs[j + 1])) for i in range(tiles) for j in range(tiles)
-            if ys[i + 1] > ys[i] and xs[j + 1] > xs[j]]
+    return [
+        (int(ys[i]), int(ys[i + 1]), int(xs[j]), int(xs[j + 1]))
+        for i in range(tiles)
+        for j in range(tiles)
+        if ys[i + 1] > ys[i] and xs[j + 1] > xs[j]
+    ]
 
 
 def window_intrinsics(k: Intrinsics, y0: int, y1: int, x0: int, x1: int) -> Intrinsics:

@@ -20,8 +20,7 @@ import numpy as np
 
 from acesplat.core.camera import Intrinsics
 from acesplat.core.gaussians import Gaussians, logit, rgb_to_sh_dc
-
-from .coverage import camera_points
+from edge.refine.coverage import camera_points
 
 STRIDE = 8
 DEPTH_RANGE_M = (0.05, 200.0)
@@ -68,7 +67,10 @@ def cell_trust(coords: np.ndarray, pose_c2w: np.ndarray, k_input: Intrinsics) ->
 
 
 def pixel_depths(
-    coords: np.ndarray, pose_c2w: np.ndarray, k_input: Intrinsics, k_out: Intrinsics,
+    coords: np.ndarray,
+    pose_c2w: np.ndarray,
+    k_input: Intrinsics,
+    k_out: Intrinsics,
     max_depth_ratio: float = MAX_DEPTH_RATIO,
 ) -> PixelDepths:
     """Depths and centres at the resolution of ``k_out`` (the input image rescaled) from cells of the input image."""
@@ -91,7 +93,9 @@ def pixel_depths(
     valid = (wt >= MIN_VALID_WEIGHT) & (ratio <= max_depth_ratio)
     depth = np.where(valid, zw / np.maximum(wt, 1e-6), 0.0).astype(np.float64)
     u, v = np.meshgrid(np.arange(k_out.width, dtype=np.float64), np.arange(k_out.height, dtype=np.float64))
-    X_cam = np.stack([(u - k_out.cx) / k_out.fx, (v - k_out.cy) / k_out.fy, np.ones_like(u)], axis=-1) * depth[..., None]
+    X_cam = (
+        np.stack([(u - k_out.cx) / k_out.fx, (v - k_out.cy) / k_out.fy, np.ones_like(u)], axis=-1) * depth[..., None]
+    )
     pose = np.asarray(pose_c2w, np.float64)
     return PixelDepths(depth=depth, centres=X_cam @ pose[:3, :3].T + pose[:3, 3], valid=valid)
 
@@ -124,35 +128,58 @@ def block_colours(rgb: np.ndarray, spacing: float) -> np.ndarray:
 
 
 def gaussians_at(
-    centres: np.ndarray, depth: np.ndarray, rgb: np.ndarray, focal_px: float, spacing_px: float, sh_degree: int,
-    dtype: type = np.float32, opacity: float = OPACITY_PRIOR,
+    centres: np.ndarray,
+    depth: np.ndarray,
+    rgb: np.ndarray,
+    focal_px: float,
+    spacing_px: float,
+    sh_degree: int,
+    dtype: type = np.float32,
+    opacity: float = OPACITY_PRIOR,
 ) -> Gaussians:
     """Isotropic Gaussians at ``centres`` (N, 3) with colours ``rgb`` (N, 3), sized to cover the gap to their
     neighbours: sigma = SCALE_PRIOR * spacing * depth / focal (depth (N,) camera z)."""
     centres = np.asarray(centres)
     n = centres.shape[0]
     if centres.shape != (n, 3) or np.shape(depth) != (n,) or np.shape(rgb) != (n, 3):
-        raise ValueError(f"need centres (N, 3), depth (N,), rgb (N, 3); got {centres.shape}, {np.shape(depth)}, {np.shape(rgb)}")
+        raise ValueError(
+            f"need centres (N, 3), depth (N,), rgb (N, 3); got {centres.shape}, {np.shape(depth)}, {np.shape(rgb)}"
+        )
     g = Gaussians.zeros(n, sh_degree, dtype)
     g.means[:] = centres
-    g.log_scales[:] = np.log(SCALE_PRIOR * spacing_px * np.maximum(np.asarray(depth, np.float64), 1e-6) / focal_px)[:, None]
+    g.log_scales[:] = np.log(SCALE_PRIOR * spacing_px * np.maximum(np.asarray(depth, np.float64), 1e-6) / focal_px)[
+        :, None
+    ]
     g.opacity_logits[:] = logit(np.full(n, opacity))
     g.sh[:, 0, :] = rgb_to_sh_dc(np.asarray(rgb, np.float64))
     return g
 
 
 def seed_from_scr(
-    coords: np.ndarray, pose_c2w: np.ndarray, k_input: Intrinsics, rgb: np.ndarray, k_out: Intrinsics, need: np.ndarray,
-    spacing: int, max_new: int, sh_degree: int, rng: np.random.Generator, dtype: type = np.float32,
+    coords: np.ndarray,
+    pose_c2w: np.ndarray,
+    k_input: Intrinsics,
+    rgb: np.ndarray,
+    k_out: Intrinsics,
+    need: np.ndarray,
+    spacing: int,
+    max_new: int,
+    sh_degree: int,
+    rng: np.random.Generator,
+    dtype: type = np.float32,
 ) -> Gaussians:
     """Gaussians for the ``need`` pixels (H, W) of a keyframe image ``rgb`` (H, W, 3) in [0, 1] of intrinsics
     ``k_out``, from its SCR ``coords`` (h, w, 3) predicted on the input image of ``k_input``."""
     if rgb.shape[:2] != (k_out.height, k_out.width) or need.shape != rgb.shape[:2]:
-        raise ValueError(f"rgb {rgb.shape} and need {need.shape} must match the {k_out.height}x{k_out.width} intrinsics")
+        raise ValueError(
+            f"rgb {rgb.shape} and need {need.shape} must match the {k_out.height}x{k_out.width} intrinsics"
+        )
     pix = pixel_depths(coords, pose_c2w, k_input, k_out)
     idx, s = seed_pixels(need & pix.valid, spacing, max_new, rng)
     if idx.size == 0:
         return Gaussians.empty(sh_degree, dtype)
     col = block_colours(rgb, float(s)).reshape(-1, 3)[idx]
     focal = 0.5 * (k_out.fx + k_out.fy)
-    return gaussians_at(pix.centres.reshape(-1, 3)[idx], pix.depth.reshape(-1)[idx], col, focal, float(s), sh_degree, dtype)
+    return gaussians_at(
+        pix.centres.reshape(-1, 3)[idx], pix.depth.reshape(-1)[idx], col, focal, float(s), sh_degree, dtype
+    )

@@ -19,9 +19,10 @@ rose 1.33x, which is why the commands pace.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import cv2
 import numpy as np
@@ -31,15 +32,14 @@ from acesplat.core.camera import Intrinsics
 from acesplat.core.gaussians import Gaussians
 from acesplat.core.metrics import timing_stats
 from acesplat.core.pose import TrackingState
-
-from ..frame_prep import crop_to_aspect
-from .deadline import Clock
-from .guard import psnr, render_view, view_mse
-from .keyframes import KeyframePolicy, KeyframeSelector
-from .persist import SAVE_EVERY_S, SplatSaver
-from .refiner import Keyframe, RefineConfig, Refiner
-from .seeding import cell_trust
-from .worker import NICE, Candidate, RefineWorker
+from edge.frame_prep import crop_to_aspect
+from edge.refine.deadline import Clock
+from edge.refine.guard import psnr, render_view, view_mse
+from edge.refine.keyframes import KeyframePolicy, KeyframeSelector
+from edge.refine.persist import SAVE_EVERY_S, SplatSaver
+from edge.refine.refiner import Keyframe, RefineConfig, Refiner
+from edge.refine.seeding import cell_trust
+from edge.refine.worker import NICE, Candidate, RefineWorker
 
 MAX_SIDE = 80
 """Refinement renders at this longer side. Measured on 2 busy cores with a 45k-Gaussian map (SH degree 3):
@@ -91,7 +91,9 @@ def refine_intrinsics(k_input: Intrinsics, max_side: int) -> Intrinsics:
     return k_input.resized(max(1, int(round(k_input.width * s))), max(1, int(round(k_input.height * s))))
 
 
-def colour_at(image: np.ndarray, intr: Intrinsics, dist: np.ndarray | None, k_input: Intrinsics, k_out: Intrinsics) -> np.ndarray:
+def colour_at(
+    image: np.ndarray, intr: Intrinsics, dist: np.ndarray | None, k_input: Intrinsics, k_out: Intrinsics
+) -> np.ndarray:
     """The captured image brought to ``k_out`` the way frame preparation brings it to the network input
     (undistort, centre crop to the input's aspect, resize), as float32 RGB in [0, 1]."""
     rgb = image if image.ndim == 3 else np.repeat(image[..., None], 3, axis=2)
@@ -108,7 +110,7 @@ class _SessionTap:
     """Stands in for the localizer's SCR session: keeps each frame's coordinates (and, for the ONNX initializer,
     the encoder features the same run output) for the keyframe."""
 
-    def __init__(self, inner: Any, session: "RefineSession", features: bool) -> None:
+    def __init__(self, inner: Any, session: RefineSession, features: bool) -> None:
         self._inner = inner
         self._session = session
         self._features = features
@@ -129,14 +131,20 @@ class _SessionTap:
 class RefineSession:
     """Refinement beside an :class:`edge.runtime.EdgeLocalizer` (``attach`` installs the taps)."""
 
-    def __init__(self, localizer: Any, gaussians: Gaussians, opts: RefineOptions, seeder: Callable | None = None,
-                 clock: Clock = time.perf_counter) -> None:
+    def __init__(
+        self,
+        localizer: Any,
+        gaussians: Gaussians,
+        opts: RefineOptions,
+        seeder: Callable | None = None,
+        clock: Clock = time.perf_counter,
+    ) -> None:
         self.opts = opts
         self.clock = clock
         self.initial = gaussians.astype(np.float32)
         self._raster_threads_before: int | None = None
         if opts.raster_threads is not None:
-            from acesplat.core.raster import get_num_threads, set_num_threads
+            from acesplat.raster import get_num_threads, set_num_threads
 
             self._raster_threads_before = get_num_threads()
             set_num_threads(opts.raster_threads)
@@ -159,8 +167,9 @@ class RefineSession:
             raise
         self.saver = SplatSaver(opts.save_path, opts.save_every_s) if opts.save_path else None
         # Paced: the worker never runs beside localization (parked), so it need not yield the CPU to it.
-        self.worker = RefineWorker(self.refiner, KeyframeSelector(opts.policy), self.saver, clock,
-                                   nice=0 if opts.pace else NICE)
+        self.worker = RefineWorker(
+            self.refiner, KeyframeSelector(opts.policy), self.saver, clock, nice=0 if opts.pace else NICE
+        )
         self.frames = 0
         self.wait_ms: list[float] = []
         self.park_ms: list[float] = []
@@ -199,7 +208,9 @@ class RefineSession:
             return
         k_ref = refine_intrinsics(k_input, self.opts.max_side)
         if self.opts.evaluate and out.gt_pose is not None:  # scored at the network input size, not the refinement size
-            self._eval.append((np.asarray(out.gt_pose, np.float64), k_input, colour_at(image, intr, dist, k_input, k_input)))
+            self._eval.append(
+                (np.asarray(out.gt_pose, np.float64), k_input, colour_at(image, intr, dist, k_input, k_input))
+            )
         total_ms = float(out.times_ms.get("total", 0.0))
         # Refinement's pieces end a margin before the next frame: a piece that runs longer than predicted then
         # still ends before the next localization instead of delaying it.
@@ -219,8 +230,9 @@ class RefineSession:
             def cell_depth() -> tuple[np.ndarray, Intrinsics]:
                 return cell_trust(coords, pose, k_input)[0], k_input
 
-            self.worker.submit(Candidate(pose, rec.inliers, tracking, deadline_at, make_keyframe, cell_depth, name,
-                                         float(rec.quality)))
+            self.worker.submit(
+                Candidate(pose, rec.inliers, tracking, deadline_at, make_keyframe, cell_depth, name, float(rec.quality))
+            )
         if self.opts.pace:
             t0 = self.clock()
             self.worker.wait_idle(max(0.0, frame_end - self.clock()))
@@ -229,7 +241,7 @@ class RefineSession:
 
     def _restore_thread_limits(self) -> None:
         if self._raster_threads_before is not None:
-            from acesplat.core.raster import set_num_threads
+            from acesplat.raster import set_num_threads
 
             set_num_threads(self._raster_threads_before)
         for limit in reversed(self._blas_limits):
@@ -285,8 +297,12 @@ class RefineSession:
             "pieces": len(ws.piece_spill_ms),
             "pieces_past_deadline": int(sum(v > 0 for v in ws.piece_spill_ms)),
             "batches_over_deadline": int(sum(v > 0 for v in ws.overrun_ms)),
-            "late_pieces": [{"kind": k, "predicted_ms": p, "took_ms": t, "late_ms": late} for k, p, t, late in ws.late_pieces[:20]],
-            "alignment": {k: sum(r.align == k for r in reps) for k in ("aligned", "unlike", "few_points", "no_fit", "too_far")},
+            "late_pieces": [
+                {"kind": k, "predicted_ms": p, "took_ms": t, "late_ms": late} for k, p, t, late in ws.late_pieces[:20]
+            ],
+            "alignment": {
+                k: sum(r.align == k for r in reps) for k in ("aligned", "unlike", "few_points", "no_fit", "too_far")
+            },
             "gaussians_over_time": [list(p) for p in self.counts_over_time],
             "errors": ws.errors[:20],
         }
@@ -305,7 +321,7 @@ class RefineSession:
         return s
 
 
-def write_before_after(session: "RefineSession", out_dir: Path, count: int = 3) -> list[dict]:
+def write_before_after(session: RefineSession, out_dir: Path, count: int = 3) -> list[dict]:
     """PNG triptychs (captured frame | map before refinement | map after), rendered from ground-truth poses of the
     evaluated views: the ``count`` views whose PSNR changed most, either way. Returns one record per file."""
     from acesplat.core.atomic import write_bytes
@@ -336,17 +352,23 @@ def write_before_after(session: "RefineSession", out_dir: Path, count: int = 3) 
     return written
 
 
-def start_refinement(localizer: Any, bundle: Any, opts: RefineOptions, warn: Callable[[str], None]) -> RefineSession | None:
+def start_refinement(
+    localizer: Any, bundle: Any, opts: RefineOptions, warn: Callable[[str], None]
+) -> RefineSession | None:
     """A session on the bundle's Gaussians, or None (after one line through ``warn``) when the bundle has none."""
-    from .bundle_models import bundle_gaussians, no_models_message
+    from edge.refine.bundle_models import bundle_gaussians, no_models_message
 
     g = bundle_gaussians(bundle)
     if g is None:
         warn(no_models_message(bundle))
         return None
-    from .onnx_seeder import onnx_seeder_for
+    from edge.refine.onnx_seeder import onnx_seeder_for
 
-    seeder = onnx_seeder_for(bundle, threads=1, spacing=opts.config.seed_spacing, warn=warn) if opts.use_initializer else None
+    seeder = (
+        onnx_seeder_for(bundle, threads=1, spacing=opts.config.seed_spacing, warn=warn)
+        if opts.use_initializer
+        else None
+    )
     session_out = getattr(localizer.session, "has_features", True)
     if seeder is not None and not session_out:
         warn(f"{bundle.root}: the SCR model has no features output for the initializer; seeding from SCR coordinates")

@@ -12,8 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from acesplat.core.gaussians import Gaussians
-
-from .prune import cap_keep
+from edge.refine.prune import cap_keep
 
 PARAMS = ("means", "log_scales", "quats", "opacity_logits", "sh")
 HIDDEN = -30.0

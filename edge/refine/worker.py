@@ -18,16 +18,17 @@ from __future__ import annotations
 import os
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
-from .coverage import projected_coverage
-from .deadline import Clock, Deadline
-from .keyframes import KeyframeSelector
-from .persist import SplatSaver
-from .refiner import BatchReport, Keyframe, Refiner
+from edge.refine.coverage import projected_coverage
+from edge.refine.deadline import Clock, Deadline
+from edge.refine.keyframes import KeyframeSelector
+from edge.refine.persist import SplatSaver
+from edge.refine.refiner import BatchReport, Keyframe, Refiner
 
 
 @dataclass
@@ -93,9 +94,17 @@ Steps on crops cost 5-20 ms, so a keyframe's 30 steps need several windows besid
 
 
 class RefineWorker:
-    def __init__(self, refiner: Refiner, selector: KeyframeSelector, saver: SplatSaver | None = None,
-                 clock: Clock = time.perf_counter, keep_reports: int = 10_000, max_windows: int = MAX_WINDOWS,
-                 step_windows: int = STEP_WINDOWS, nice: int = NICE) -> None:
+    def __init__(
+        self,
+        refiner: Refiner,
+        selector: KeyframeSelector,
+        saver: SplatSaver | None = None,
+        clock: Clock = time.perf_counter,
+        keep_reports: int = 10_000,
+        max_windows: int = MAX_WINDOWS,
+        step_windows: int = STEP_WINDOWS,
+        nice: int = NICE,
+    ) -> None:
         if max_windows < 1 or step_windows < 1:
             raise ValueError(f"max_windows and step_windows must be >= 1, got {max_windows}, {step_windows}")
         self.max_windows = max_windows
@@ -251,7 +260,9 @@ class RefineWorker:
                         self.stats.piece_spill_ms.append(spill)
                         self.stats.window_work_ms[-1] += 1000.0 * (now - t_piece)
                         if spill > 0 and len(self.stats.late_pieces) < 200:
-                            self.stats.late_pieces.append((piece_kind, 1000.0 * piece_cost, 1000.0 * (now - t_piece), spill))
+                            self.stats.late_pieces.append(
+                                (piece_kind, 1000.0 * piece_cost, 1000.0 * (now - t_piece), spill)
+                            )
         except StopIteration:
             return rep
 

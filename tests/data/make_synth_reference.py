@@ -28,5 +28,8 @@ def render() -> dict[str, np.ndarray]:
 
 if __name__ == "__main__":
     imgs = render()
-    np.savez_compressed(Path(__file__).with_name("synth_reference.npz"), opencv=cv2.__version__,
-                        **{f.replace("/", "__"): v for f, v in imgs.items()})
+    np.savez_compressed(
+        Path(__file__).with_name("synth_reference.npz"),
+        opencv=cv2.__version__,
+        **{f.replace("/", "__"): v for f, v in imgs.items()},
+    )

@@ -5,8 +5,8 @@ Public API in :mod:`.rasterizer`; the kernels live in ``_project_kernels`` (per 
 over chunks on a thread pool.
 """
 
-from ._threads import get_num_threads, set_num_threads
-from .rasterizer import (
+from acesplat.raster._threads import get_num_threads, set_num_threads
+from acesplat.raster.rasterizer import (
     ALPHA_MAX,
     ALPHA_MIN,
     DILATION,
@@ -23,7 +23,19 @@ from .rasterizer import (
 )
 
 __all__ = [
-    "ALPHA_MAX", "ALPHA_MIN", "DILATION", "FRUSTUM_SLACK", "MAHA2_MAX", "T_MIN", "TILE",
-    "RasterContext", "RasterGradients", "RenderResult", "ndc_grad_norm", "rasterize", "rasterize_backward",
-    "get_num_threads", "set_num_threads",
+    "ALPHA_MAX",
+    "ALPHA_MIN",
+    "DILATION",
+    "FRUSTUM_SLACK",
+    "MAHA2_MAX",
+    "T_MIN",
+    "TILE",
+    "RasterContext",
+    "RasterGradients",
+    "RenderResult",
+    "ndc_grad_norm",
+    "rasterize",
+    "rasterize_backward",
+    "get_num_threads",
+    "set_num_threads",
 ]

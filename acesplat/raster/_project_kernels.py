@@ -13,9 +13,31 @@ import math
 
 from numba import njit
 
-from ._layout import (
-    BLUE, CA, CB, CC, DEPTH, EXT_X, EXT_Y, G_BLUE, G_CA, G_CB, G_CC, G_DEPTH, G_GREEN, G_MX, G_MY, G_OPAC,
-    G_RED, GREEN, MAHA2, MX, MY, OPAC, POWER_MIN, RED,
+from acesplat.raster._layout import (
+    BLUE,
+    CA,
+    CB,
+    CC,
+    DEPTH,
+    EXT_X,
+    EXT_Y,
+    G_BLUE,
+    G_CA,
+    G_CB,
+    G_CC,
+    G_DEPTH,
+    G_GREEN,
+    G_MX,
+    G_MY,
+    G_OPAC,
+    G_RED,
+    GREEN,
+    MAHA2,
+    MX,
+    MY,
+    OPAC,
+    POWER_MIN,
+    RED,
 )
 
 DILATION = 0.3
@@ -58,8 +80,14 @@ def sh_basis(x, y, z):
     xx, yy, zz = x * x, y * y, z * z
     return (
         SH_C0,
-        -SH_C1 * y, SH_C1 * z, -SH_C1 * x,
-        SH_C2_0 * x * y, SH_C2_1 * y * z, SH_C2_2 * (2.0 * zz - xx - yy), SH_C2_3 * x * z, SH_C2_4 * (xx - yy),
+        -SH_C1 * y,
+        SH_C1 * z,
+        -SH_C1 * x,
+        SH_C2_0 * x * y,
+        SH_C2_1 * y * z,
+        SH_C2_2 * (2.0 * zz - xx - yy),
+        SH_C2_3 * x * z,
+        SH_C2_4 * (xx - yy),
         SH_C3_0 * y * (3.0 * xx - yy),
         SH_C3_1 * x * y * z,
         SH_C3_2 * y * (4.0 * zz - xx - yy),
@@ -102,16 +130,31 @@ def _sh_raw_color(sh, i, degree, x, y, z):
         b += bs[4] * sh[i, 4, 2] + bs[5] * sh[i, 5, 2] + bs[6] * sh[i, 6, 2] + bs[7] * sh[i, 7, 2] + bs[8] * sh[i, 8, 2]
     if degree >= 3:
         r += (
-            bs[9] * sh[i, 9, 0] + bs[10] * sh[i, 10, 0] + bs[11] * sh[i, 11, 0] + bs[12] * sh[i, 12, 0]
-            + bs[13] * sh[i, 13, 0] + bs[14] * sh[i, 14, 0] + bs[15] * sh[i, 15, 0]
+            bs[9] * sh[i, 9, 0]
+            + bs[10] * sh[i, 10, 0]
+            + bs[11] * sh[i, 11, 0]
+            + bs[12] * sh[i, 12, 0]
+            + bs[13] * sh[i, 13, 0]
+            + bs[14] * sh[i, 14, 0]
+            + bs[15] * sh[i, 15, 0]
         )
         g += (
-            bs[9] * sh[i, 9, 1] + bs[10] * sh[i, 10, 1] + bs[11] * sh[i, 11, 1] + bs[12] * sh[i, 12, 1]
-            + bs[13] * sh[i, 13, 1] + bs[14] * sh[i, 14, 1] + bs[15] * sh[i, 15, 1]
+            bs[9] * sh[i, 9, 1]
+            + bs[10] * sh[i, 10, 1]
+            + bs[11] * sh[i, 11, 1]
+            + bs[12] * sh[i, 12, 1]
+            + bs[13] * sh[i, 13, 1]
+            + bs[14] * sh[i, 14, 1]
+            + bs[15] * sh[i, 15, 1]
         )
         b += (
-            bs[9] * sh[i, 9, 2] + bs[10] * sh[i, 10, 2] + bs[11] * sh[i, 11, 2] + bs[12] * sh[i, 12, 2]
-            + bs[13] * sh[i, 13, 2] + bs[14] * sh[i, 14, 2] + bs[15] * sh[i, 15, 2]
+            bs[9] * sh[i, 9, 2]
+            + bs[10] * sh[i, 10, 2]
+            + bs[11] * sh[i, 11, 2]
+            + bs[12] * sh[i, 12, 2]
+            + bs[13] * sh[i, 13, 2]
+            + bs[14] * sh[i, 14, 2]
+            + bs[15] * sh[i, 15, 2]
         )
     return r, g, b
 
@@ -197,18 +240,29 @@ def _sh_backward(sh, i, degree, x, y, z, vr, vg, vb, v_sh):
         w15 = sh[i, 15, 0] * vr + sh[i, 15, 1] * vg + sh[i, 15, 2] * vb
         xx, yy, zz = x * x, y * y, z * z
         ux += (
-            6.0 * SH_C3_0 * x * y * w9 + SH_C3_1 * y * z * w10 - 2.0 * SH_C3_2 * x * y * w11
-            - 6.0 * SH_C3_3 * x * z * w12 + SH_C3_4 * (4.0 * zz - 3.0 * xx - yy) * w13
-            + 2.0 * SH_C3_5 * x * z * w14 + SH_C3_6 * (3.0 * xx - 3.0 * yy) * w15
+            6.0 * SH_C3_0 * x * y * w9
+            + SH_C3_1 * y * z * w10
+            - 2.0 * SH_C3_2 * x * y * w11
+            - 6.0 * SH_C3_3 * x * z * w12
+            + SH_C3_4 * (4.0 * zz - 3.0 * xx - yy) * w13
+            + 2.0 * SH_C3_5 * x * z * w14
+            + SH_C3_6 * (3.0 * xx - 3.0 * yy) * w15
         )
         uy += (
-            SH_C3_0 * (3.0 * xx - 3.0 * yy) * w9 + SH_C3_1 * x * z * w10 + SH_C3_2 * (4.0 * zz - xx - 3.0 * yy) * w11
-            - 6.0 * SH_C3_3 * y * z * w12 - 2.0 * SH_C3_4 * x * y * w13 - 2.0 * SH_C3_5 * y * z * w14
+            SH_C3_0 * (3.0 * xx - 3.0 * yy) * w9
+            + SH_C3_1 * x * z * w10
+            + SH_C3_2 * (4.0 * zz - xx - 3.0 * yy) * w11
+            - 6.0 * SH_C3_3 * y * z * w12
+            - 2.0 * SH_C3_4 * x * y * w13
+            - 2.0 * SH_C3_5 * y * z * w14
             - 6.0 * SH_C3_6 * x * y * w15
         )
         uz += (
-            SH_C3_1 * x * y * w10 + 8.0 * SH_C3_2 * y * z * w11 + SH_C3_3 * (6.0 * zz - 3.0 * xx - 3.0 * yy) * w12
-            + 8.0 * SH_C3_4 * x * z * w13 + SH_C3_5 * (xx - yy) * w14
+            SH_C3_1 * x * y * w10
+            + 8.0 * SH_C3_2 * y * z * w11
+            + SH_C3_3 * (6.0 * zz - 3.0 * xx - 3.0 * yy) * w12
+            + 8.0 * SH_C3_4 * x * z * w13
+            + SH_C3_5 * (xx - yy) * w14
         )
     return ux, uy, uz
 
@@ -237,9 +291,15 @@ def _unit_quat_rotation(quats, i):
     y *= inv
     z *= inv
     R = (
-        1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y),
-        2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x),
-        2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y),
+        1.0 - 2.0 * (y * y + z * z),
+        2.0 * (x * y - w * z),
+        2.0 * (x * z + w * y),
+        2.0 * (x * y + w * z),
+        1.0 - 2.0 * (x * x + z * z),
+        2.0 * (y * z - w * x),
+        2.0 * (x * z - w * y),
+        2.0 * (y * z + w * x),
+        1.0 - 2.0 * (x * x + y * y),
     )
     return True, n, w, x, y, z, R
 
@@ -322,8 +382,29 @@ def _tangent_limits(fx, fy, cx, cy, width, height):
 
 @njit(nogil=True, cache=True)
 def project_forward(
-    lo, hi, means, log_scales, quats, opacity_logits, sh, sh_degree, view, campos,
-    fx, fy, cx, cy, width, height, near, far, rec, bbox, radii, visible, means2d,
+    lo,
+    hi,
+    means,
+    log_scales,
+    quats,
+    opacity_logits,
+    sh,
+    sh_degree,
+    view,
+    campos,
+    fx,
+    fy,
+    cx,
+    cy,
+    width,
+    height,
+    near,
+    far,
+    rec,
+    bbox,
+    radii,
+    visible,
+    means2d,
 ):
     """For Gaussians lo..hi-1 fill rec (N, REC_WIDTH), bbox (N, 4) pixel range x0 x1 y0 y1,
     radii (N,), visible (N,) and means2d (N, 2) (zeros where culled). Releases the GIL: chunks run
@@ -400,9 +481,30 @@ def project_forward(
 
 @njit(nogil=True, cache=True)
 def project_backward(
-    lo, hi, means, log_scales, quats, opacity_logits, sh, sh_degree, view, campos,
-    fx, fy, cx, cy, width, height, g_offsets, slot_grads,
-    v_means, v_log_scales, v_quats, v_opacity_logits, v_sh, v_means2d,
+    lo,
+    hi,
+    means,
+    log_scales,
+    quats,
+    opacity_logits,
+    sh,
+    sh_degree,
+    view,
+    campos,
+    fx,
+    fy,
+    cx,
+    cy,
+    width,
+    height,
+    g_offsets,
+    slot_grads,
+    v_means,
+    v_log_scales,
+    v_quats,
+    v_opacity_logits,
+    v_sh,
+    v_means2d,
 ):
     """Sum each visible Gaussian's per-tile gradients and chain them back to its parameters.
 

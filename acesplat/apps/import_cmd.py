@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import enum
 from pathlib import Path
-from typing import Optional
 
 import typer
 
-from ..core.cli_support import CountProgress, one_line_errors, report_json
-from .common import DEFAULT_TEST_EVERY
-from .dispatch import import_scene
+from acesplat.apps.support import CountProgress, one_line_errors, report_json
+from acesplat.importers.common import DEFAULT_TEST_EVERY
+from acesplat.importers.dispatch import import_scene
 
 
 class SourceFormat(str, enum.Enum):
@@ -26,13 +25,20 @@ def import_command(
     ),
     out: Path = typer.Option(..., "-o", "--out", help="Scene folder to create (must be new or empty)."),
     fmt: SourceFormat = typer.Option(SourceFormat.auto, "--format", help="Source format; auto detects it."),
-    images: Optional[Path] = typer.Option(
-        None, "--images", help="Images folder (COLMAP: default images/ near the model; transforms: replaces the json's folder)."
+    images: Path | None = typer.Option(
+        None,
+        "--images",
+        help="Images folder (COLMAP: default images/ near the model; transforms: replaces the json's folder).",
     ),
     test_every: int = typer.Option(
-        DEFAULT_TEST_EVERY, "--test-every", min=0, help="Every N-th frame (natural name order, from the first) goes to test; 0 = none."
+        DEFAULT_TEST_EVERY,
+        "--test-every",
+        min=0,
+        help="Every N-th frame (natural name order, from the first) goes to test; 0 = none.",
     ),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the summary (counts, split rule, notes) as JSON."),
+    json_out: Path | None = typer.Option(
+        None, "--json", help="Write the summary (counts, split rule, notes) as JSON."
+    ),
 ) -> None:
     """Import a scene into the ACE layout (OpenCV poses, undistorted images, train/test split)."""
     with CountProgress("importing") as progress:

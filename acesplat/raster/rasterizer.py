@@ -23,22 +23,46 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..camera import Intrinsics
-from ..gaussians import Gaussians
-from ..geometry import invert_pose, rigidity_problem
-from . import _layout as L
-from ._project_kernels import ALPHA_MIN, DILATION, FRUSTUM_SLACK, MAHA2_MAX, project_backward, project_forward
-from ._threads import parallel_for
-from ._tile_kernels import (
-    ALPHA_MAX, T_MIN, TILE, bin_tiles, composite_backward, composite_forward, scatter_records,
+from acesplat.core.camera import Intrinsics
+from acesplat.core.gaussians import Gaussians
+from acesplat.core.geometry import invert_pose, rigidity_problem
+from acesplat.raster import _layout as L
+from acesplat.raster._project_kernels import (
+    ALPHA_MIN,
+    DILATION,
+    FRUSTUM_SLACK,
+    MAHA2_MAX,
+    project_backward,
+    project_forward,
+)
+from acesplat.raster._threads import parallel_for
+from acesplat.raster._tile_kernels import (
+    ALPHA_MAX,
+    T_MIN,
+    TILE,
+    bin_tiles,
+    composite_backward,
+    composite_forward,
+    scatter_records,
 )
 
 DEFAULT_NEAR = 0.01
 DEFAULT_FAR = 1e10
 
 __all__ = [
-    "ALPHA_MAX", "ALPHA_MIN", "DILATION", "FRUSTUM_SLACK", "MAHA2_MAX", "T_MIN", "TILE",
-    "RasterContext", "RenderResult", "RasterGradients", "rasterize", "rasterize_backward", "ndc_grad_norm",
+    "ALPHA_MAX",
+    "ALPHA_MIN",
+    "DILATION",
+    "FRUSTUM_SLACK",
+    "MAHA2_MAX",
+    "T_MIN",
+    "TILE",
+    "RasterContext",
+    "RenderResult",
+    "RasterGradients",
+    "rasterize",
+    "rasterize_backward",
+    "ndc_grad_norm",
 ]
 
 
@@ -139,9 +163,29 @@ def rasterize(
     means2d = np.empty((n, 2), dtype)
     if n:
         parallel_for(
-            project_forward, n, g.means, g.log_scales, g.quats, g.opacity_logits, g.sh, deg, view, campos,
-            float(k.fx), float(k.fy), float(k.cx), float(k.cy), float(width), float(height),
-            float(near), float(far), rec, bbox, radii, visible, means2d,
+            project_forward,
+            n,
+            g.means,
+            g.log_scales,
+            g.quats,
+            g.opacity_logits,
+            g.sh,
+            deg,
+            view,
+            campos,
+            float(k.fx),
+            float(k.fy),
+            float(k.cx),
+            float(k.cy),
+            float(width),
+            float(height),
+            float(near),
+            float(far),
+            rec,
+            bbox,
+            radii,
+            visible,
+            means2d,
         )
     vis_idx = np.flatnonzero(visible)
     order = _depth_order(rec[vis_idx, L.DEPTH], vis_idx)
@@ -160,14 +204,38 @@ def rasterize(
     trans = np.empty((height, width), dtype)
     last = np.empty((height, width), np.int32)
     parallel_for(
-        composite_forward, len(tile_order), tile_rec, tile_offsets, tile_order, tiles_x, width, height, bg,
-        color, alpha, depth, trans, last,
+        composite_forward,
+        len(tile_order),
+        tile_rec,
+        tile_offsets,
+        tile_order,
+        tiles_x,
+        width,
+        height,
+        bg,
+        color,
+        alpha,
+        depth,
+        trans,
+        last,
     )
     ctx = RasterContext(
-        gaussians=g, sh_degree=deg, view=view, campos=campos, intrinsics=intrinsics, background=bg,
-        order=order, tile_offsets=tile_offsets, tile_rec=tile_rec,
-        g_offsets=g_offsets, entry_slot=entry_slot, tile_order=tile_order, final_trans=trans, last=last,
-        alpha=alpha, depth=depth,
+        gaussians=g,
+        sh_degree=deg,
+        view=view,
+        campos=campos,
+        intrinsics=intrinsics,
+        background=bg,
+        order=order,
+        tile_offsets=tile_offsets,
+        tile_rec=tile_rec,
+        g_offsets=g_offsets,
+        entry_slot=entry_slot,
+        tile_order=tile_order,
+        final_trans=trans,
+        last=last,
+        alpha=alpha,
+        depth=depth,
     )
     return RenderResult(
         color=color,
@@ -215,8 +283,22 @@ def rasterize_backward(
     k = c.intrinsics
     slot_grads = np.empty((len(c.tile_rec), L.GRAD_WIDTH), dtype)
     parallel_for(
-        composite_backward, len(c.tile_order), c.tile_rec, c.tile_offsets, c.tile_order, -(-w // TILE), w, h,
-        c.background, c.final_trans, c.last, v_color, v_alpha, v_depth_sum, c.entry_slot, slot_grads,
+        composite_backward,
+        len(c.tile_order),
+        c.tile_rec,
+        c.tile_offsets,
+        c.tile_order,
+        -(-w // TILE),
+        w,
+        h,
+        c.background,
+        c.final_trans,
+        c.last,
+        v_color,
+        v_alpha,
+        v_depth_sum,
+        c.entry_slot,
+        slot_grads,
     )
     n = len(g)
     out = RasterGradients(
@@ -230,10 +312,30 @@ def rasterize_backward(
     )
     if len(c.order):
         parallel_for(
-            project_backward, n, g.means, g.log_scales, g.quats, g.opacity_logits, g.sh, c.sh_degree, c.view,
-            c.campos, float(k.fx), float(k.fy), float(k.cx), float(k.cy), float(w), float(h),
-            c.g_offsets, slot_grads,
-            out.means, out.log_scales, out.quats, out.opacity_logits, out.sh, out.means2d,
+            project_backward,
+            n,
+            g.means,
+            g.log_scales,
+            g.quats,
+            g.opacity_logits,
+            g.sh,
+            c.sh_degree,
+            c.view,
+            c.campos,
+            float(k.fx),
+            float(k.fy),
+            float(k.cx),
+            float(k.cy),
+            float(w),
+            float(h),
+            c.g_offsets,
+            slot_grads,
+            out.means,
+            out.log_scales,
+            out.quats,
+            out.opacity_logits,
+            out.sh,
+            out.means2d,
         )
         out.means2d_ndc_norm[:] = ndc_grad_norm(out.means2d, w, h)
     return out

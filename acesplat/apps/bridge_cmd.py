@@ -6,22 +6,23 @@ import math
 import time
 from collections import Counter
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any
 
 import numpy as np
 import typer
 
-from acesplat.core.cli_support import PhaseProgress, one_line_errors, report_json
+from acesplat.apps.support import PhaseProgress, one_line_errors, report_json
 from acesplat.core.errors import InputError
 from acesplat.core.geometry import look_at
 from acesplat.core.pose import PoseRecord, TrackingState
+from firmware_bridge.decoder import StreamDecoder
+from firmware_bridge.protocol import Frame, Pose, RuntimeState
+from firmware_bridge.sink import MAX_RATE_HZ, PROTOCOLS, PoseSink, open_sink
+from firmware_bridge.transport import SerialLink, serial_opener
 
-from .decoder import StreamDecoder
-from .protocol import Frame, Pose, RuntimeState
-from .sink import MAX_RATE_HZ, PROTOCOLS, PoseSink, open_sink
-from .transport import SerialLink, serial_opener
-
-app = typer.Typer(no_args_is_help=True, add_completion=False, help="Firmware bridge: watch and exercise the serial link to the robot.")
+app = typer.Typer(
+    no_args_is_help=True, add_completion=False, help="Firmware bridge: watch and exercise the serial link to the robot."
+)
 
 
 def _check_protocol(protocol: str) -> None:
@@ -29,7 +30,7 @@ def _check_protocol(protocol: str) -> None:
         raise InputError(None, f"--protocol must be one of {', '.join(PROTOCOLS)}, got {protocol!r}")
 
 
-def _check_seconds(seconds: Optional[float]) -> None:
+def _check_seconds(seconds: float | None) -> None:
     if seconds is not None and not (math.isfinite(seconds) and seconds > 0):
         raise InputError(None, f"--seconds must be positive, got {seconds}")
 
@@ -53,10 +54,10 @@ def describe(frame: Frame) -> str:
 def monitor(
     port: str = typer.Argument(..., help="Serial device or pyserial URL (e.g. /dev/ttyUSB0, loop://)."),
     protocol: str = typer.Option("frame", help="frame (protocol v1) or mavlink."),
-    seconds: Optional[float] = typer.Option(None, help="Stop after this long (default: until Ctrl-C)."),
+    seconds: float | None = typer.Option(None, help="Stop after this long (default: until Ctrl-C)."),
     baud: int = typer.Option(115200, help="Baud rate."),
     quiet: bool = typer.Option(False, "--quiet", help="Only counts, no line per message."),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the counts here."),
+    json_out: Path | None = typer.Option(None, "--json", help="Write the counts here."),
 ) -> None:
     """Decode and print what arrives on PORT, with counts of good and rejected frames."""
     _check_protocol(protocol)
@@ -64,7 +65,7 @@ def monitor(
     if protocol == "frame":
         decoder: Any = StreamDecoder()
     else:
-        from .mavlink import MavlinkDecoder
+        from firmware_bridge.mavlink import MavlinkDecoder
 
         decoder = MavlinkDecoder()
     counts: Counter[str] = Counter()
@@ -75,7 +76,11 @@ def monitor(
         with PhaseProgress() as progress:
             while seconds is None or time.monotonic() - start < seconds:
                 elapsed = time.monotonic() - start
-                progress("monitor", elapsed / seconds if seconds else 0.0, {"ok": decoder.frames_ok, "rejected": decoder.frames_rejected, "reconnects": link.reconnects})
+                progress(
+                    "monitor",
+                    elapsed / seconds if seconds else 0.0,
+                    {"ok": decoder.frames_ok, "rejected": decoder.frames_rejected, "reconnects": link.reconnects},
+                )
                 if not link.try_connect():
                     time.sleep(min(0.05, max(link.seconds_until_retry(), 0.005)))
                     continue
@@ -102,7 +107,9 @@ def monitor(
     }
     if isinstance(decoder, StreamDecoder):
         report["rejected_by_reason"] = dict(decoder.rejects)
-    print(f"frames ok {decoder.frames_ok}, rejected {decoder.frames_rejected}, bytes {decoder.bytes}, messages {dict(counts)}")
+    print(
+        f"frames ok {decoder.frames_ok}, rejected {decoder.frames_rejected}, bytes {decoder.bytes}, messages {dict(counts)}"
+    )
     report_json(json_out, report)
 
 
@@ -113,8 +120,12 @@ def synthetic_pose(t: float, frame_id: int) -> PoseRecord:
     T = look_at(np.array([2.0 * math.cos(a), 2.0 * math.sin(a), 1.5]), np.array([0.0, 0.0, 1.0]))
     lost = (t % 5.0) >= 4.5
     return PoseRecord(
-        timestamp_us=time.monotonic_ns() // 1000, T_c2w=T, inliers=0 if lost else 300 + frame_id % 100,
-        state=TrackingState.LOST if lost else TrackingState.TRACKING, quality=0.0 if lost else 0.8, frame_id=frame_id,
+        timestamp_us=time.monotonic_ns() // 1000,
+        T_c2w=T,
+        inliers=0 if lost else 300 + frame_id % 100,
+        state=TrackingState.LOST if lost else TrackingState.TRACKING,
+        quality=0.0 if lost else 0.8,
+        frame_id=frame_id,
     )
 
 
@@ -126,7 +137,7 @@ def send_test(
     seconds: float = typer.Option(10.0, help="How long to send."),
     protocol: str = typer.Option("frame", help="frame (protocol v1) or mavlink."),
     baud: int = typer.Option(115200, help="Baud rate."),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the link statistics here."),
+    json_out: Path | None = typer.Option(None, "--json", help="Write the link statistics here."),
 ) -> None:
     """Send synthetic poses so the microcontroller side can be brought up without a camera.
 
@@ -147,7 +158,14 @@ def send_test(
             while (elapsed := time.monotonic() - start) < seconds:
                 for ev in sink.poll_commands():
                     print(f"command {ev.command.name} value={ev.value:g} (seq {ev.seq})")
-                    commands.append({"command": ev.command.name, "value": ev.value, "seq": ev.seq, "t": round(ev.received_s - start, 3)})
+                    commands.append(
+                        {
+                            "command": ev.command.name,
+                            "value": ev.value,
+                            "seq": ev.seq,
+                            "t": round(ev.received_s - start, 3),
+                        }
+                    )
                     paused = {"PAUSE": True, "RESUME": False}.get(ev.command.name, paused)
                     if ev.command.name == "SET_RATE":
                         rate = ev.value
@@ -156,13 +174,16 @@ def send_test(
                     sink.submit(rec)
                     sink.update_status(
                         state=RuntimeState.TRACKING if rec.state == TrackingState.TRACKING else RuntimeState.LOST,
-                        fps=rate, latency_ms=5.0,
+                        fps=rate,
+                        latency_ms=5.0,
                     )
                     frame_id += 1
                 else:
                     sink.update_status(state=RuntimeState.PAUSED)
                 s = sink.stats()
-                progress("send-test", elapsed / seconds, {"sent": s.sent, "dropped": s.dropped, "reconnects": s.reconnects})
+                progress(
+                    "send-test", elapsed / seconds, {"sent": s.sent, "dropped": s.dropped, "reconnects": s.reconnects}
+                )
                 next_tick = max(next_tick + 1.0 / rate, time.monotonic() - 1.0 / rate)  # no burst after a stall
                 time.sleep(max(0.0, next_tick - time.monotonic()))
     except KeyboardInterrupt:

@@ -16,9 +16,8 @@ import numpy as np
 
 from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import invert_pose
-from acesplat.core.pnp import cell_centers
-
-from .pixel_coords import STRIDE
+from acesplat.core.grid import cell_centers
+from acesplat.splatcore.pixel_coords import STRIDE
 
 DEPTH_MIN_M = 0.05
 DEPTH_MAX_M = 200.0

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import functools
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable, TypeVar
+from typing import Any, TypeVar
 
 import typer
 
-from .atomic import write_json
-from .errors import InputError
+from acesplat.core.atomic import write_json
+from acesplat.core.errors import InputError
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -62,13 +63,17 @@ class PhaseProgress:
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
         self._progress = Progress(
-            TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f}%"),
-            TimeElapsedColumn(), TextColumn("{task.fields[info]}"), transient=False,
+            TextColumn("[bold]{task.description}"),
+            BarColumn(),
+            TextColumn("{task.percentage:>5.1f}%"),
+            TimeElapsedColumn(),
+            TextColumn("{task.fields[info]}"),
+            transient=False,
         )
         self._tasks: dict[str, int] = {}
         self._prefix = description
 
-    def __enter__(self) -> "PhaseProgress":
+    def __enter__(self) -> PhaseProgress:
         self._progress.__enter__()
         return self
 
@@ -97,7 +102,7 @@ class CountProgress:
         )  # fmt: skip
         self._task = self._progress.add_task(description, total=None)
 
-    def __enter__(self) -> "CountProgress":
+    def __enter__(self) -> CountProgress:
         return self
 
     def __exit__(self, *exc: object) -> None:

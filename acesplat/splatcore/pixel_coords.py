@@ -16,7 +16,7 @@ from scipy.ndimage import distance_transform_edt
 
 from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import invert_pose
-from acesplat.core.pnp import OUTPUT_STRIDE
+from acesplat.core.grid import OUTPUT_STRIDE
 
 STRIDE = OUTPUT_STRIDE
 """Stage 2 lifts the SCR's stride-8 cells (never the dense grid of `acesplat eval --dense`)."""

@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
 
 import typer
 
-from ..core.cli_support import CountProgress, one_line_errors, parse_size, report_json
-from ..core.errors import InputError
-from .dataset import DEFAULT_SUPERSAMPLE, DEFAULT_TEST_FRAMES, DEFAULT_TRAIN_FRAMES, synthesize
+from acesplat.apps.support import CountProgress, one_line_errors, parse_size, report_json
+from acesplat.core.errors import InputError
+from acesplat.synth.dataset import DEFAULT_SUPERSAMPLE, DEFAULT_TEST_FRAMES, DEFAULT_TRAIN_FRAMES, synthesize
 
 
 @one_line_errors
@@ -29,7 +28,7 @@ def synth_command(
         help="Rays per pixel side on surface boundaries (antialiasing).",
     ),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing non-empty OUT."),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the summary (counts, timings, room) as JSON."),
+    json_out: Path | None = typer.Option(None, "--json", help="Write the summary (counts, timings, room) as JSON."),
 ) -> None:
     """Render the built-in synthetic room (train and test passes, with depth) into the ACE layout."""
     hw = parse_size(size)

@@ -1,6 +1,6 @@
 """A keyframe's depth re-measured from its neighbouring keyframes: flow, then triangulation with the known poses.
 
-Why: keyframe alignment (acesplat.core.keyframe_align) takes the 3D points from the keyframe's depth, and that
+Why: keyframe alignment (acesplat.align.keyframe_align) takes the 3D points from the keyframe's depth, and that
 depth comes from the SCR head: on the built-in room it is 5-10 cm off at 2 m, which moves a warp at a
 quarter-metre baseline by about a pixel, and aligned poses by centimetres (with the rendered depth instead:
 1 mm). The mapping poses are exact, so each keyframe pixel found in a neighbour by the same warp + flow is
@@ -9,14 +9,14 @@ triangulated along its own ray; the flow's sub-pixel error then sets the depth e
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import cv2
 import numpy as np
 
-from .geometry import invert_pose
-from .keyframe_align import MAX_VIEW_ANGLE_DEG, Keyframe, keyframe_matches, resample_to
-from .pnp import OUTPUT_STRIDE
+from acesplat.align.keyframe_align import MAX_VIEW_ANGLE_DEG, Keyframe, keyframe_matches, resample_to
+from acesplat.core.geometry import invert_pose
+from acesplat.core.grid import OUTPUT_STRIDE
 
 NEIGHBOURS = 2
 BASELINE_RATIO = 0.1
@@ -96,5 +96,5 @@ def refine_depth(kf: Keyframe, neighbours: Sequence[Keyframe]) -> np.ndarray:
     counts = np.diff(np.r_[starts, len(cell)])
     flat = out.reshape(-1)
     for s, n in zip(starts[counts >= MIN_SAMPLES], counts[counts >= MIN_SAMPLES]):
-        flat[cell[s]] = np.median(z[s:s + n])
+        flat[cell[s]] = np.median(z[s : s + n])
     return out

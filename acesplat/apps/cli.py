@@ -4,14 +4,16 @@ from __future__ import annotations
 
 import typer
 
-from .importers.cli_cmd import import_command
-from .demo import demo_command
-from .scr.cli_cmds import eval_command, map_command, pretrain_command
-from .splat.cli_cmds import render_command, splat_command
-from .synth.cli_cmd import synth_command
-from export.cli_cmd import export_command  # the CLI is the top layer, so it may reach up to export/
+from acesplat.apps.demo import demo_command
+from acesplat.apps.export_cmd import export_command  # the CLI is the top layer, so it may reach up to export/
+from acesplat.apps.import_cmd import import_command
+from acesplat.apps.scr_cmd import eval_command, map_command, pretrain_command
+from acesplat.apps.splat_cmd import render_command, splat_command
+from acesplat.apps.synth_cmd import synth_command
 
-app = typer.Typer(no_args_is_help=True, add_completion=False, help="ACEsplat desktop: make maps and splats, export bundles.")
+app = typer.Typer(
+    no_args_is_help=True, add_completion=False, help="ACEsplat desktop: make maps and splats, export bundles."
+)
 
 
 @app.callback()

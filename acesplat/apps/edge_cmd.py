@@ -5,25 +5,23 @@ from __future__ import annotations
 import sys
 import threading
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 import typer
 from rich.console import Console
 from rich.table import Table
 
+from acesplat.apps.refine_cmd import refine_line, refine_session
+from acesplat.apps.support import PhaseProgress, one_line_errors, report_json
 from acesplat.core.bundle import PRECISION_ROLES, Bundle, load_bundle
-from acesplat.core.cli_support import PhaseProgress, one_line_errors, report_json
 from acesplat.core.errors import InputError
 from acesplat.core.geometry import matrix_to_quat
 from acesplat.core.pose import TrackingState
-
-from .calibration import read_calibration_file
-from .inference import default_threads
-from .loop import LoopEvent, run_loop
-from .refine.cli_hooks import refine_line, refine_session
-from .runtime import STAGES, EdgeLocalizer, FrameOutcome, PnPSettings
-from .sources import SourceOptions, open_source
+from edge.calibration import read_calibration_file
+from edge.inference import default_threads
+from edge.loop import LoopEvent, run_loop
+from edge.runtime import STAGES, EdgeLocalizer, FrameOutcome, PnPSettings
+from edge.sources import SourceOptions, open_source
 
 console = Console(stderr=True)
 
@@ -42,7 +40,7 @@ def open_bundle(path: Path, precisions: list[str], align: bool = False) -> Bundl
     return b
 
 
-def _pnp(method: Optional[str], min_inliers: Optional[int]) -> PnPSettings:
+def _pnp(method: str | None, min_inliers: int | None) -> PnPSettings:
     from acesplat.core.pnp import PNP_METHODS
 
     s = PnPSettings()
@@ -69,7 +67,9 @@ def stage_table(title: str, stages_by_run: dict[str, dict], fps: dict[str, float
         for k in ("mean", "p50", "p90", "p95", "p99", "max"):
             t.add_column(f"{r} {k}" if len(runs) > 1 else k, justify="right")
     for s in STAGES:
-        t.add_row(s, *[f"{stages_by_run[r][s][k]:.2f}" for r in runs for k in ("mean", "p50", "p90", "p95", "p99", "max")])
+        t.add_row(
+            s, *[f"{stages_by_run[r][s][k]:.2f}" for r in runs for k in ("mean", "p50", "p90", "p95", "p99", "max")]
+        )
     t.add_row("fps", *[x for r in runs for x in (f"{fps[r]:.1f}", "", "", "", "", "")])
     return t
 
@@ -83,34 +83,44 @@ def frame_text(out: FrameOutcome) -> str:
     else:
         pose = "no pose" + " " * 60
     ms = out.times_ms
-    return (f"{rec.frame_id:6d} {TrackingState(rec.state).name:8s} {pose}  inl {rec.inliers:4d}  "
-            f"ms cap {ms['capture']:5.1f} pre {ms['preprocess']:5.1f} inf {ms['inference']:6.1f} "
-            f"pnp {ms['pnp']:5.1f} aln {ms['align']:6.1f} tot {ms['total']:6.1f}")
+    return (
+        f"{rec.frame_id:6d} {TrackingState(rec.state).name:8s} {pose}  inl {rec.inliers:4d}  "
+        f"ms cap {ms['capture']:5.1f} pre {ms['preprocess']:5.1f} inf {ms['inference']:6.1f} "
+        f"pnp {ms['pnp']:5.1f} aln {ms['align']:6.1f} tot {ms['total']:6.1f}"
+    )
 
 
 @one_line_errors
 def localize_command(
     bundle: Path = typer.Argument(..., help="Bundle directory from `acesplat export`."),
     source: str = typer.Option(..., help="replay:DIR, video:FILE, camera:N or oak[:crop|stretch|letterbox]."),
-    intrinsics: Optional[Path] = typer.Option(None, help="Calibration file (ACE txt, JSON, or OpenCV YAML/XML)."),
+    intrinsics: Path | None = typer.Option(None, help="Calibration file (ACE txt, JSON, or OpenCV YAML/XML)."),
     int8: bool = typer.Option(False, "--int8", help="Run the bundle's INT8 model."),
-    json_lines: Optional[Path] = typer.Option(None, "--json-lines", help="Write one JSON object per frame here."),
-    frames: Optional[int] = typer.Option(None, help="Stop after this many frames."),
+    json_lines: Path | None = typer.Option(None, "--json-lines", help="Write one JSON object per frame here."),
+    frames: int | None = typer.Option(None, help="Stop after this many frames."),
     realtime: bool = typer.Option(False, help="Replay at the recorded timestamps (drops frames when slower)."),
-    threads: Optional[int] = typer.Option(None, help="onnxruntime intra-op threads (default: all cores)."),
-    pnp: Optional[str] = typer.Option(None, help="PnP method (default: the measured choice)."),
-    min_inliers: Optional[int] = typer.Option(None, help="Inlier gate for TRACKING."),
+    threads: int | None = typer.Option(None, help="onnxruntime intra-op threads (default: all cores)."),
+    pnp: str | None = typer.Option(None, help="PnP method (default: the measured choice)."),
+    min_inliers: int | None = typer.Option(None, help="Inlier gate for TRACKING."),
     quiet: bool = typer.Option(False, help="No per-frame lines, only the summary."),
-    serial: Optional[str] = typer.Option(None, help="Send poses to this serial port (device path or pyserial URL)."),
+    serial: str | None = typer.Option(None, help="Send poses to this serial port (device path or pyserial URL)."),
     baud: int = typer.Option(115200, help="Serial baud rate."),
     protocol: str = typer.Option("frame", help="frame (acesplat protocol v1) or mavlink."),
-    rate: Optional[float] = typer.Option(None, help="Cap on poses per second sent over --serial."),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the run summary here."),
-    refine: bool = typer.Option(False, "--refine", help="Refine the bundle's Gaussians from keyframes on a second thread."),
+    rate: float | None = typer.Option(None, help="Cap on poses per second sent over --serial."),
+    json_out: Path | None = typer.Option(None, "--json", help="Write the run summary here."),
+    refine: bool = typer.Option(
+        False, "--refine", help="Refine the bundle's Gaussians from keyframes on a second thread."
+    ),
     budget_ms: float = typer.Option(100.0, "--budget-ms", help="Per-frame time of localization + refinement."),
-    save_splat: Optional[Path] = typer.Option(None, "--save-splat", help="With --refine: write the refined Gaussians here (PLY)."),
-    align: bool = typer.Option(False, "--align", help="Refine each pose against the bundle's keyframes (export --keyframes): "
-                               "centimetre poses where SCR alone is a few cm off, at a few hundred ms per frame."),
+    save_splat: Path | None = typer.Option(
+        None, "--save-splat", help="With --refine: write the refined Gaussians here (PLY)."
+    ),
+    align: bool = typer.Option(
+        False,
+        "--align",
+        help="Refine each pose against the bundle's keyframes (export --keyframes): "
+        "centimetre poses where SCR alone is a few cm off, at a few hundred ms per frame.",
+    ),
 ) -> None:
     """Localize frames from a live or recorded source; Ctrl-C ends with a summary."""
     precision = "int8" if int8 else "fp32"
@@ -126,7 +136,7 @@ def localize_command(
         sink = open_sink(serial, baud, protocol, rate)
     writer = None
     if json_lines is not None:
-        from .outputs import JsonLinesWriter
+        from edge.outputs import JsonLinesWriter
 
         writer = JsonLinesWriter(json_lines)
     paused = threading.Event()
@@ -134,7 +144,7 @@ def localize_command(
 
     def on_outcome(out: FrameOutcome) -> None:
         if writer is not None:
-            from .outputs import outcome_line
+            from edge.outputs import outcome_line
 
             writer.write(outcome_line(out))
         if sink is not None:
@@ -145,7 +155,7 @@ def localize_command(
 
     def on_event(e: LoopEvent) -> None:
         if writer is not None:
-            from .outputs import event_line
+            from edge.outputs import event_line
 
             writer.write(event_line(e))
         if e.kind == "disconnected" and sink is not None:
@@ -156,8 +166,10 @@ def localize_command(
             sink.submit(PoseRecord(int(e.wall_time * 1e6), np.full((4, 4), np.nan), 0, TrackingState.LOST, 0.0, 0))
         console.print(f"[yellow]{e.kind}[/yellow]: {e.detail}" + (f" (gap {e.gap_s:.1f} s)" if e.gap_s else ""))
 
-    console.print(f"localizing {src.description} with {b.root} ({precision}, {b.input_size[0]}x{b.input_size[1]}, "
-                  f"{loc.session.threads} threads, PnP {loc.pnp.method}); Ctrl-C to stop")
+    console.print(
+        f"localizing {src.description} with {b.root} ({precision}, {b.input_size[0]}x{b.input_size[1]}, "
+        f"{loc.session.threads} threads, PnP {loc.pnp.method}); Ctrl-C to stop"
+    )
     try:
         stats = run_loop(src, loc, on_outcome, on_event, max_frames=frames)
     finally:
@@ -207,17 +219,25 @@ def replay_command(
     scene: Path = typer.Argument(..., help="Scene folder in the ACE layout."),
     split: str = typer.Option("test", help="Split to replay."),
     int8: bool = typer.Option(False, "--int8", help="Run the bundle's INT8 model."),
-    threads: Optional[int] = typer.Option(None, help="onnxruntime intra-op threads (default: all cores)."),
-    pnp: Optional[str] = typer.Option(None, help="PnP method (default: the measured choice)."),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the numbers here."),
-    refine: bool = typer.Option(False, "--refine", help="Refine the bundle's Gaussians from keyframes; report PSNR before/after."),
+    threads: int | None = typer.Option(None, help="onnxruntime intra-op threads (default: all cores)."),
+    pnp: str | None = typer.Option(None, help="PnP method (default: the measured choice)."),
+    json_out: Path | None = typer.Option(None, "--json", help="Write the numbers here."),
+    refine: bool = typer.Option(
+        False, "--refine", help="Refine the bundle's Gaussians from keyframes; report PSNR before/after."
+    ),
     budget_ms: float = typer.Option(100.0, "--budget-ms", help="Per-frame time of localization + refinement."),
-    save_splat: Optional[Path] = typer.Option(None, "--save-splat", help="With --refine: write the refined Gaussians here (PLY)."),
-    align: bool = typer.Option(False, "--align", help="Refine each pose against the bundle's keyframes (export --keyframes): "
-                               "centimetre poses where SCR alone is a few cm off, at a few hundred ms per frame."),
+    save_splat: Path | None = typer.Option(
+        None, "--save-splat", help="With --refine: write the refined Gaussians here (PLY)."
+    ),
+    align: bool = typer.Option(
+        False,
+        "--align",
+        help="Refine each pose against the bundle's keyframes (export --keyframes): "
+        "centimetre poses where SCR alone is a few cm off, at a few hundred ms per frame.",
+    ),
 ) -> None:
     """Replay a posed split: `acesplat eval`'s accuracy plus per-stage timing statistics."""
-    from .replay import replay_split
+    from edge.replay import replay_split
 
     precision = "int8" if int8 else "fp32"
     b = open_bundle(bundle, [precision], align)
@@ -233,14 +253,27 @@ def replay_command(
         s["refine"] = refiner.summary
         s["timing_ms"]["refine"] = refiner.summary["timing_ms"]["window"]
     t = Table(title=f"{Path(scene).name} / {split} ({precision}, {b.input_size[0]}x{b.input_size[1]})")
-    keys = ("frames", "localized", "median_translation_m", "median_rotation_deg", "recall_5cm_5deg",
-            "recall_10cm_5deg", "recall_25cm_2deg", "mean_ms")
+    keys = (
+        "frames",
+        "localized",
+        "median_translation_m",
+        "median_rotation_deg",
+        "recall_5cm_5deg",
+        "recall_10cm_5deg",
+        "recall_25cm_2deg",
+        "mean_ms",
+    )
     for k in keys:
         t.add_column(k.replace("_", " "), justify="right")
     t.add_row(*["-" if s.get(k) is None else (f"{s[k]:.4g}" if isinstance(s[k], float) else str(s[k])) for k in keys])
     Console().print(t)
-    Console().print(stage_table("timing (ms)", {precision: s["timing_ms"]},
-                                {precision: 1000.0 / s["timing_ms"]["total"]["mean"] if s["frames"] else 0.0}))
+    Console().print(
+        stage_table(
+            "timing (ms)",
+            {precision: s["timing_ms"]},
+            {precision: 1000.0 / s["timing_ms"]["total"]["mean"] if s["frames"] else 0.0},
+        )
+    )
     if s.get("skipped"):
         console.print(f"[yellow]{s['skipped']} unreadable frames skipped[/yellow]: {', '.join(s['skipped_frames'])}")
     if "refine" in s:
@@ -251,20 +284,22 @@ def replay_command(
 @one_line_errors
 def profile_command(
     bundle: Path = typer.Argument(..., help="Bundle directory."),
-    source: Optional[str] = typer.Option(None, help="Frames to profile on (default: the bundle's scene, test split)."),
-    intrinsics: Optional[Path] = typer.Option(None, help="Calibration file for sources without one."),
+    source: str | None = typer.Option(None, help="Frames to profile on (default: the bundle's scene, test split)."),
+    intrinsics: Path | None = typer.Option(None, help="Calibration file for sources without one."),
     frames: int = typer.Option(50, help="Timed frames (after the warm-up)."),
     warmup: int = typer.Option(5, help="Warm-up frames, excluded from the statistics."),
     compare: bool = typer.Option(False, "--compare", help="FP32 and INT8 side by side on the same frames."),
     int8: bool = typer.Option(False, "--int8", help="Profile INT8 (without --compare)."),
-    threads: Optional[int] = typer.Option(None, help="onnxruntime intra-op threads (default: all cores)."),
-    pnp: Optional[str] = typer.Option(None, help="PnP method (default: the measured choice)."),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the numbers here."),
-    refine: bool = typer.Option(False, "--refine", help="Refine the bundle's Gaussians beside localization; time both."),
+    threads: int | None = typer.Option(None, help="onnxruntime intra-op threads (default: all cores)."),
+    pnp: str | None = typer.Option(None, help="PnP method (default: the measured choice)."),
+    json_out: Path | None = typer.Option(None, "--json", help="Write the numbers here."),
+    refine: bool = typer.Option(
+        False, "--refine", help="Refine the bundle's Gaussians beside localization; time both."
+    ),
     budget_ms: float = typer.Option(100.0, "--budget-ms", help="Per-frame time of localization + refinement."),
 ) -> None:
     """Per-stage latency (mean/p50/p90/p95/p99/max) and FPS, warm-up excluded."""
-    from .profile import run_profile
+    from edge.profile import run_profile
 
     if frames <= 0 or warmup < 0:
         raise InputError(None, f"--frames must be positive and --warmup non-negative, got {frames} and {warmup}")
@@ -278,27 +313,41 @@ def profile_command(
     calib = read_calibration_file(intrinsics) if intrinsics else None
     src = open_source(source, SourceOptions(calibration=calib, input_size=b.input_size))
     nthreads = threads or default_threads()
+
     def attach(loc: EdgeLocalizer):
         session = refine_session(refine, loc, b, budget_ms, None, _warn)
         return session.close if session is not None else None
 
     with PhaseProgress() as bar:
-        res = run_profile(b, src, precisions, frames, nthreads, warmup, _pnp(pnp, None), bar, attach if refine else None)
+        res = run_profile(
+            b, src, precisions, frames, nthreads, warmup, _pnp(pnp, None), bar, attach if refine else None
+        )
     h = res["header"]
-    console.print(f"cpu: {h['cpu']} ({h['cores']} cores, load {h['load_average']}), threads {h['threads']}; "
-                  f"onnxruntime {h['onnxruntime']}, numpy {h['numpy']}, opencv {h['opencv']}")
+    console.print(
+        f"cpu: {h['cpu']} ({h['cores']} cores, load {h['load_average']}), threads {h['threads']}; "
+        f"onnxruntime {h['onnxruntime']}, numpy {h['numpy']}, opencv {h['opencv']}"
+    )
     for p in precisions:
-        console.print(f"model {p}: sha256 {str(h['model_sha256'][p])[:16]}...  input {h['input_size'][0]}x{h['input_size'][1]}")
+        console.print(
+            f"model {p}: sha256 {str(h['model_sha256'][p])[:16]}...  input {h['input_size'][0]}x{h['input_size'][1]}"
+        )
     if len(precisions) == 1:
         stages, fps = {precisions[0]: res["stages"]}, {precisions[0]: res["fps"]}
     else:
         stages, fps = res["stages"], res["fps"]
     for p in stages:  # one table per precision: twelve statistic columns side by side do not fit a terminal
-        Console().print(stage_table(f"{p.upper()} on {source}: {res['frames']} frames after {res['warmup_frames']} warm-up",
-                                    {p: stages[p]}, {p: fps[p]}))
+        Console().print(
+            stage_table(
+                f"{p.upper()} on {source}: {res['frames']} frames after {res['warmup_frames']} warm-up",
+                {p: stages[p]},
+                {p: fps[p]},
+            )
+        )
     if "int8_inference_speedup_p50" in res:
         Console().print(f"INT8 inference speed-up (p50): {res['int8_inference_speedup_p50']:.2f}x")
-    refine_runs = {precisions[0]: res["refine"]} if len(precisions) == 1 and "refine" in res else res.get("refine") or {}
+    refine_runs = (
+        {precisions[0]: res["refine"]} if len(precisions) == 1 and "refine" in res else res.get("refine") or {}
+    )
     for p, r in refine_runs.items():
         console.print(f"{p} " + refine_line(r))
     report_json(json_out, res)
@@ -308,20 +357,22 @@ def profile_command(
 def record_command(
     out: Path = typer.Argument(..., help="Folder to write (must not exist or be empty)."),
     source: str = typer.Option(..., help="replay:DIR, video:FILE, camera:N or oak."),
-    intrinsics: Optional[Path] = typer.Option(None, help="Calibration to store with the frames."),
-    frames: Optional[int] = typer.Option(None, help="Stop after this many frames."),
-    size: Optional[str] = typer.Option(None, help="Frame size HxW for sources that resize on the device (oak)."),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the counts here."),
+    intrinsics: Path | None = typer.Option(None, help="Calibration to store with the frames."),
+    frames: int | None = typer.Option(None, help="Stop after this many frames."),
+    size: str | None = typer.Option(None, help="Frame size HxW for sources that resize on the device (oak)."),
+    json_out: Path | None = typer.Option(None, "--json", help="Write the counts here."),
 ) -> None:
     """Record frames, timestamps and intrinsics in a layout `--source replay:OUT` reads back."""
-    from acesplat.core.cli_support import parse_size
-
-    from .record import record
+    from acesplat.apps.support import parse_size
+    from edge.record import record
 
     calib = read_calibration_file(intrinsics) if intrinsics else None
     src = open_source(source, SourceOptions(calibration=calib, input_size=parse_size(size) if size else (480, 640)))
     stats = record(src, out, frames, lambda n: None)
-    console.print(f"recorded {stats.frames} frames to {out}" + (" (interrupted)" if stats.interrupted else "")
-                  + (f", {stats.skipped} unreadable skipped" if stats.skipped else "")
-                  + (", no intrinsics (pass --intrinsics when replaying)" if stats.without_intrinsics else ""))
+    console.print(
+        f"recorded {stats.frames} frames to {out}"
+        + (" (interrupted)" if stats.interrupted else "")
+        + (f", {stats.skipped} unreadable skipped" if stats.skipped else "")
+        + (", no intrinsics (pass --intrinsics when replaying)" if stats.without_intrinsics else "")
+    )
     report_json(json_out, {"out": str(out), **stats.as_dict()})

@@ -13,9 +13,31 @@ import math
 import numpy as np
 from numba import njit
 
-from ._layout import (
-    REC_WIDTH, BLUE, CA, CB, CC, DEPTH, EXT_Y, G_BLUE, G_CA, G_CB, G_CC, G_DEPTH, G_GREEN, G_MX, G_MY, G_OPAC,
-    G_RED, GREEN, MAHA2, MX, MY, OPAC, POWER_MIN, RED,
+from acesplat.raster._layout import (
+    BLUE,
+    CA,
+    CB,
+    CC,
+    DEPTH,
+    EXT_Y,
+    G_BLUE,
+    G_CA,
+    G_CB,
+    G_CC,
+    G_DEPTH,
+    G_GREEN,
+    G_MX,
+    G_MY,
+    G_OPAC,
+    G_RED,
+    GREEN,
+    MAHA2,
+    MX,
+    MY,
+    OPAC,
+    POWER_MIN,
+    REC_WIDTH,
+    RED,
 )
 
 TILE = 16
@@ -150,8 +172,19 @@ STATE_WIDTH = 8
 
 @njit(cache=True)
 def _composite_forward_tile(
-    tile, tile_rec, tile_offsets, tiles_x, width, height, background,
-    out_color, out_alpha, out_depth, out_trans, out_last, st,
+    tile,
+    tile_rec,
+    tile_offsets,
+    tiles_x,
+    width,
+    height,
+    background,
+    out_color,
+    out_alpha,
+    out_depth,
+    out_trans,
+    out_last,
+    st,
 ):
     ty = tile // tiles_x
     tx = tile - ty * tiles_x
@@ -230,8 +263,20 @@ def _composite_forward_tile(
 
 @njit(nogil=True, cache=True)
 def composite_forward(
-    lo, hi, tile_rec, tile_offsets, tile_order, tiles_x, width, height, background,
-    out_color, out_alpha, out_depth, out_trans, out_last,
+    lo,
+    hi,
+    tile_rec,
+    tile_offsets,
+    tile_order,
+    tiles_x,
+    width,
+    height,
+    background,
+    out_color,
+    out_alpha,
+    out_depth,
+    out_trans,
+    out_last,
 ):
     """Front-to-back alpha compositing of tiles tile_order[lo:hi].
 
@@ -245,15 +290,39 @@ def composite_forward(
     st = np.empty((TILE, TILE, STATE_WIDTH))
     for oi in range(lo, hi):
         _composite_forward_tile(
-            tile_order[oi], tile_rec, tile_offsets, tiles_x, width, height, background,
-            out_color, out_alpha, out_depth, out_trans, out_last, st,
+            tile_order[oi],
+            tile_rec,
+            tile_offsets,
+            tiles_x,
+            width,
+            height,
+            background,
+            out_color,
+            out_alpha,
+            out_depth,
+            out_trans,
+            out_last,
+            st,
         )
 
 
 @njit(cache=True)
 def _composite_backward_tile(
-    tile, tile_rec, tile_offsets, tiles_x, width, height, background,
-    final_trans, last, v_color, v_alpha, v_depth, entry_slot, st, slot_grads,
+    tile,
+    tile_rec,
+    tile_offsets,
+    tiles_x,
+    width,
+    height,
+    background,
+    final_trans,
+    last,
+    v_color,
+    v_alpha,
+    v_depth,
+    entry_slot,
+    st,
+    slot_grads,
 ):
     ty = tile // tiles_x
     tx = tile - ty * tiles_x
@@ -368,8 +437,22 @@ def _composite_backward_tile(
 
 @njit(nogil=True, cache=True)
 def composite_backward(
-    lo, hi, tile_rec, tile_offsets, tile_order, tiles_x, width, height, background,
-    final_trans, last, v_color, v_alpha, v_depth, entry_slot, slot_grads,
+    lo,
+    hi,
+    tile_rec,
+    tile_offsets,
+    tile_order,
+    tiles_x,
+    width,
+    height,
+    background,
+    final_trans,
+    last,
+    v_color,
+    v_alpha,
+    v_depth,
+    entry_slot,
+    slot_grads,
 ):
     """Replay the pixels of tiles tile_order[lo:hi] back to front from their last contributors.
 
@@ -383,6 +466,19 @@ def composite_backward(
     st = np.empty((TILE, TILE, STATE_WIDTH))
     for oi in range(lo, hi):
         _composite_backward_tile(
-            tile_order[oi], tile_rec, tile_offsets, tiles_x, width, height, background,
-            final_trans, last, v_color, v_alpha, v_depth, entry_slot, st, slot_grads,
+            tile_order[oi],
+            tile_rec,
+            tile_offsets,
+            tiles_x,
+            width,
+            height,
+            background,
+            final_trans,
+            last,
+            v_color,
+            v_alpha,
+            v_depth,
+            entry_slot,
+            st,
+            slot_grads,
         )

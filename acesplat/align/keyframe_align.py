@@ -4,12 +4,12 @@ Why: the SCR head's coordinates for a view it never saw are off by a pixel or tw
 regions (bench/herz_gap.md), which no pose solver averages out: on herzjesu25 the test frames land 4-8 cm
 off while the training frames land within 1 cm. The training views themselves are known exactly (their
 poses are the mapping input) and the head gives their depth to about a pixel, so each of the nearest
-training views is re-rendered at the estimated pose (acesplat.core.depth_warp), dense optical flow carries
+training views is re-rendered at the estimated pose (acesplat.align.depth_warp), dense optical flow carries
 its pixels to where the query actually shows them, and PnP on (training pixel's 3D point, query pixel)
 pairs gives the refined pose; repeated from the refined pose. The flow is sub-pixel on texture and the
 3D points depend on the head's depth only through the small parallax between the training view and the
 query, so the SCR pose's coherent error does not carry over; the keyframes' depth is re-measured between them
-first (acesplat.core.keyframe_depth). Measured (bench/herz_gap.md, session 11): herzjesu25 test medians 3.2-4.3 ->
+first (acesplat.align.keyframe_depth). Measured (bench/herz_gap.md, session 11): herzjesu25 test medians 3.2-4.3 ->
 1.6-2.1 cm; the built-in room 98.3% -> 100% within 5 cm / 5 deg, median 1.35 -> 0.16 cm.
 
 The query is first resampled to each training view's intrinsics (a homography, exact for pinhole
@@ -18,17 +18,18 @@ cameras), so cameras with other calibrations align too.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Sequence
 
 import cv2
 import numpy as np
 
-from .camera import Intrinsics
-from .depth_warp import forward_map, warp_to_camera
-from .geometry import invert_pose, make_pose, pose_error
-from .pnp import DEFAULT_THRESHOLD_PX, OUTPUT_STRIDE, grid_correspondences
-from .pose_refine import reprojection
+from acesplat.align.depth_warp import forward_map, warp_to_camera
+from acesplat.core.camera import Intrinsics
+from acesplat.core.geometry import invert_pose, make_pose, pose_error
+from acesplat.core.grid import OUTPUT_STRIDE, grid_correspondences
+from acesplat.core.pnp import DEFAULT_THRESHOLD_PX
+from acesplat.core.pose_refine import reprojection
 
 KEYFRAMES = 4
 """Training views used per query. Measured on three herzjesu25 maps: one view alone diverged on two of seven
@@ -66,7 +67,7 @@ class Keyframe:
     """A mapping image with its known pose and a depth grid.
 
     gray (H, W) uint8 at the map's resolution; intrinsics of it; c2w (4, 4); depth (h, w) float32 z-depth at
-    the prediction cells spaced ``stride`` px apart (acesplat.core.pnp.cell_centers), 0 where unknown.
+    the prediction cells spaced ``stride`` px apart (acesplat.core.grid.cell_centers), 0 where unknown.
     """
 
     gray: np.ndarray
@@ -94,7 +95,10 @@ class KeyframeAlignment:
 
 
 def nearest_keyframes(
-    c2ws: np.ndarray, pose_c2w: np.ndarray, k: int = KEYFRAMES, max_angle_deg: float = MAX_VIEW_ANGLE_DEG,
+    c2ws: np.ndarray,
+    pose_c2w: np.ndarray,
+    k: int = KEYFRAMES,
+    max_angle_deg: float = MAX_VIEW_ANGLE_DEG,
     depth: float | None = None,
 ) -> list[int]:
     """Indices of up to ``k`` cameras c2ws (N, 4, 4) nearest to ``pose_c2w`` (4, 4) whose viewing direction is
@@ -132,13 +136,17 @@ def _bilinear(a: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     x0 = np.minimum(np.floor(x).astype(np.int64), w - 2)
     y0 = np.minimum(np.floor(y).astype(np.int64), h - 2)
     fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-    return (a[y0, x0] * (1 - fx) * (1 - fy) + a[y0, x0 + 1] * fx * (1 - fy)
-            + a[y0 + 1, x0] * (1 - fx) * fy + a[y0 + 1, x0 + 1] * fx * fy)
+    return (
+        a[y0, x0] * (1 - fx) * (1 - fy)
+        + a[y0, x0 + 1] * fx * (1 - fy)
+        + a[y0 + 1, x0] * (1 - fx) * fy
+        + a[y0 + 1, x0 + 1] * fx * fy
+    )
 
 
 def _depth_at(kf: Keyframe, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """The keyframe's depth interpolated at pixels (u, v) (N,); 0 next to an unknown cell."""
-    first = OUTPUT_STRIDE / 2.0  # pixel of cell 0 on either axis (acesplat.core.pnp.cell_centers)
+    first = OUTPUT_STRIDE / 2.0  # pixel of cell 0 on either axis (acesplat.core.grid.cell_centers)
     gx, gy = (u - first) / kf.stride, (v - first) / kf.stride
     d = kf.depth.astype(np.float64)
     stacked = np.stack([d, (d > 0).astype(np.float64)], axis=-1)
@@ -155,7 +163,7 @@ def resample_to(gray: np.ndarray, src: Intrinsics, dst: Intrinsics) -> np.ndarra
 
 
 def keyframe_matches(
-    query: np.ndarray, pose_c2w: np.ndarray, kf: Keyframe, flow: "cv2.DISOpticalFlow"
+    query: np.ndarray, pose_c2w: np.ndarray, kf: Keyframe, flow: cv2.DISOpticalFlow
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The keyframe's textured pixels (M, 2) with their depth (M,), and where the query (H, W) uint8, already at
     the keyframe's intrinsics and seen from ``pose_c2w`` (4, 4), shows them (M, 2)."""
@@ -182,7 +190,7 @@ def keyframe_matches(
 
 
 def keyframe_correspondences(
-    query: np.ndarray, pose_c2w: np.ndarray, kf: Keyframe, flow: "cv2.DISOpticalFlow"
+    query: np.ndarray, pose_c2w: np.ndarray, kf: Keyframe, flow: cv2.DISOpticalFlow
 ) -> tuple[np.ndarray, np.ndarray]:
     """World points (M, 3) of the keyframe's textured pixels and where the query (H, W) uint8, already at the
     keyframe's intrinsics, shows them (M, 2), given the query's estimated pose (4, 4)."""
@@ -238,8 +246,17 @@ def align_to_keyframes(
         w2c = invert_pose(pose)
         rvec0, _ = cv2.Rodrigues(w2c[:3, :3])
         ok, rvec, tvec, inl = cv2.solvePnPRansac(
-            X, uv, intrinsics.K, None, rvec0, w2c[:3, 3].reshape(3, 1).copy(), useExtrinsicGuess=True,
-            iterationsCount=RANSAC_ITERATIONS, reprojectionError=REPROJ_PX, flags=cv2.SOLVEPNP_ITERATIVE)
+            X,
+            uv,
+            intrinsics.K,
+            None,
+            rvec0,
+            w2c[:3, 3].reshape(3, 1).copy(),
+            useExtrinsicGuess=True,
+            iterationsCount=RANSAC_ITERATIONS,
+            reprojectionError=REPROJ_PX,
+            flags=cv2.SOLVEPNP_ITERATIVE,
+        )
         inliers = 0 if inl is None else len(inl)
         if not ok or inliers < max(MIN_POINTS, MIN_INLIER_RATIO * points):
             return KeyframeAlignment(start, "no_fit", points, inliers)
@@ -252,7 +269,9 @@ def align_to_keyframes(
         if dt > MAX_SHIFT_M or dr > MAX_SHIFT_DEG:
             return KeyframeAlignment(start, "too_far", points, inliers, dt, dr)
     dt, dr = pose_error(pose, start)
-    if anchor is not None and anchor_inliers(anchor, intrinsics, pose) < MIN_ANCHOR_KEPT * anchor_inliers(anchor, intrinsics, start):
+    if anchor is not None and anchor_inliers(anchor, intrinsics, pose) < MIN_ANCHOR_KEPT * anchor_inliers(
+        anchor, intrinsics, start
+    ):
         return KeyframeAlignment(start, "disagrees", points, inliers, dt, dr)
     return KeyframeAlignment(pose, "aligned", points, inliers, dt, dr)
 

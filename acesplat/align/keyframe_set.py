@@ -11,12 +11,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_path
-from .camera import Intrinsics
-from .errors import InputError
-from .geometry import rigidity_problem
-from .keyframe_align import KEYFRAMES, Keyframe, nearest_keyframes
-from .pnp import DENSE_OUTPUT_STRIDE, OUTPUT_STRIDE
+from acesplat.align.keyframe_align import KEYFRAMES, Keyframe, nearest_keyframes
+from acesplat.core.atomic import atomic_path
+from acesplat.core.bundle import MANIFEST_NAME, ROLE_KEYFRAMES, Bundle
+from acesplat.core.camera import Intrinsics
+from acesplat.core.errors import InputError
+from acesplat.core.geometry import rigidity_problem
+from acesplat.core.grid import DENSE_OUTPUT_STRIDE, OUTPUT_STRIDE
 
 
 @dataclass(frozen=True)
@@ -43,22 +44,27 @@ class KeyframeSet:
         return [self.keyframe(i) for i in nearest_keyframes(self.c2w, pose_c2w, k, depth=depth)]
 
     @classmethod
-    def stack(cls, keyframes: list[Keyframe]) -> "KeyframeSet":
+    def stack(cls, keyframes: list[Keyframe]) -> KeyframeSet:
         if not keyframes:
             raise ValueError("a keyframe set needs at least one keyframe")
         strides = {k.stride for k in keyframes}
         if len(strides) != 1:
             raise ValueError(f"keyframes of one set share a stride, got {sorted(strides)}")
-        return cls(np.stack([k.gray for k in keyframes]), np.stack([k.depth for k in keyframes]).astype(np.float32),
-                   np.stack([k.c2w for k in keyframes]).astype(np.float64),
-                   np.stack([k.intrinsics.K for k in keyframes]), strides.pop())
+        return cls(
+            np.stack([k.gray for k in keyframes]),
+            np.stack([k.depth for k in keyframes]).astype(np.float32),
+            np.stack([k.c2w for k in keyframes]).astype(np.float64),
+            np.stack([k.intrinsics.K for k in keyframes]),
+            strides.pop(),
+        )
 
 
 def save_keyframes(path: str | Path, ks: KeyframeSet) -> None:
     """Write ``ks`` to ``path`` (.npz, depth as float16), atomically."""
     with atomic_path(path, ".npz") as tmp:
-        np.savez_compressed(tmp, gray=ks.gray, depth=ks.depth.astype(np.float16), c2w=ks.c2w, K=ks.K,
-                            stride=np.int64(ks.stride))
+        np.savez_compressed(
+            tmp, gray=ks.gray, depth=ks.depth.astype(np.float16), c2w=ks.c2w, K=ks.K, stride=np.int64(ks.stride)
+        )
 
 
 def load_keyframes(path: str | Path) -> KeyframeSet:
@@ -91,3 +97,10 @@ def load_keyframes(path: str | Path) -> KeyframeSet:
             raise InputError(path, f"keyframe {i}: focal length must be positive and finite")
     depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
     return KeyframeSet(gray, depth, c2w.astype(np.float64), K.astype(np.float64), stride)
+
+
+def bundle_keyframes(bundle: Bundle) -> KeyframeSet:
+    """The keyframes a bundle carries for pose refinement; InputError naming the manifest if it has none."""
+    if not bundle.has(ROLE_KEYFRAMES):
+        raise InputError(bundle.root / MANIFEST_NAME, "bundle has no keyframes to align to; re-export with --keyframes")
+    return load_keyframes(bundle.path(ROLE_KEYFRAMES))

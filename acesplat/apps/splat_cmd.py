@@ -4,32 +4,18 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Optional
+from typing import TYPE_CHECKING
 
 import typer
 from rich.console import Console
 
-from acesplat.core.cli_support import PhaseProgress, one_line_errors, parse_int_pair, report_json
+from acesplat.apps.support import PhaseProgress, one_line_errors, parse_int_pair, report_json
 from acesplat.core.errors import InputError
 
 if TYPE_CHECKING:
-    from .pipeline import SplatConfig
+    pass
 
 console = Console()
-
-TRAIN_PSNR_VIEWS = 25
-"""train_psnr is the mean over this many training views spread along the sequence (all of them: `acesplat render`)."""
-
-
-def _check_map_fits(map_path: Path, short_side: int, frames) -> None:
-    """A map built from larger images than these cannot be this scene's map."""
-    k = frames[0].intrinsics
-    if short_side > min(k.width, k.height):
-        raise InputError(
-            map_path,
-            f"map was built for images with a {short_side} px short side, but the scene's images are "
-            f"{k.width}x{k.height} (a map of other images?)",
-        )
 
 
 @one_line_errors
@@ -45,14 +31,14 @@ def splat_command(
     protocol: str = typer.Option(
         "static", help="static (reconstruct the captured views) or sparse (two views in, held-out targets)."
     ),
-    views: Optional[str] = typer.Option(
+    views: str | None = typer.Option(
         None, "--views", help="Sparse protocol: the two training frame indices, e.g. 10,14."
     ),
-    encoder: Optional[Path] = typer.Option(None, help="Encoder weights if not where the map says."),
+    encoder: Path | None = typer.Option(None, help="Encoder weights if not where the map says."),
     max_gaussians: int = typer.Option(200_000, help="Cap on the number of Gaussians."),
     reproj_px: float = typer.Option(8.0, help="Validity: SCR coordinates must reproject within this many pixels."),
     fill: bool = typer.Option(True, help="Also seed untrusted pixels, at the depth of the nearest trusted cell."),
-    iterations: Optional[int] = typer.Option(
+    iterations: int | None = typer.Option(
         None,
         help="Fixed optimisation iterations (and 1/5 as many head warm-up steps) instead of the budget: reproducible runs.",
     ),
@@ -63,13 +49,13 @@ def splat_command(
         "ran this loop's many small tensor ops several times faster than two.",
     ),
     seed: int = typer.Option(0),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the numbers here."),
+    json_out: Path | None = typer.Option(None, "--json", help="Write the numbers here."),
 ) -> None:
     """Optimise Gaussians for a scene, seeded by its SCR map (Stage 2)."""
     import torch
 
-    from .pipeline import SplatConfig
-    from .validity import ValidityConfig
+    from acesplat.splat.pipeline import SplatConfig
+    from acesplat.splatcore.validity import ValidityConfig
 
     if max_gaussians < 1:
         raise InputError(None, f"--max-gaussians must be positive, got {max_gaussians}")
@@ -83,7 +69,9 @@ def splat_command(
     cfg = SplatConfig(
         minutes=minutes,
         protocol=protocol,
-        sparse_views=None if views is None else parse_int_pair(views, "--views must be two training frame indices like 10,14"),
+        sparse_views=None
+        if views is None
+        else parse_int_pair(views, "--views must be two training frame indices like 10,14"),
         max_gaussians=max_gaussians,
         iterations=iterations,
         head_iterations=None if iterations is None else iterations // 5,
@@ -91,6 +79,8 @@ def splat_command(
         fill=fill,
         seed=seed,
     )
+    from acesplat.splat.run import run_splat
+
     with PhaseProgress("splat ") as bar:
         report = run_splat(scene, map_path, out, cfg, encoder, device, bar)
     tgt = f", held-out targets PSNR {report['target_psnr']:.2f} dB" if "target_psnr" in report else ""
@@ -102,94 +92,25 @@ def splat_command(
     report_json(json_out, report)
 
 
-def run_splat(scene: Path, map_path: Path, out: Path, cfg: "SplatConfig", encoder: Optional[Path] = None,
-              device: str = "auto", progress: Optional[Callable[[str, float, dict], None]] = None) -> dict:
-    """`acesplat splat` as a library function (the demo calls it): Stage 2 on ``scene``'s training split seeded
-    by ``map_path``, scored, written to the splat folder ``out``; returns the report (the command's JSON)."""
-    import torch
-
-    from acesplat.core.scene import read_split
-    from acesplat.scr.cli_cmds import resolve_device
-    from acesplat.scr.mapfile import encoder_for_map, load_map
-
-    from .evaluate import evaluate_views
-    from .params import gaussians_from_params
-    from .pipeline import splat_scene, spread
-    from .splatfile import save_splat
-    from .views import load_views
-
-    dev = resolve_device(device)
-    m = load_map(map_path)
-    enc = encoder_for_map(m, map_path, encoder)
-    train = read_split(scene, "train")
-    _check_map_fits(map_path, m.short_side, train.frames)
-    net = m.network(enc).to(dev)
-    for p in net.parameters():
-        p.requires_grad_(False)
-    res = splat_scene(train.frames, net, m.short_side, cfg, source=map_path, progress=progress)
-    res.initializer.cpu()
-    g = gaussians_from_params(res.params)
-    t_eval = time.monotonic()
-    probe = [res.train_views[i] for i in spread(len(res.train_views), TRAIN_PSNR_VIEWS)]
-    ev = evaluate_views(g, probe, progress=(lambda d, n: progress("evaluate", d / n, {"views": d})) if progress else None)
-    targets = None
-    if res.target_frames:
-        targets = evaluate_views(g, load_views(res.target_frames, m.short_side))
-    eval_s = time.monotonic() - t_eval
-    s = res.stats
-    report = {
-        "seconds": s["seconds"],
-        "gaussians_initial": s["gaussians_initial"],
-        "gaussians_final": s["gaussians_final"],
-        "train_psnr": ev["psnr"],
-        "train_ssim": ev["ssim"],
-        "train_psnr_views": ev["frames"],
-        **(
-            {"target_psnr": targets["psnr"], "target_ssim": targets["ssim"], "target_frames": targets["frames"]}
-            if targets
-            else {}
-        ),
-        "eval_seconds": eval_s,
-        "device": dev,
-        "torch_threads": torch.get_num_threads(),
-        **{k: v for k, v in s.items() if k not in ("seconds", "gaussians_initial", "gaussians_final", "train_views")},
-        "history": res.optimize.history,
-    }
-    manifest = {
-        "scene": str(Path(scene).resolve()),
-        "map": str(Path(map_path).resolve()),
-        "encoder": m.encoder_identity.as_dict(),
-        "short_side": m.short_side,
-        "background": [0.0, 0.0, 0.0],
-        "sh_degree": g.sh_degree,
-        "train_views": s["train_views"],
-        "target_views": [f.name for f in res.target_frames],
-        **{k: v for k, v in report.items() if k != "history"},
-    }
-    save_splat(out, g, res.initializer, manifest)
-    return report
-
-
 @one_line_errors
 def render_command(
     splat: Path = typer.Argument(..., help="Splat folder from `acesplat splat`."),
     scene: Path = typer.Argument(..., help="Scene folder in the ACE layout."),
     split: str = typer.Option("test", help="train or test."),
-    out: Optional[Path] = typer.Option(None, "--out", help="Write render-beside-truth PNGs here."),
-    lpips_weights: Optional[list[Path]] = typer.Option(
+    out: Path | None = typer.Option(None, "--out", help="Write render-beside-truth PNGs here."),
+    lpips_weights: list[Path] | None = typer.Option(
         None,
         "--lpips-weights",
         help="Report LPIPS: give torchvision's AlexNet weights and LPIPS v0.1 alex.pth (repeat the option, or one merged file). "
         "Nothing is downloaded.",
     ),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the numbers here."),
+    json_out: Path | None = typer.Option(None, "--json", help="Write the numbers here."),
 ) -> None:
     """Render a split of a scene from a splat and score it against the images."""
     from acesplat.core.scene import SPLITS, read_split
-
-    from .evaluate import evaluate_views
-    from .splatfile import load_gaussians, load_manifest
-    from .views import load_views
+    from acesplat.splat.evaluate import evaluate_views
+    from acesplat.splat.splatfile import load_gaussians, load_manifest
+    from acesplat.splat.views import load_views
 
     if split not in SPLITS:
         raise InputError(None, f"--split must be one of {SPLITS}, got {split!r}")
@@ -197,7 +118,7 @@ def render_command(
     g = load_gaussians(splat)
     lpips_fn = None
     if lpips_weights:
-        from .lpips import load_lpips
+        from acesplat.splat.lpips import load_lpips
 
         lpips_fn = load_lpips(*lpips_weights)
     data = read_split(scene, split)

@@ -3,66 +3,60 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
 
 import typer
 from rich.console import Console
 from rich.table import Table
 
-from acesplat.core.cli_support import PhaseProgress, one_line_errors, parse_size, report_json
+from acesplat.apps.support import PhaseProgress, one_line_errors, parse_size, report_json
 from acesplat.core.errors import InputError
+from acesplat.scr.device import resolve_device
 
 console = Console()
-
-
-def resolve_device(device: str) -> str:
-    import torch
-
-    if device == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if device == "cuda" and not torch.cuda.is_available():
-        raise InputError(None, "--device cuda asked for, but no CUDA device is available")
-    if device not in ("cpu", "cuda"):
-        raise InputError(None, f"--device must be auto, cpu or cuda, got {device!r}")
-    return device
 
 
 @one_line_errors
 def map_command(
     scene: Path = typer.Argument(..., help="Scene folder in the ACE layout."),
     out: Path = typer.Option(..., "-o", "--out", help="Map file to write."),
-    minutes: Optional[float] = typer.Option(
+    minutes: float | None = typer.Option(
         None, help="Wall-clock budget for mapping, from reading the images to the trained head [default: 4.5]."
     ),
     device: str = typer.Option("auto", help="auto, cpu or cuda."),
-    encoder: Optional[Path] = typer.Option(None, help="Encoder weights (default: the shipped encoder; ACE's file works)."),
-    short_side: Optional[int] = typer.Option(None, help="Shorter image side for the network (default: min(360, image))."),
+    encoder: Path | None = typer.Option(
+        None, help="Encoder weights (default: the shipped encoder; ACE's file works)."
+    ),
+    short_side: int | None = typer.Option(
+        None, help="Shorter image side for the network (default: min(360, image))."
+    ),
     head_width: int = typer.Option(256, help="Width of the head's 1x1 layers."),
     precision: str = typer.Option(
-        "auto", help="Mapping arithmetic (buffer encoder pass and head): auto (bf16 where the CPU/GPU has it), fp32, bf16."
+        "auto",
+        help="Mapping arithmetic (buffer encoder pass and head): auto (bf16 where the CPU/GPU has it), fp32, bf16.",
     ),
-    augment: Optional[str] = typer.Option(
-        None, help="Mapping augmentation: photometric (brightness and contrast) or ace (also ACE's rescale 2/3..3/2 and "
+    augment: str | None = typer.Option(
+        None,
+        help="Mapping augmentation: photometric (brightness and contrast) or ace (also ACE's rescale 2/3..3/2 and "
         "rotation up to 15 deg, for query views much nearer, farther or more tilted than the mapping views) "
-        "[default: photometric]."
+        "[default: photometric].",
     ),
     novel_views: int = typer.Option(
-        0, help="Training images to warp to cameras between neighbouring ones and add to the buffer late in "
-        "training (300 measured: better cells on sparse wide-baseline photographs; bench/herz_gap.md)."
+        0,
+        help="Training images to warp to cameras between neighbouring ones and add to the buffer late in "
+        "training (300 measured: better cells on sparse wide-baseline photographs; bench/herz_gap.md).",
     ),
     seed: int = typer.Option(0),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the numbers here."),
+    json_out: Path | None = typer.Option(None, "--json", help="Write the numbers here."),
 ) -> None:
     """Train a scene-specific SCR head on the training split (Stage 1 mapping)."""
     import torch
 
     from acesplat.core.scene import read_split
-
-    from .encoders import load_encoder
-    from .mapfile import SceneMap, save_map
-    from .augment import augment_ranges
-    from .mapping import AUGMENT, MAP_MINUTES, MappingConfig, default_short_side, map_scene, use_bf16
-    from .network import HeadConfig
+    from acesplat.scr.augment import augment_ranges
+    from acesplat.scr.encoders import load_encoder
+    from acesplat.scr.mapfile import SceneMap, save_map
+    from acesplat.scr.mapping import AUGMENT, MAP_MINUTES, MappingConfig, default_short_side, map_scene, use_bf16
+    from acesplat.scr.network import HeadConfig
 
     minutes = MAP_MINUTES if minutes is None else minutes
     if novel_views < 0:
@@ -84,31 +78,72 @@ def map_command(
     split = read_split(scene, "train")
     enc, ident = load_encoder(encoder)
     side = short_side or default_short_side(split)
-    cfg = MappingConfig(minutes=minutes, short_side=side, head=HeadConfig(width=head_width, blocks=1), seed=seed, device=dev,
-                        precision=precision, augment=augment, novel_views=novel_views)
+    cfg = MappingConfig(
+        minutes=minutes,
+        short_side=side,
+        head=HeadConfig(width=head_width, blocks=1),
+        seed=seed,
+        device=dev,
+        precision=precision,
+        augment=augment,
+        novel_views=novel_views,
+    )
     with PhaseProgress("map ") as bar:
         res = map_scene(split, enc, cfg, bar)
-    meta = {"scene": str(Path(scene).resolve()), "train_frames": len(split), "seconds": res.seconds,
-            "iterations": res.iterations, "buffer_features": res.buffer_features, "device": dev,
-            "precision": "bf16" if bf16 else "fp32", "augment": augment,
-            "novel_views": novel_views, "novel_view_features": res.novel_view_features}
+    meta = {
+        "scene": str(Path(scene).resolve()),
+        "train_frames": len(split),
+        "seconds": res.seconds,
+        "iterations": res.iterations,
+        "buffer_features": res.buffer_features,
+        "device": dev,
+        "precision": "bf16" if bf16 else "fp32",
+        "augment": augment,
+        "novel_views": novel_views,
+        "novel_view_features": res.novel_view_features,
+    }
     save_map(out, SceneMap(res.head, ident, res.mean, side, meta))
     console.print(
         f"mapped {len(split)} images in {res.seconds:.1f} s ({res.buffer_seconds:.1f} s buffer, "
         f"{res.iterations} iterations, {res.buffer_features} features, final loss {res.final_loss:.2f}) -> {out}"
     )
-    report_json(json_out, {**meta, "buffer_seconds": res.buffer_seconds, "final_loss": res.final_loss,
-                           "encoder": ident.as_dict(), "short_side": side, "history": res.history})
+    report_json(
+        json_out,
+        {
+            **meta,
+            "buffer_seconds": res.buffer_seconds,
+            "final_loss": res.final_loss,
+            "encoder": ident.as_dict(),
+            "short_side": side,
+            "history": res.history,
+        },
+    )
 
 
 def results_table(title: str, s: dict) -> Table:
     t = Table(title=title)
-    for k in ("frames", "localized", "median_translation_m", "median_rotation_deg", "recall_5cm_5deg",
-              "recall_10cm_5deg", "recall_25cm_2deg", "mean_ms"):
+    for k in (
+        "frames",
+        "localized",
+        "median_translation_m",
+        "median_rotation_deg",
+        "recall_5cm_5deg",
+        "recall_10cm_5deg",
+        "recall_25cm_2deg",
+        "mean_ms",
+    ):
         t.add_column(k.replace("_", " "), justify="right")
     vals = []
-    for k in ("frames", "localized", "median_translation_m", "median_rotation_deg", "recall_5cm_5deg",
-              "recall_10cm_5deg", "recall_25cm_2deg", "mean_ms"):
+    for k in (
+        "frames",
+        "localized",
+        "median_translation_m",
+        "median_rotation_deg",
+        "recall_5cm_5deg",
+        "recall_10cm_5deg",
+        "recall_25cm_2deg",
+        "mean_ms",
+    ):
         v = s.get(k)
         vals.append("-" if v is None else (f"{v:.4g}" if isinstance(v, float) else str(v)))
     t.add_row(*vals)
@@ -147,24 +182,27 @@ def eval_command(
     map_path: Path = typer.Argument(..., metavar="MAP", help="Map file from `acesplat map`."),
     scene: Path = typer.Argument(..., help="Scene folder in the ACE layout."),
     split: str = typer.Option("test", help="Split to localize."),
-    encoder: Optional[Path] = typer.Option(None, help="Encoder weights if not where the map says."),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the numbers here."),
-    plot: Optional[Path] = typer.Option(None, help="Plot estimated against true camera positions (PNG)."),
+    encoder: Path | None = typer.Option(None, help="Encoder weights if not where the map says."),
+    json_out: Path | None = typer.Option(None, "--json", help="Write the numbers here."),
+    plot: Path | None = typer.Option(None, help="Plot estimated against true camera positions (PNG)."),
     dense: bool = typer.Option(
-        False, help="Predict every 4th pixel instead of every 8th: 4x the correspondences at about 3.5x the time "
-        "(bench/herz_gap.md)."),
+        False,
+        help="Predict every 4th pixel instead of every 8th: 4x the correspondences at about 3.5x the time "
+        "(bench/herz_gap.md).",
+    ),
     align: bool = typer.Option(
-        False, help="Refine each localized pose against the nearest training images of SCENE (warped with "
-        "their depth, dense flow, PnP): centimetre poses where the head alone is a few cm off (bench/herz_gap.md)."),
+        False,
+        help="Refine each localized pose against the nearest training images of SCENE (warped with "
+        "their depth, dense flow, PnP): centimetre poses where the head alone is a few cm off (bench/herz_gap.md).",
+    ),
 ) -> None:
     """Localize a split against a map and report pose accuracy."""
     import torch
 
-    from acesplat.core.pnp import DENSE_OUTPUT_STRIDE, OUTPUT_STRIDE
+    from acesplat.core.grid import DENSE_OUTPUT_STRIDE, OUTPUT_STRIDE
     from acesplat.core.scene import read_split
-
-    from .localize import Localizer, evaluate
-    from .mapfile import encoder_for_map, load_map
+    from acesplat.scr.localize import Localizer, evaluate
+    from acesplat.scr.mapfile import encoder_for_map, load_map
 
     torch.set_num_threads(max(1, torch.get_num_threads()))
     m = load_map(map_path)
@@ -174,7 +212,7 @@ def eval_command(
     network = m.network(enc)
     keyframes = None
     if align:
-        from .keyframes import MapKeyframes
+        from acesplat.scr.keyframes import MapKeyframes
 
         keyframes = MapKeyframes(read_split(scene, "train"), network, m.short_side)
     loc = Localizer(network, m.short_side, {}, output_stride=stride, keyframes=keyframes)
@@ -206,7 +244,7 @@ def pretrain_command(
     """Pretrain the project's own encoder on procedural scenes (resumable)."""
     import torch
 
-    from .pretrain import PretrainConfig, pretrain
+    from acesplat.scr.pretrain import PretrainConfig, pretrain
 
     if threads > 0:
         torch.set_num_threads(threads)
@@ -218,7 +256,7 @@ def pretrain_command(
         summary = pretrain(out, cfg, minutes, bar, command)
     console.print(summary)
     if install:
-        from .pretrain import install_default
+        from acesplat.scr.pretrain import install_default
 
         path = install_default(out, command)
         console.print(f"installed {path} (provenance in {path.with_suffix('.json')})")

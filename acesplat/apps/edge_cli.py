@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import typer
 
-from edge.cli_cmds import localize_command, profile_command, record_command, replay_command
-from firmware_bridge.cli import app as bridge_app
+from acesplat.apps.bridge_cmd import app as bridge_app
+from acesplat.apps.edge_cmd import localize_command, profile_command, record_command, replay_command
 
 app = typer.Typer(no_args_is_help=True, add_completion=False, help="ACEsplat onboard: localize against a bundle.")
 

@@ -2,7 +2,7 @@
 
 Mapping uses it to make views between neighbouring training cameras: the head learns what the
 encoder sees of a surface from in-between viewpoints, which 18 photographs alone do not show it.
-The depth is a grid of z-values at the SCR network's prediction cells (acesplat.core.pnp.cell_centers,
+The depth is a grid of z-values at the SCR network's prediction cells (acesplat.core.grid.cell_centers,
 stride 8 or 4); the warp is the exact reprojection of each source pixel at its
 interpolated depth, inverted by fixed-point iteration, so it needs no mesh and no z-buffer. Where the
 inverse does not close (folds at occluding edges, outside the source) the pixel is marked invalid.
@@ -13,9 +13,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .camera import Intrinsics
-from .geometry import invert_pose
-from .pnp import cell_centers
+from acesplat.core.camera import Intrinsics
+from acesplat.core.geometry import invert_pose
+from acesplat.core.grid import cell_centers
 
 FIXED_POINT_STEPS = 12
 """Iterations of s <- v - D(s); the displacement field of a smooth surface contracts in a few."""
@@ -60,8 +60,14 @@ def forward_map(
     py, px = np.mgrid[0:h, 0:w].astype(np.float32)
     nan = float("nan")
     # Bilinear between cell centres; NaN spreads to every pixel next to an unknown cell.
-    return cv2.remap(grid.astype(np.float32), (px - first) / stride + pad, (py - first) / stride + pad,
-                     cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=(nan, nan))
+    return cv2.remap(
+        grid.astype(np.float32),
+        (px - first) / stride + pad,
+        (py - first) / stride + pad,
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=(nan, nan),
+    )
 
 
 def warp_to_camera(

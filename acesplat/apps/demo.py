@@ -11,13 +11,12 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Optional
 
 import typer
 from rich.console import Console
 from rich.table import Table
 
-from acesplat.core.cli_support import PhaseProgress, one_line_errors, parse_int_pair, parse_size, report_json
+from acesplat.apps.support import PhaseProgress, one_line_errors, parse_int_pair, parse_size, report_json
 from acesplat.core.errors import InputError
 
 console = Console()
@@ -52,12 +51,11 @@ def _stage_synth(work: Path, summary: dict, size: tuple[int, int] | None, frames
 
 def _stage_map(scene: Path, work: Path, minutes: float, summary: dict) -> Path:
     from acesplat.core.scene import read_split
+    from acesplat.scr.device import resolve_device
     from acesplat.scr.encoders import load_encoder
     from acesplat.scr.localize import Localizer, evaluate
     from acesplat.scr.mapfile import SceneMap, save_map
     from acesplat.scr.mapping import MappingConfig, default_short_side, map_scene
-
-    from .scr.cli_cmds import resolve_device
 
     dev = resolve_device("auto")
     train, test = read_split(scene, "train"), read_split(scene, "test")
@@ -67,8 +65,15 @@ def _stage_map(scene: Path, work: Path, minutes: float, summary: dict) -> Path:
     with PhaseProgress("demo map ") as bar:
         res = map_scene(train, enc, cfg, bar)
     map_path = work / "map.pt"
-    meta = {"scene": str(scene.resolve()), "train_frames": len(train), "seconds": res.seconds,
-            "iterations": res.iterations, "buffer_features": res.buffer_features, "device": dev, "augment": cfg.augment}
+    meta = {
+        "scene": str(scene.resolve()),
+        "train_frames": len(train),
+        "seconds": res.seconds,
+        "iterations": res.iterations,
+        "buffer_features": res.buffer_features,
+        "device": dev,
+        "augment": cfg.augment,
+    }
     scene_map = SceneMap(res.head, ident, res.mean, side, meta)
     save_map(map_path, scene_map)
     from acesplat.scr.keyframes import MapKeyframes
@@ -79,8 +84,11 @@ def _stage_map(scene: Path, work: Path, minutes: float, summary: dict) -> Path:
         ev = evaluate(test, loc, lambda i, n: bar("localize", i / n, {"frame": i}))
         # keyframe depths are made on first use (only the keyframes some test frame needs), inside the frame times
         keyframes = MapKeyframes(train, net, side)
-        al = evaluate(test, Localizer(net, side, {}, keyframes=keyframes),
-                      lambda i, n: bar("localize + align", i / n, {"frame": i}))
+        al = evaluate(
+            test,
+            Localizer(net, side, {}, keyframes=keyframes),
+            lambda i, n: bar("localize + align", i / n, {"frame": i}),
+        )
     for e in (ev, al):
         e.pop("estimates")
         e.pop("per_frame")
@@ -90,20 +98,25 @@ def _stage_map(scene: Path, work: Path, minutes: float, summary: dict) -> Path:
     return map_path
 
 
-def _stage_splat(scene: Path, map_path: Path, work: Path, minutes: float, iterations: int | None, summary: dict) -> Path:
+def _stage_splat(
+    scene: Path, map_path: Path, work: Path, minutes: float, iterations: int | None, summary: dict
+) -> Path:
     """A short Stage 2 through `acesplat splat`'s library function, with the command's default of one torch thread."""
     import torch
 
-    from acesplat.splat.cli_cmds import run_splat
     from acesplat.splat.pipeline import SplatConfig
-
+    from acesplat.splat.run import run_splat
     from edge.refine.refiner import RefineConfig
 
     # Capped at what the edge refines: measured on the demo scene (1.5 min, 2 busy cores), the 200k default cap
     # gave 203 iterations and test PSNR 23.8 dB and a 71 ms render per refinement step; 60k gave 295 iterations,
     # 25.4 dB and 16 ms.
-    cfg = SplatConfig(minutes=minutes, iterations=iterations, max_gaussians=RefineConfig().cap,
-                      head_iterations=None if iterations is None else iterations // 5)
+    cfg = SplatConfig(
+        minutes=minutes,
+        iterations=iterations,
+        max_gaussians=RefineConfig().cap,
+        head_iterations=None if iterations is None else iterations // 5,
+    )
     splat_dir = work / "splat"
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -112,16 +125,27 @@ def _stage_splat(scene: Path, map_path: Path, work: Path, minutes: float, iterat
             rep = run_splat(scene, map_path, splat_dir, cfg, progress=bar)
     finally:
         torch.set_num_threads(threads)
-    summary["splat"] = {k: rep[k] for k in ("seconds", "iterations", "gaussians_initial", "gaussians_final",
-                                            "train_psnr", "train_ssim", "train_psnr_views") if k in rep}
+    summary["splat"] = {
+        k: rep[k]
+        for k in (
+            "seconds",
+            "iterations",
+            "gaussians_initial",
+            "gaussians_final",
+            "train_psnr",
+            "train_ssim",
+            "train_psnr_views",
+        )
+        if k in rep
+    }
     return splat_dir
 
 
 def _stage_edge(map_path: Path, scene: Path, splat_dir: Path, work: Path, budget_ms: float, summary: dict) -> Path:
     """Export FP32 + INT8 ONNX with the Gaussians and their initializer, replay the test split on the torch-free
     edge runtime with each precision, then once more with refinement."""
+    from acesplat.apps.refine_cmd import refine_session
     from acesplat.core.bundle import load_bundle
-    from edge.refine.cli_hooks import refine_session
     from edge.refine.session import write_before_after
     from edge.replay import replay_split
     from edge.runtime import EdgeLocalizer, paced
@@ -148,8 +172,9 @@ def _stage_edge(map_path: Path, scene: Path, splat_dir: Path, work: Path, budget
     r.pop("per_frame", None)
     summary["replay_paced"] = r
     loc = EdgeLocalizer(bundle, REFINE_PRECISION)
-    session = refine_session(True, loc, bundle, budget_ms, None, lambda msg: console.print(f"[yellow]{msg}[/yellow]"),
-                             evaluate=True)
+    session = refine_session(
+        True, loc, bundle, budget_ms, None, lambda msg: console.print(f"[yellow]{msg}[/yellow]"), evaluate=True
+    )
     if session is None:
         raise InputError(bundle_dir, "the demo bundle has no Gaussians to refine")
     t0 = time.monotonic()
@@ -173,41 +198,68 @@ def results_table(summary: dict) -> Table:
     t.add_column("seconds", justify="right")
     if "synth" in summary:
         s = summary["synth"]
-        t.add_row("synth", f"{s['train_frames']} train + {s['test_frames']} test frames, {s['size'][0]}x{s['size'][1]}",
-                  f"{s['seconds']:.1f}")
+        t.add_row(
+            "synth",
+            f"{s['train_frames']} train + {s['test_frames']} test frames, {s['size'][0]}x{s['size'][1]}",
+            f"{s['seconds']:.1f}",
+        )
     if "map" in summary:
         m, e = summary["map"], summary["eval"]
-        t.add_row("map", f"{m['iterations']} iterations, {m['buffer_features']} buffered features", f"{m['seconds']:.1f}")
+        t.add_row(
+            "map", f"{m['iterations']} iterations, {m['buffer_features']} buffered features", f"{m['seconds']:.1f}"
+        )
         t.add_row("eval (torch)", _accuracy(e), f"{e['mean_ms'] * e['frames'] / 1000:.1f}")
         a = summary.get("eval_align")
         if a:
-            t.add_row("eval (torch), aligned", _accuracy(a) + " (keyframe depths made on first use)",
-                      f"{a['mean_ms'] * a['frames'] / 1000:.1f}")
+            t.add_row(
+                "eval (torch), aligned",
+                _accuracy(a) + " (keyframe depths made on first use)",
+                f"{a['mean_ms'] * a['frames'] / 1000:.1f}",
+            )
     if "splat" in summary:
         sp = summary["splat"]
-        t.add_row("splat (Stage 2)", f"{sp['gaussians_initial']} -> {sp['gaussians_final']} Gaussians, {sp['iterations']} "
-                  f"iterations; train PSNR {sp['train_psnr']:.2f} dB over {sp['train_psnr_views']} views", f"{sp['seconds']:.1f}")
+        t.add_row(
+            "splat (Stage 2)",
+            f"{sp['gaussians_initial']} -> {sp['gaussians_final']} Gaussians, {sp['iterations']} "
+            f"iterations; train PSNR {sp['train_psnr']:.2f} dB over {sp['train_psnr_views']} views",
+            f"{sp['seconds']:.1f}",
+        )
     if "export" in summary:
-        t.add_row("export (ONNX FP32 + INT8 + splat)", "bundle: SCR graphs, Gaussians, initializer; self-checked",
-                  f"{summary['export']['seconds']:.1f}")
+        t.add_row(
+            "export (ONNX FP32 + INT8 + splat)",
+            "bundle: SCR graphs, Gaussians, initializer; self-checked",
+            f"{summary['export']['seconds']:.1f}",
+        )
     for precision in ("fp32", "int8"):
         r = summary.get(f"replay_{precision}")
         if r:
             tm = r["timing_ms"]["total"]
-            t.add_row(f"edge replay ({precision})", f"{_accuracy(r)}; total p50 {tm['p50']:.0f} ms, p95 {tm['p95']:.0f} ms",
-                      f"{tm['mean'] * r['frames'] / 1000:.1f}")
+            t.add_row(
+                f"edge replay ({precision})",
+                f"{_accuracy(r)}; total p50 {tm['p50']:.0f} ms, p95 {tm['p95']:.0f} ms",
+                f"{tm['mean'] * r['frames'] / 1000:.1f}",
+            )
     r = summary.get("replay_paced")
     if r:
         tm = r["timing_ms"]["total"]
-        t.add_row(f"edge replay ({r['precision']}), paced", f"one frame per refinement budget, no refinement; total p50 "
-                  f"{tm['p50']:.0f} ms, p95 {tm['p95']:.0f} ms", "")
+        t.add_row(
+            f"edge replay ({r['precision']}), paced",
+            f"one frame per refinement budget, no refinement; total p50 {tm['p50']:.0f} ms, p95 {tm['p95']:.0f} ms",
+            "",
+        )
     r = summary.get("replay_refine")
     if r:
-        t.add_row(f"edge replay ({r['precision']}) + refinement",
-                  _refinement(r, summary.get("replay_paced") or summary.get(f"replay_{r['precision']}")), f"{r['seconds']:.1f}")
+        t.add_row(
+            f"edge replay ({r['precision']}) + refinement",
+            _refinement(r, summary.get("replay_paced") or summary.get(f"replay_{r['precision']}")),
+            f"{r['seconds']:.1f}",
+        )
         for im in r.get("renders", []):
-            t.add_row("  before/after render", f"{im['path']} (frame | before | after: {im['psnr_before']:.2f} -> "
-                      f"{im['psnr_after']:.2f} dB)", "")
+            t.add_row(
+                "  before/after render",
+                f"{im['path']} (frame | before | after: {im['psnr_before']:.2f} -> {im['psnr_after']:.2f} dB)",
+                "",
+            )
     if "seconds" in summary:
         t.add_row("total", "", f"{summary['seconds']:.1f}")
     return t
@@ -216,15 +268,20 @@ def results_table(summary: dict) -> Table:
 def _refinement(r: dict, plain: dict | None) -> str:
     f = r["refine"]
     tm, w = r["timing_ms"]["total"], f["timing_ms"]["window"]
-    psnr = (f"PSNR {f['psnr_before']:.2f} -> {f['psnr_after']:.2f} dB over {f['psnr_views']} test views"
-            if "psnr_before" in f else "no PSNR (no views with poses)")
+    psnr = (
+        f"PSNR {f['psnr_before']:.2f} -> {f['psnr_after']:.2f} dB over {f['psnr_views']} test views"
+        if "psnr_before" in f
+        else "no PSNR (no views with poses)"
+    )
     without = f" (without, paced alike: {plain['timing_ms']['total']['p95']:.0f} ms)" if plain else ""
     init = f["calibration_ms"].get("initializer_ms")
     init_text = f"; initializer {init:.1f} ms" if init is not None else ""
-    return (f"{psnr}; {f['keyframes']} keyframes ({f['keyframes_committed']} kept), +{f['gaussians_added']} Gaussians, "
-            f"{f['steps']} steps in a {f['budget_ms']:.0f} ms budget; localization total p95 {tm['p95']:.0f} ms{without}; "
-            f"refinement per frame p50 {_ms(w['p50'])}, p95 {_ms(w['p95'])}; waits for a running piece p95 "
-            f"{_ms(f['timing_ms']['park']['p95'])}{init_text}")
+    return (
+        f"{psnr}; {f['keyframes']} keyframes ({f['keyframes_committed']} kept), +{f['gaussians_added']} Gaussians, "
+        f"{f['steps']} steps in a {f['budget_ms']:.0f} ms budget; localization total p95 {tm['p95']:.0f} ms{without}; "
+        f"refinement per frame p50 {_ms(w['p50'])}, p95 {_ms(w['p95'])}; waits for a running piece p95 "
+        f"{_ms(f['timing_ms']['park']['p95'])}{init_text}"
+    )
 
 
 def _ms(v: float) -> str:
@@ -242,12 +299,17 @@ def demo_command(
     workdir: Path = typer.Option(Path("runs/demo"), help="Where the scene, map and outputs go."),
     map_minutes: float = typer.Option(4.5, help="Mapping budget (Stage 1; acesplat map's default)."),
     splat_minutes: float = typer.Option(DEFAULT_SPLAT_MINUTES, help="Stage 2 budget (`acesplat splat --minutes`)."),
-    refine_budget_ms: float = typer.Option(DEFAULT_REFINE_BUDGET_MS, "--refine-budget-ms",
-                                           help="Per-frame budget of localization + refinement in the edge replay."),
-    size: Optional[str] = typer.Option(None, help="Image size HxW of the synthetic scene (default 240x320; smaller is quicker)."),
-    frames: Optional[str] = typer.Option(None, help="TRAIN,TEST frame counts of the synthetic scene (default 200,60)."),
-    splat_iterations: Optional[int] = typer.Option(None, help="Fixed Stage 2 iterations instead of --splat-minutes."),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Write all numbers here (default WORKDIR/demo.json)."),
+    refine_budget_ms: float = typer.Option(
+        DEFAULT_REFINE_BUDGET_MS,
+        "--refine-budget-ms",
+        help="Per-frame budget of localization + refinement in the edge replay.",
+    ),
+    size: str | None = typer.Option(
+        None, help="Image size HxW of the synthetic scene (default 240x320; smaller is quicker)."
+    ),
+    frames: str | None = typer.Option(None, help="TRAIN,TEST frame counts of the synthetic scene (default 200,60)."),
+    splat_iterations: int | None = typer.Option(None, help="Fixed Stage 2 iterations instead of --splat-minutes."),
+    json_out: Path | None = typer.Option(None, "--json", help="Write all numbers here (default WORKDIR/demo.json)."),
 ) -> None:
     """Run synth -> map -> eval -> splat -> export -> edge replay (with and without refinement) on the built-in
     synthetic scene and print the results."""
@@ -270,7 +332,7 @@ def demo_command(
     report_json(json_out if json_out else workdir / "demo.json", summary)
 
 
-def _parse_frames(text: Optional[str]) -> tuple[int, int] | None:
+def _parse_frames(text: str | None) -> tuple[int, int] | None:
     if text is None:
         return None
     train, test = parse_int_pair(text, "--frames must look like TRAIN,TEST (e.g. 200,60)")

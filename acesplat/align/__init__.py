@@ -1,0 +1,1 @@
+"""Torch-free alignment of a pose against posed mapping images (warp, dense flow, PnP) and the keyframes it uses."""

@@ -1,0 +1,127 @@
+"""`acesplat export`: torch, onnx and onnxruntime's quantizer are imported inside the command."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from acesplat.apps.support import PhaseProgress, one_line_errors, parse_size, report_json
+
+console = Console()
+
+
+def _fmt(v: object) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return str(v)
+
+
+def checks_table(manifest: dict) -> Table:
+    """The self-check numbers as they go into the manifest."""
+    checks = manifest["checks"]
+    t = Table(title=f"bundle self-checks ({manifest['scr']['input_size'][0]}x{manifest['scr']['input_size'][1]})")
+    t.add_column("check")
+    t.add_column("value", justify="right")
+    par = checks["fp32_vs_torch"]
+    t.add_row("FP32 ONNX vs torch: max |diff| (m)", _fmt(par["max_abs_diff_m"]))
+    t.add_row("  as a fraction of the scene extent", _fmt(par["max_abs_diff_fraction"]))
+    t.add_row("  scene extent (m)", _fmt(par["scene_extent_m"]))
+    t.add_row(
+        "  max pose difference (m / deg)",
+        f"{_fmt(par['pose_max_translation_diff_m'])} / {_fmt(par['pose_max_rotation_diff_deg'])}",
+    )
+    if par.get("features_max_abs_diff") is not None:
+        t.add_row(
+            "FP32 ONNX vs torch: encoder features max |diff| / max |feature|",
+            f"{_fmt(par['features_max_abs_diff'])} / {_fmt(par['features_max_abs'])}",
+        )
+    acc = checks.get("test_split")
+    if acc:
+        for prec in ("fp32", "int8"):
+            a = acc[prec]
+            t.add_row(f"{prec.upper()} test: localized / frames", f"{a['localized']} / {a['frames']}")
+            t.add_row(
+                f"{prec.upper()} test: median (m / deg)",
+                f"{_fmt(a['median_translation_m'])} / {_fmt(a['median_rotation_deg'])}",
+            )
+            t.add_row(
+                f"{prec.upper()} test: recall 5cm/5deg, 10cm/5deg, 25cm/2deg (%)",
+                f"{a['recall_5cm_5deg']:.1f}, {a['recall_10cm_5deg']:.1f}, {a['recall_25cm_2deg']:.1f}",
+            )
+    elif checks.get("test_split_note"):
+        t.add_row("INT8 accuracy", checks["test_split_note"])
+    if "splat_init_fp32_vs_torch" in checks:
+        par = checks["splat_init_fp32_vs_torch"]
+        t.add_row(
+            "splat initializer ONNX vs torch: max |diff| / max |output|",
+            f"{_fmt(par['max_abs_diff'])} / {_fmt(par['max_abs_output'])}",
+        )
+        for prec in ("fp32", "int8"):
+            via = checks.get(f"splat_init_via_scr_{prec}_vs_torch")
+            if via:
+                t.add_row(
+                    f"  fed the {prec.upper()} SCR graph's features: max / mean |diff|",
+                    f"{_fmt(via['max_abs_diff'])} / {_fmt(via['mean_abs_diff'])}",
+                )
+    return t
+
+
+@one_line_errors
+def export_command(
+    map_path: Path = typer.Argument(..., metavar="MAP", help="Map file from `acesplat map`."),
+    out: Path = typer.Option(..., "-o", "--out", help="Bundle directory to write (replaced if it is a bundle)."),
+    int8: bool = typer.Option(False, "--int8", help="Also write a statically quantized INT8 model."),
+    size: str | None = typer.Option(
+        None, help="Input size HxW (default: the map's short side, training aspect ratio)."
+    ),
+    encoder: Path | None = typer.Option(None, help="Encoder weights if not where the map says."),
+    scene: Path | None = typer.Option(None, help="Scene folder if not where the map says (calibration and checks)."),
+    json_out: Path | None = typer.Option(None, "--json", help="Write the manifest and timings here."),
+    splat: Path | None = typer.Option(
+        None, "--splat", help="Splat folder from `acesplat splat`: add its Gaussians and initializer (edge refinement)."
+    ),
+    dense: bool = typer.Option(
+        False,
+        help="Coordinates every 4th pixel instead of every 8th (as `acesplat eval --dense`): "
+        "more accurate poses at about 3.5x the SCR time; no --splat.",
+    ),
+    keyframes: bool = typer.Option(
+        False,
+        help="Carry the training images with their depth, so the edge can "
+        "refine poses against them (acesplat-edge replay/localize --align).",
+    ),
+) -> None:
+    """Export a map to an ONNX bundle (FP32, optionally INT8) that checks itself."""
+    import torch
+
+    from acesplat.core.errors import InputError
+    from export.bundle_export import ExportOptions, export_bundle
+
+    if dense and splat is not None:
+        raise InputError(splat, "--splat needs the stride-8 SCR graph its initializer was trained on; drop --dense")
+    torch.set_num_threads(max(1, torch.get_num_threads()))
+    opts = ExportOptions(
+        int8=int8,
+        size_hw=parse_size(size) if size else None,
+        encoder_path=encoder,
+        scene_path=scene,
+        dense=dense,
+        keyframes=keyframes,
+    )
+    with PhaseProgress() as bar:
+        rep = export_bundle(map_path, out, opts, bar)
+        if splat is not None:
+            from export.splat_export import export_splat
+
+            rep.manifest = export_splat(out, splat, map_path, encoder, bar)["manifest"]
+    console.print(checks_table(rep.manifest))
+    files = ", ".join(f"{f['path']} ({f['bytes'] / 1e6:.2f} MB)" for f in rep.manifest["files"])
+    console.print(f"bundle {out}: {files}; {rep.seconds:.1f} s")
+    report_json(
+        json_out, {"bundle": str(out), "seconds": rep.seconds, "timings": rep.timings, "manifest": rep.manifest}
+    )
