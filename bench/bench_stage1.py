@@ -29,15 +29,19 @@ import torch
 from cell_accuracy import split_cell_accuracy
 
 from acesplat.core.atomic import write_json
+from acesplat.core.config import knob_default
 from acesplat.core.grid import DENSE_OUTPUT_STRIDE
 from acesplat.core.machine import machine_info, machine_line
 from acesplat.core.scene import read_split
 from acesplat.scr.encoders import load_encoder
 from acesplat.scr.keyframes import MapKeyframes
 from acesplat.scr.localize import Localizer, evaluate
-from acesplat.scr.mapping import AUGMENT, MAP_MINUTES, MappingConfig, default_short_side, map_scene
+from acesplat.scr.mapping import MappingConfig, default_short_side, map_scene
 from acesplat.scr.novel_views import NOVEL_VIEWS
 from acesplat.synth import synthesize
+
+AUGMENT = knob_default(MappingConfig, "augment")
+MAP_MINUTES = knob_default(MappingConfig, "minutes")
 
 ROOT = Path(__file__).resolve().parents[1]
 HERZ = ROOT.parent / "shared" / "data" / "herzjesu25"

@@ -20,10 +20,13 @@ import time
 
 import torch
 
+from acesplat.core.config import knob_default
 from acesplat.core.machine import machine_line
 from acesplat.scr.encoders import load_encoder
-from acesplat.scr.mapping import BATCH_SIZE
+from acesplat.scr.mapping import MappingConfig
 from acesplat.scr.network import Head, HeadConfig, normalize_gray
+
+BATCH_SIZE = knob_default(MappingConfig, "batch_size")
 
 
 def step_times(head: Head, feats: torch.Tensor, layout: str, steps: int) -> list[float]:

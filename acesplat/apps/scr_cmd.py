@@ -8,9 +8,12 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from acesplat.apps.support import PhaseProgress, one_line_errors, parse_size, report_json
+from acesplat.apps.support import PhaseProgress, one_line_errors, option, parse_size, report_json
+from acesplat.core.config import knob_default
 from acesplat.core.errors import InputError
 from acesplat.scr.device import resolve_device
+from acesplat.scr.mapping import MappingConfig
+from acesplat.scr.network import HeadConfig
 
 console = Console()
 
@@ -19,33 +22,17 @@ console = Console()
 def map_command(
     scene: Path = typer.Argument(..., help="Scene folder in the ACE layout."),
     out: Path = typer.Option(..., "-o", "--out", help="Map file to write."),
-    minutes: float | None = typer.Option(
-        None, help="Wall-clock budget for mapping, from reading the images to the trained head [default: 4.5]."
-    ),
+    minutes: float = option(MappingConfig, "minutes"),
     device: str = typer.Option("auto", help="auto, cpu or cuda."),
-    encoder: Path | None = typer.Option(
-        None, help="Encoder weights (default: the shipped encoder; ACE's file works)."
+    encoder: Path | None = typer.Option(None, help="Encoder weights (default: the shipped encoder; ACE's file works)."),
+    short_side: int | None = option(
+        MappingConfig, "short_side", default=None, help="Shorter image side for the network, at most the images' own."
     ),
-    short_side: int | None = typer.Option(
-        None, help="Shorter image side for the network (default: min(360, image))."
-    ),
-    head_width: int = typer.Option(256, help="Width of the head's 1x1 layers."),
-    precision: str = typer.Option(
-        "auto",
-        help="Mapping arithmetic (buffer encoder pass and head): auto (bf16 where the CPU/GPU has it), fp32, bf16.",
-    ),
-    augment: str | None = typer.Option(
-        None,
-        help="Mapping augmentation: photometric (brightness and contrast) or ace (also ACE's rescale 2/3..3/2 and "
-        "rotation up to 15 deg, for query views much nearer, farther or more tilted than the mapping views) "
-        "[default: photometric].",
-    ),
-    novel_views: int = typer.Option(
-        0,
-        help="Training images to warp to cameras between neighbouring ones and add to the buffer late in "
-        "training (300 measured: better cells on sparse wide-baseline photographs; bench/herz_gap.md).",
-    ),
-    seed: int = typer.Option(0),
+    head_width: int = typer.Option(knob_default(MappingConfig, "head").width, help="Width of the head's 1x1 layers."),
+    precision: str = option(MappingConfig, "precision"),
+    augment: str = option(MappingConfig, "augment"),
+    novel_views: int = option(MappingConfig, "novel_views"),
+    seed: int = option(MappingConfig, "seed"),
     json_out: Path | None = typer.Option(None, "--json", help="Write the numbers here."),
 ) -> None:
     """Train a scene-specific SCR head on the training split (Stage 1 mapping)."""
@@ -55,10 +42,8 @@ def map_command(
     from acesplat.scr.augment import augment_ranges
     from acesplat.scr.encoders import load_encoder
     from acesplat.scr.mapfile import SceneMap, save_map
-    from acesplat.scr.mapping import AUGMENT, MAP_MINUTES, MappingConfig, default_short_side, map_scene, use_bf16
-    from acesplat.scr.network import HeadConfig
+    from acesplat.scr.mapping import default_short_side, map_scene, use_bf16
 
-    minutes = MAP_MINUTES if minutes is None else minutes
     if novel_views < 0:
         raise InputError(None, f"--novel-views must be 0 or more, got {novel_views}")
     if minutes <= 0:
@@ -68,7 +53,6 @@ def map_command(
         bf16 = use_bf16(precision, dev)
     except ValueError as e:
         raise InputError(None, f"--{e}") from None
-    augment = AUGMENT if augment is None else augment
     try:
         augment_ranges(augment)
     except ValueError as e:

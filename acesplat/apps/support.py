@@ -112,3 +112,18 @@ class CountProgress:
         if done == 1:
             self._progress.start()
         self._progress.update(self._task, completed=done, total=total)
+
+
+def option(cls: type, name: str, *param_decls: str, default: Any = ..., **kwargs: Any) -> Any:
+    """A typer option whose default and help come from the knob ``cls.name`` (acesplat.core.config.knob).
+
+    ``default=None`` keeps the knob's value out of the signature (an optional override, e.g. a value computed
+    from the scene); the help then names the knob's default.
+    """
+    from acesplat.core.config import knob_default, knob_help
+
+    value = knob_default(cls, name)
+    text = kwargs.pop("help", None) or knob_help(cls, name)
+    if default is None:
+        return typer.Option(None, *param_decls, help=f"{text} (default: {value})", **kwargs)
+    return typer.Option(value, *param_decls, help=text, **kwargs)

@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from acesplat.core.camera import Intrinsics
+from acesplat.core.config import knob, knob_default
 from acesplat.core.grid import OUTPUT_STRIDE, cell_centers
 from acesplat.core.preprocess import size_for_short_side, to_gray_input
 from acesplat.core.scene import SceneSplit
@@ -34,78 +35,52 @@ from acesplat.scr.network import Encoder, Head, HeadConfig, normalize_gray
 from acesplat.scr.novel_views import NOVEL_VIEWS_AT, NOVEL_VIEWS_TIME_FRACTION, novel_view_buffer
 from acesplat.scr.targets import ImageTargets, triangulate_targets
 
-# ACE's defaults, and where this project departs from them for a CPU budget.
-MAP_MINUTES = 4.5
-"""Default wall-clock mapping budget: the issue's 5 minutes less a margin for reading the scene and saving."""
+# ACE's recipe, named where it is used; where this project departs from it for a CPU budget the knob is a
+# MappingConfig field below (bench/augment_choice.md and bench/herz_gap.md measure the departures).
 ACE_IMAGE_SHORT_SIDE = 480
-IMAGE_SHORT_SIDE = 360
-"""Mapping/localization resolution (shorter image side); ACE uses 480, a CPU budget favours fewer pixels."""
-BATCH_SIZE = 5120
-"""ACE's batch of buffered features per head step."""
-LR_MIN = 5e-4
-LR_MAX = 5e-3
-"""ACE's one-cycle range."""
-WEIGHT_DECAY = 0.01
-SAMPLES_PER_IMAGE = 1024
-"""Features taken from each augmented image (ACE: 1024)."""
 ACE_BUFFER_SIZE = 8_000_000
-BUFFER_SIZE = 1_000_000
-"""ACE buffers 8M features; on CPU the head sees ~2000 batches in a few minutes, so 1M already gives ~10 epochs."""
-AUGMENT = "photometric"
-"""Augmentation preset (acesplat.scr.augment.AUGMENT_PRESETS): brightness and contrast only. ACE also rescales
-by 2/3..3/2 and rotates by up to 15 degrees; this project's small encoder is not invariant to that, so the head
-spent its few CPU steps learning features the camera never produces: at fixed head steps on the built-in
-room 96.7% of test frames within 5 cm / 5 deg without it, 81.7% with half the ranges, 73.3% with ACE's; at
-the wall-clock budgets the room 95.0% vs 71.7% and herzjesu25's median 5.7 vs 8.3 cm (bench/augment_choice.md).
-``acesplat map --augment ace`` keeps ACE's ranges for query views much nearer, farther or more tilted than the
-mapping views."""
+WEIGHT_DECAY = 0.01
 TARGETS_TIME_FRACTION = 0.08
 """At most this share of the budget goes to matching and triangulating targets."""
 BUFFER_TIME_FRACTION = 0.25
 """Targets and buffer together use at most this share of the budget; the rest trains the head."""
 ONE_CYCLE_WARMUP = 0.25
-"""Share of training spent rising from LR_MIN to LR_MAX (cosine), then cosine annealing back down."""
+"""Share of training spent rising from lr_min to lr_max (cosine), then cosine annealing back down."""
 TARGET_WEIGHT_PX = 0.4
-"""Weight of the triangulated-target term, whose distance is measured in pixels: metres times f / depth of
-the target in its view. A valid prediction's reprojection gradient is about f / depth pixels per metre, so a
-weight in metres suits one scene depth only: with ACE's augmentation at fixed head steps, 50 m^-1 beat 10 on
-the built-in room (f / depth ~130) and lost on herzjesu25 (f / depth ~25); both winners are about
-0.4 x f / depth, which this weight gives each target by itself."""
+"""Weight of the triangulated-target term, whose distance is in pixels (metres times f / depth of the target in its
+view), so one weight suits every scene depth (bench/augment_choice.md)."""
 TARGET_CLAMP_M = 2.0
 """Target distances beyond this (metres) stop growing the loss, so a wrong match cannot dominate."""
 
 
 def default_short_side(split: SceneSplit) -> int:
-    """IMAGE_SHORT_SIDE, or the images' own shorter side when they are smaller (never upsample to map)."""
+    """MappingConfig.short_side, or the images' own shorter side when they are smaller (never upsample to map)."""
     first = split.frames[0].intrinsics
-    return min(IMAGE_SHORT_SIDE, first.width, first.height)
+    return min(knob_default(MappingConfig, "short_side"), first.width, first.height)
 
 
 @dataclass
 class MappingConfig:
-    minutes: float = MAP_MINUTES
-    short_side: int = IMAGE_SHORT_SIDE
-    head: HeadConfig = field(default_factory=lambda: HeadConfig(width=256, blocks=1))
-    batch_size: int = BATCH_SIZE
-    buffer_size: int = BUFFER_SIZE
-    samples_per_image: int = SAMPLES_PER_IMAGE
-    lr_min: float = LR_MIN
-    lr_max: float = LR_MAX
-    augment: str = AUGMENT
-    triangulate: bool = True
-    """Add sparse coordinate targets triangulated from SIFT matches between training images (acesplat.scr.targets)."""
-    novel_views: int = 0
-    """Training images warped to cameras between neighbouring ones, added to the buffer late in
-    training (acesplat.scr.novel_views; NOVEL_VIEWS is the measured count). Off by default: it made the test
-    cells better but not yet the dense poses."""
-    iterations: int | None = None
-    """Fixed iteration count instead of the wall-clock budget (tests, reproducible runs)."""
-    seed: int = 0
-    device: str = "cpu"
-    precision: str = "auto"
-    """Mapping arithmetic: "fp32", "bf16" (the buffer's encoder pass and the head's hidden layers in bfloat16),
-    or "auto" (bf16 where the hardware has it: CUDA, or a CPU with AVX512-BF16/AMX, where it measured several
-    times faster)."""
+    minutes: float = knob(4.5, "Wall-clock budget for mapping, from reading the images to the trained head.")
+    short_side: int = knob(360, "Shorter image side for the network (ACE: 480; fewer pixels suit a CPU).")
+    head: HeadConfig = knob(reason="The head's 1x1 layers.", factory=lambda: HeadConfig(width=256, blocks=1))
+    batch_size: int = knob(5120, "Buffered features per head step (ACE's batch).")
+    buffer_size: int = knob(1_000_000, "Buffered features (ACE: 8M; on a CPU the head sees ~10 epochs of 1M).")
+    samples_per_image: int = knob(1024, "Features taken from each augmented image (ACE's count).")
+    lr_min: float = knob(5e-4, "Start and end of the one-cycle learning rate (ACE's range).")
+    lr_max: float = knob(5e-3, "Peak of the one-cycle learning rate (ACE's range).")
+    augment: str = knob(
+        "photometric",
+        "photometric (brightness, contrast) or ace (also ACE's rescale and rotation; bench/augment_choice.md).",
+    )
+    triangulate: bool = knob(True, "Sparse coordinate targets triangulated from SIFT matches between training images.")
+    novel_views: int = knob(
+        0, "Training images warped to in-between cameras, buffered late in training (bench/herz_gap.md)."
+    )
+    iterations: int | None = knob(None, "Fixed head steps instead of the wall-clock budget (reproducible runs).")
+    seed: int = knob(0, "Seed of sampling, augmentation and initialisation.")
+    device: str = knob("cpu", "Torch device of the encoder and head.")
+    precision: str = knob("auto", "Mapping arithmetic: auto (bf16 where the CPU/GPU has it), fp32 or bf16.")
 
 
 def use_bf16(precision: str, device: str) -> bool:
@@ -222,7 +197,8 @@ def fill_buffer(
     rng: np.random.Generator,
     progress: ProgressFn | None = None,
 ) -> Buffer:
-    """Encoder features of augmented views: feats (N, C) fp16, pixels (N, 2), view (N,), and per view w2c (V, 3, 4), K (V, 3, 3)."""
+    """Encoder features of augmented views: feats (N, C) fp16, pixels (N, 2), view (N,), and per view
+    w2c (V, 3, 4), K (V, 3, 3)."""
     ranges = augment_ranges(cfg.augment)
     builder = BufferBuilder()
     order: list[int] = []
