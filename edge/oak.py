@@ -4,10 +4,13 @@ The device resizes to the bundle's input size itself (``Camera.requestOutput``),
 frames ready for the network. The intrinsics follow the resize mode: CROP cuts the sensor image to
 the output aspect ratio then scales, STRETCH scales each axis on its own, LETTERBOX scales to fit
 and pads; each gives a different K, computed here from the calibration stored on the device.
+A missing, unplugged or silent device (no frame within ``FRAME_TIMEOUT_S``) raises ``SourceDisconnected``,
+which the loop answers with ``reconnect()``.
 """
 
 from __future__ import annotations
 
+import datetime
 from typing import Any
 
 import cv2
@@ -19,6 +22,10 @@ from edge.calibration import CameraCalibration
 from edge.sources import SourceDisconnected, SourceFrame
 
 RESIZE_MODES = ("crop", "stretch", "letterbox")
+FRAME_TIMEOUT_S = 2.0
+"""A running device silent this long is reported lost (the loop then reconnects with backoff)."""
+FIRST_FRAME_TIMEOUT_S = 10.0
+"""The first frame after a (re)start may wait for the sensor and auto-exposure to come up."""
 
 
 def resize_intrinsics(K: np.ndarray, sensor_wh: tuple[int, int], out_wh: tuple[int, int], mode: str) -> Intrinsics:
@@ -69,15 +76,24 @@ class OakSource:
         fps: float = 30.0,
         calibration: CameraCalibration | None = None,
         dai: Any = None,
+        frame_timeout_s: float = FRAME_TIMEOUT_S,
+        first_frame_timeout_s: float = FIRST_FRAME_TIMEOUT_S,
     ) -> None:
         if resize_mode not in RESIZE_MODES:
             raise InputError(None, f"oak resize mode must be one of {RESIZE_MODES}, got {resize_mode!r}")
+        if not (frame_timeout_s > 0 and first_frame_timeout_s > 0):
+            raise InputError(None, f"oak frame timeouts must be > 0, got {frame_timeout_s}, {first_frame_timeout_s}")
         self.dai = dai if dai is not None else import_depthai()
+        if not hasattr(self.dai.CameraBoardSocket, socket):
+            raise InputError(None, f"no OAK camera socket {socket!r} (CAM_A, CAM_B, ...)")
         self.size_hw = size_hw
         self.resize_mode = resize_mode
         self.socket_name = socket
         self.fps = fps
         self.override = calibration
+        self.frame_timeout_s = float(frame_timeout_s)
+        self.first_frame_timeout_s = float(first_frame_timeout_s)
+        self._timeout_s = self.first_frame_timeout_s
         self.description = f"oak:{resize_mode}"
         self.pipeline: Any = None
         self.queue: Any = None
@@ -92,27 +108,39 @@ class OakSource:
     def _start(self) -> None:
         dai = self.dai
         h, w = self.size_hw
+        socket = getattr(dai.CameraBoardSocket, self.socket_name)
+        pipeline = None
         try:
-            socket = getattr(dai.CameraBoardSocket, self.socket_name)
-            pipeline = dai.Pipeline()
+            pipeline = dai.Pipeline()  # opens the first available device; RuntimeError when there is none
             cam = pipeline.create(dai.node.Camera).build(socket)
             mode = getattr(dai.ImgResizeMode, self.resize_mode.upper())
-            frame_type = getattr(dai.ImgFrame.Type, "BGR888i", None) or dai.ImgFrame.Type.BGR888p
-            out = cam.requestOutput((w, h), type=frame_type, resize_mode=mode, fps=self.fps)
+            out = cam.requestOutput((w, h), type=dai.ImgFrame.Type.BGR888i, resizeMode=mode, fps=self.fps)
             queue = out.createOutputQueue(maxSize=1, blocking=False)
             pipeline.start()
-            if self.override is not None:
-                intr = self.override.intrinsics_for(w, h)
-                dist = self.override.distortion
-            else:
-                calib = pipeline.getDefaultDevice().readCalibration()
+            calib = None if self.override is not None else pipeline.getDefaultDevice().readCalibration()
+        except self._device_errors() as e:
+            if pipeline is not None:
+                self._stop(pipeline)
+            raise SourceDisconnected(f"{type(e).__name__}: {e}") from None
+        if self.override is not None:
+            intr = self.override.intrinsics_for(w, h)
+            dist = self.override.distortion
+        else:
+            try:
                 K0, W0, H0 = calib.getDefaultIntrinsics(socket)
-                intr = resize_intrinsics(np.asarray(K0, dtype=np.float64), (int(W0), int(H0)), (w, h), self.resize_mode)
                 dist = np.asarray(calib.getDistortionCoefficients(socket), dtype=np.float64)
-        except RuntimeError as e:  # depthai reports a missing or lost device as RuntimeError
-            raise SourceDisconnected(str(e)) from None
+            except RuntimeError as e:  # the device's EEPROM has no calibration for this socket
+                self._stop(pipeline)
+                raise InputError(None, f"OAK {self.socket_name}: {e}; pass the intrinsics with --intrinsics") from None
+            intr = resize_intrinsics(np.asarray(K0, dtype=np.float64), (int(W0), int(H0)), (w, h), self.resize_mode)
         self.pipeline, self.queue = pipeline, queue
         self.intrinsics, self.distortion = intr, dist
+        self._timeout_s = self.first_frame_timeout_s
+
+    def _device_errors(self) -> tuple[type[BaseException], ...]:
+        """What depthai raises for a missing, lost or silent device: RuntimeError (XLinkError derives from it) and a
+        closed queue's ``MessageQueue.QueueException`` (derives from Exception only)."""
+        return (RuntimeError, self.dai.MessageQueue.QueueException)
 
     def read(self) -> SourceFrame | None:
         if self.pipeline is None:
@@ -120,12 +148,15 @@ class OakSource:
         try:
             if not self.pipeline.isRunning():
                 raise SourceDisconnected(f"{self.description}: pipeline stopped")
-            msg = self.queue.get()
+            msg = self.queue.get(datetime.timedelta(seconds=self._timeout_s))
+            if msg is None:  # get(timeout) gives None when no frame came in time
+                raise SourceDisconnected(f"{self.description}: no frame for {self._timeout_s:g} s")
             bgr = msg.getCvFrame()
             ts = msg.getTimestamp().total_seconds()
             seq = int(msg.getSequenceNum())
-        except RuntimeError as e:
-            raise SourceDisconnected(f"{self.description}: {e}") from None
+        except self._device_errors() as e:
+            raise SourceDisconnected(f"{self.description}: {type(e).__name__}: {e}") from None
+        self._timeout_s = self.frame_timeout_s
         self._i += 1
         image = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB) if bgr.ndim == 3 else bgr
         return SourceFrame(image, ts, self.intrinsics, seq, f"{seq:06d}", self.distortion)
@@ -134,10 +165,18 @@ class OakSource:
         self.close()
         self._start()
 
+    def _stop(self, pipeline: Any) -> None:
+        """Stop ``pipeline`` and release its device so the next ``dai.Pipeline()`` can open it again."""
+        try:
+            pipeline.stop()
+        except self._device_errors():
+            pass
+        try:
+            pipeline.getDefaultDevice().close()
+        except self._device_errors():
+            pass
+
     def close(self) -> None:
         if self.pipeline is not None:
-            try:
-                self.pipeline.stop()
-            except RuntimeError:
-                pass
-            self.pipeline = None
+            pipeline, self.pipeline, self.queue = self.pipeline, None, None
+            self._stop(pipeline)

@@ -1,10 +1,9 @@
-"""Frame sources and their geometry: calibration files, OAK resize modes (fake depthai), undistortion, replay pacing."""
+"""Frame sources and their geometry: calibration files, OAK resize modes, undistortion, replay pacing (the OAK
+source itself: tests/test_oak.py)."""
 
 from __future__ import annotations
 
-import datetime
 import json
-import types
 from pathlib import Path
 
 import cv2
@@ -15,8 +14,8 @@ from acesplat.core.camera import Intrinsics
 from acesplat.core.errors import InputError
 from edge.calibration import CameraCalibration, read_calibration_file
 from edge.frame_prep import FramePrep, crop_to_aspect
-from edge.oak import OakSource, resize_intrinsics
-from edge.sources import ReplaySource, SourceDisconnected, SourceOptions, UnreadableFrame, open_source
+from edge.oak import resize_intrinsics
+from edge.sources import ReplaySource, SourceOptions, UnreadableFrame, open_source
 
 K0 = np.array([[1500.0, 0, 955.3], [0, 1498.0, 541.7], [0, 0, 1]])
 
@@ -44,147 +43,6 @@ def test_oak_resize_modes_map_sensor_pixels_exactly(mode: str) -> None:
     expected = np.c_[(uv0[:, 0] + 0.5) * sx - 0.5 + ox, (uv0[:, 1] + 0.5) * sy - 0.5 + oy]
     np.testing.assert_allclose(_project(intr.K, X), expected, atol=1e-9)
     assert (intr.width, intr.height) == (640, 480)
-
-
-class FakeDai:
-    """The slice of depthai v3 the OAK source uses, with a device that can vanish."""
-
-    def __init__(self, fail_reads_after: int | None = None, no_device: bool = False) -> None:
-        self.fail_reads_after = fail_reads_after
-        self.no_device = no_device
-        self.requests: list[dict] = []
-        self.reads = 0
-        self.starts = 0
-        outer = self
-
-        class Frame:
-            def __init__(self, seq: int, wh: tuple[int, int]) -> None:
-                self.seq, self.wh = seq, wh
-
-            def getCvFrame(self):  # noqa: N802
-                w, h = self.wh
-                img = np.zeros((h, w, 3), np.uint8)
-                img[..., 0] = 255  # blue in BGR
-                return img
-
-            def getTimestamp(self):  # noqa: N802
-                return datetime.timedelta(milliseconds=33 * self.seq)
-
-            def getSequenceNum(self):  # noqa: N802
-                return self.seq
-
-        class Queue:
-            def __init__(self, wh) -> None:
-                self.wh = wh
-
-            def get(self):
-                outer.reads += 1
-                if outer.fail_reads_after is not None and outer.reads > outer.fail_reads_after:
-                    raise RuntimeError("Communication exception - possible device error/misconfiguration")
-                return Frame(outer.reads, self.wh)
-
-        class Output:
-            def __init__(self, wh) -> None:
-                self.wh = wh
-
-            def createOutputQueue(self, maxSize, blocking):  # noqa: N802, N803
-                assert maxSize == 1 and blocking is False
-                return Queue(self.wh)
-
-        class Camera:
-            def build(self, socket):
-                self.socket = socket
-                return self
-
-            def requestOutput(self, size, type, resize_mode, fps):  # noqa: N802, A002
-                outer.requests.append({"size": size, "type": type, "resize_mode": resize_mode, "fps": fps})
-                return Output(size)
-
-        class Calib:
-            def getDefaultIntrinsics(self, socket):  # noqa: N802
-                return K0.tolist(), 1920, 1080
-
-            def getDistortionCoefficients(self, socket):  # noqa: N802
-                return [0.0] * 14
-
-        class Device:
-            def readCalibration(self):  # noqa: N802
-                return Calib()
-
-        class Pipeline:
-            def __init__(self) -> None:
-                self.running = False
-
-            def create(self, node):
-                return node()
-
-            def start(self) -> None:
-                if outer.no_device:
-                    raise RuntimeError("No available devices")
-                outer.starts += 1
-                self.running = True
-
-            def isRunning(self) -> bool:  # noqa: N802
-                return self.running
-
-            def stop(self) -> None:
-                self.running = False
-
-            def getDefaultDevice(self):  # noqa: N802
-                return Device()
-
-        self.Pipeline = Pipeline
-        self.node = types.SimpleNamespace(Camera=Camera)
-        self.CameraBoardSocket = types.SimpleNamespace(CAM_A="CAM_A")
-        self.ImgResizeMode = types.SimpleNamespace(CROP="CROP", STRETCH="STRETCH", LETTERBOX="LETTERBOX")
-        self.ImgFrame = types.SimpleNamespace(Type=types.SimpleNamespace(BGR888i="BGR888i", BGR888p="BGR888p"))
-
-
-def test_oak_source_with_a_fake_device() -> None:
-    dai = FakeDai(fail_reads_after=2)
-    src = OakSource((240, 320), resize_mode="crop", dai=dai)
-    assert dai.requests == [{"size": (320, 240), "type": "BGR888i", "resize_mode": "CROP", "fps": 30.0}]
-    f = src.read()
-    assert f.image.shape == (240, 320, 3) and f.image[0, 0].tolist() == [0, 0, 255]  # RGB now
-    assert f.timestamp == pytest.approx(0.033) and f.frame_id == 1
-    assert f.intrinsics == resize_intrinsics(K0, (1920, 1080), (320, 240), "crop")
-    src.read()
-    with pytest.raises(SourceDisconnected):
-        src.read()
-    dai.fail_reads_after = None
-    src.reconnect()
-    assert dai.starts == 2 and src.read().frame_id == 4
-    src.close()
-
-
-def test_oak_without_device_or_without_depthai(monkeypatch) -> None:
-    with pytest.raises(InputError, match="no OAK device"):
-        OakSource((240, 320), dai=FakeDai(no_device=True))
-    import builtins
-
-    real_import = builtins.__import__
-
-    def no_depthai(name, *a, **k):
-        if name == "depthai":
-            raise ImportError("No module named 'depthai'")
-        return real_import(name, *a, **k)
-
-    monkeypatch.setattr(builtins, "__import__", no_depthai)
-    with pytest.raises(InputError, match=r"pip install 'acesplat-edge\[oak\]'"):
-        open_source("oak", SourceOptions(input_size=(240, 320)))
-
-
-@pytest.mark.hardware
-def test_oak_hardware() -> None:
-    dai = pytest.importorskip("depthai", reason="depthai is not installed (optional extra 'oak')")
-    if not dai.Device.getAllAvailableDevices():
-        pytest.skip("no OAK device attached")
-    src = OakSource((240, 320))
-    try:
-        f = src.read()
-        assert f.image.shape == (240, 320, 3) and f.intrinsics.width == 320
-    finally:
-        src.close()
 
 
 def test_calibration_formats(tmp_path: Path) -> None:
