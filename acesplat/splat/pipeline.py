@@ -78,7 +78,7 @@ class SplatConfig:
     cross_view_tol: float = knob(
         CROSS_VIEW_TOLERANCE, "Relative depth agreement with a neighbouring view's prediction that confirms a cell."
     )
-    sparse_views: tuple[int, int] | None = knob(None, "Sparse protocol: the two training frame indices.")
+    sparse_views: tuple[int, int] | None = knob(None, "Sparse protocol: the two training frame indices, e.g. 10,14.")
     validity: ValidityConfig = knob(reason="Which SCR cells become Gaussian centres.", factory=ValidityConfig)
     adapter_widths: tuple[int, int, int, int] = knob(
         knob_default(AdapterConfig, "widths"), "Feature adapter widths at 1/8, 1/4, 1/2 and full resolution."
