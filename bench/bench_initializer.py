@@ -34,9 +34,9 @@ from acesplat.core.metrics import timing_stats  # noqa: E402
 from acesplat.scr.encoders import load_encoder  # noqa: E402
 from acesplat.scr.mapping import MappingConfig  # noqa: E402
 from acesplat.scr.network import Head, SCRNetwork, normalize_gray  # noqa: E402
-from acesplat.splat.init_head import PRIOR_CHANNELS  # noqa: E402
 from acesplat.splat.instantiate import GaussianInitializer  # noqa: E402
 from acesplat.splat.pipeline import SplatConfig  # noqa: E402
+from acesplat.splatcore.head_io import PRIOR_CHANNELS  # noqa: E402
 from export.onnx_graph import FEATURES_NAME, OUTPUT_NAME, export_scr_onnx  # noqa: E402
 from export.splat_export import INIT_OUTPUT, _InitGraph, export_initializer_onnx  # noqa: E402
 
@@ -122,14 +122,16 @@ def main() -> None:
     stats = {k: timing_stats(v) for k, v in times.items()}
     print(f"machine: {machine_line()}; load before {load_before:.2f}, after {os.getloadavg()[0]:.2f}")
     print(
-        f"input {h}x{w}, features {tuple(feats.shape[1:])}, {args.runs} interleaved runs, {args.threads} onnxruntime thread(s)"
+        f"input {h}x{w}, features {tuple(feats.shape[1:])}, {args.runs} interleaved runs, "
+        f"{args.threads} onnxruntime thread(s)"
     )
     for k, s in stats.items():
         print(f"  {k:30s} p50 {s['p50']:7.2f}  p95 {s['p95']:7.2f}  mean {s['mean']:7.2f}")
     ratio = stats["initializer_image_in_ms"]["p50"] / stats["initializer_features_in_ms"]["p50"]
     extra = stats["scr_coords_and_features_ms"]["p50"] - stats["scr_coords_only_ms"]["p50"]
     print(
-        f"initializer p50: image in / features in = {ratio:.1f}x; SCR graph p50 with the features output: {extra:+.2f} ms"
+        f"initializer p50: image in / features in = {ratio:.1f}x; "
+        f"SCR graph p50 with the features output: {extra:+.2f} ms"
     )
     if args.json:
         write_json(

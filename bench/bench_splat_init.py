@@ -31,12 +31,13 @@ import numpy as np
 import torch
 
 from acesplat.core.atomic import atomic_path, write_json
+from acesplat.core.config import knob_default
 from acesplat.core.machine import machine_line
 from acesplat.core.scene import read_split
 from acesplat.splat.evaluate import evaluate_views
 from acesplat.splat.optimize import OptimizeConfig, optimise_gaussians
 from acesplat.splat.params import gaussians_from_params, params_from_gaussians
-from acesplat.splat.pipeline import MAX_GAUSSIANS, MAX_INITIAL_GAUSSIANS, SplatConfig, scene_extent, splat_scene, spread
+from acesplat.splat.pipeline import SplatConfig, scene_extent, splat_scene, spread
 from acesplat.splat.point_init import gaussians_from_points, random_points, triangulated_points
 from acesplat.splat.views import load_views
 
@@ -51,7 +52,7 @@ def uptime() -> str:
     try:
         return subprocess.run(["uptime"], capture_output=True, text=True, check=False).stdout.strip()
     except OSError:
-        return "load average %.2f %.2f %.2f" % os.getloadavg()
+        return "load average {:.2f} {:.2f} {:.2f}".format(*os.getloadavg())
 
 
 def get_map(name: str, scene: Path, given: str | None, out: Path, minutes: float, encoder: str | None) -> Path:
@@ -142,12 +143,16 @@ def run_method(method: str, scene: Path, map_path: Path, args, eval_train, eval_
             if len(pts) < 2:
                 raise SystemExit(f"{scene}: SIFT triangulation found {len(pts)} points")
         else:
-            pts, cols = random_points(MAX_INITIAL_GAUSSIANS, poses[:, :3, 3], RANDOM_HALF_SIDE * extent, rng)
+            pts, cols = random_points(
+                knob_default(SplatConfig, "max_initial"), poses[:, :3, 3], RANDOM_HALF_SIDE * extent, rng
+            )
         g0 = gaussians_from_points(pts, cols)
         params = params_from_gaussians(g0)
         info = {"gaussians_initial": len(g0), "prepare_seconds": curve.clock()}
         remaining = max(budget - curve.clock(), 1.0)
-        cfg = OptimizeConfig(scene_extent=extent, max_gaussians=MAX_GAUSSIANS, seed=args.seed)
+        cfg = OptimizeConfig(
+            scene_extent=extent, max_gaussians=knob_default(SplatConfig, "max_gaussians"), seed=args.seed
+        )
         opt = optimise_gaussians(params, views, cfg, remaining, eval_fn=curve, eval_every_s=args.eval_every)
     seconds = curve.clock()
     curve(params, opt.seconds, opt.iterations)  # the final point of the curve

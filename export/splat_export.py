@@ -10,7 +10,7 @@ its output.
 
 Files are written into the finished bundle and only then listed in its manifest (rewritten
 atomically), so an interrupted run leaves the bundle as it was, plus at most an unlisted file.
-The role names are the ones edge/refine/bundle_models.py reads.
+The role, file and graph names are acesplat/splatcore/bundle_section.py's, which the edge reads too.
 """
 
 from __future__ import annotations
@@ -28,13 +28,17 @@ from acesplat.core.bundle import SCR_FEATURES_OUTPUT, BundleFile, describe_file,
 from acesplat.core.errors import InputError
 from acesplat.core.grid import OUTPUT_STRIDE
 from acesplat.core.ply import read_ply, write_ply
+from acesplat.splatcore.bundle_section import (
+    GAUSSIANS_FILE,
+    INIT_FILE,
+    INIT_INPUTS,
+    INIT_OUTPUT,
+    ROLE_GAUSSIANS,
+    ROLE_SPLAT_INIT,
+)
+from acesplat.splatcore.head_io import PRIOR_CHANNELS
+from acesplat.splatcore.seeding import OPACITY_PRIOR, SCALE_PRIOR
 
-ROLE_GAUSSIANS = "gaussians"
-ROLE_SPLAT_INIT = "splat_init_fp32"
-GAUSSIANS_FILE = "gaussians.ply"
-INIT_FILE = "splat_init.onnx"
-INIT_INPUTS = ("features", "prior")
-INIT_OUTPUT = "raw"
 PARITY_SAMPLES = 3
 
 ProgressFn = Callable[[str, float, dict], None]
@@ -45,7 +49,8 @@ def _replace_entry(files: list[BundleFile], entry: BundleFile) -> list[BundleFil
 
 
 def add_gaussians(bundle_dir: str | Path, ply_path: str | Path) -> dict:
-    """Copy a 3DGS PLY into the bundle (read and re-written, so a bad file is refused) and list it; returns the manifest."""
+    """Copy a 3DGS PLY into the bundle (read and re-written, so a bad file is refused) and list it; returns the
+    manifest."""
     root = Path(bundle_dir)
     b = load_bundle(root, verify=False)
     g = read_ply(ply_path)
@@ -226,7 +231,6 @@ def export_splat(
 
     from acesplat.core.bundle import PRECISION_ROLES
     from acesplat.scr.mapfile import encoder_for_map, load_map
-    from acesplat.splat.init_head import OPACITY_PRIOR, PRIOR_CHANNELS, SCALE_PRIOR
     from acesplat.splat.splatfile import PLY_NAME, load_initializer, load_manifest
     from export.checks import torch_features
 
@@ -287,8 +291,10 @@ def export_splat(
                 },
                 "output": {INIT_OUTPUT: [1, head.out_channels, size[0], size[1]]},
                 "features": f"the SCR graph's '{SCR_FEATURES_OUTPUT}' output of the same frame (either precision)",
-                "prior": "rgb - 0.5 (3), (world centre - scene_norm.centre) / scene_norm.scale (3), log(depth / scene_norm.scale) (1)",
-                "residuals": f"opacity logit (1), SH (3 x {(head.sh_degree + 1) ** 2}, coefficient-major), log-scale (3), quaternion wxyz (4)",
+                "prior": "rgb - 0.5 (3), (world centre - scene_norm.centre) / scene_norm.scale (3), "
+                "log(depth / scene_norm.scale) (1)",
+                "residuals": f"opacity logit (1), SH (3 x {(head.sh_degree + 1) ** 2}, coefficient-major), "
+                "log-scale (3), quaternion wxyz (4)",
                 "opacity_prior": OPACITY_PRIOR,
                 "scale_prior": SCALE_PRIOR,
                 "precision": "fp32",

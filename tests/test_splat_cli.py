@@ -217,7 +217,7 @@ def test_map_of_larger_images_is_one_line(world, tmp_path):
 
 
 def write_ply_with(path: Path, names: list[str], n: int = 3) -> None:
-    header = "ply\nformat binary_little_endian 1.0\nelement vertex %d\n" % n
+    header = f"ply\nformat binary_little_endian 1.0\nelement vertex {n}\n"
     header += "".join(f"property float {p}\n" for p in names) + "end_header\n"
     rows = np.zeros((n, len(names)), "<f4")
     rows[:, names.index("rot_0")] = 1.0

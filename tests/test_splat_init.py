@@ -12,26 +12,13 @@ from acesplat.core.camera import Intrinsics
 from acesplat.core.gaussians import SH_C0
 from acesplat.core.geometry import look_at
 from acesplat.splat.adapter import AdapterConfig
-from acesplat.splat.init_head import (
-    OPACITY_PRIOR,
-    PRIOR_CHANNELS,
-    SCALE_PRIOR,
-    InitHead,
-    InitHeadConfig,
-    SceneNorm,
-    coordinate_prior,
-    decode_gaussians,
-)
-from acesplat.splat.instantiate import (
-    GaussianInitializer,
-    block_colours,
-    choose_stride,
-    lattice_pixels,
-    merge_views,
-    view_pixels,
-)
+from acesplat.splat.init_head import InitHead, InitHeadConfig, decode_gaussians
+from acesplat.splat.instantiate import GaussianInitializer, merge_views, view_pixels
 from acesplat.splat.params import check_tensors, gaussians_from_params, params_from_tensors
 from acesplat.splat.views import SplatView
+from acesplat.splatcore.head_io import PRIOR_CHANNELS, SceneNorm, coordinate_prior
+from acesplat.splatcore.lattice import choose_stride, lattice_pixels
+from acesplat.splatcore.seeding import OPACITY_PRIOR, SCALE_PRIOR, block_colours
 from acesplat.splatcore.validity import cell_pixels, cell_validity
 
 K = Intrinsics(40.0, 40.0, 23.5, 15.5, 48, 32)

@@ -9,15 +9,14 @@ import pytest
 import torch
 
 from acesplat.core.camera import Intrinsics
+from acesplat.core.config import knob_default
 from acesplat.splat.lifecycle import (
     DENSIFY_EVERY,
     DENSIFY_FROM,
     DENSIFY_UNTIL,
-    GRAD_THRESHOLD,
     MIN_DENSIFY_EVERY,
     MIN_RESET_EVERY,
     OPACITY_RESET_EVERY,
-    PRUNE_OPACITY,
     REFERENCE_ITERATIONS,
     RESET_OPACITY,
     SH_UP_EVERY,
@@ -32,7 +31,9 @@ from acesplat.splat.lifecycle import (
 from acesplat.splat.optimize import make_optimizer
 from acesplat.splat.params import PARAM_NAMES
 from acesplat.splat.raster_torch import RenderOutput
+from acesplat.splatcore.prune import PRUNE_OPACITY
 
+GRAD_THRESHOLD = knob_default(LifecycleConfig, "grad_threshold")
 EXTENT = 10.0  # clone/split boundary: PERCENT_DENSE * 10 = 0.1 m
 
 

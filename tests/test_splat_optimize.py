@@ -8,10 +8,11 @@ import torch
 
 from acesplat.splat.adapter import AdapterConfig
 from acesplat.splat.evaluate import evaluate_views
-from acesplat.splat.init_head import InitHeadConfig, SceneNorm
+from acesplat.splat.init_head import InitHeadConfig
 from acesplat.splat.instantiate import GaussianInitializer, merge_views, view_pixels
 from acesplat.splat.optimize import OptimizeConfig, finite_gradients, make_optimizer, optimise_gaussians
 from acesplat.splat.params import PARAM_NAMES, gaussians_from_params, params_from_tensors
+from acesplat.splatcore.head_io import SceneNorm
 from tests.test_splat_init import planar_view
 
 

@@ -1,19 +1,17 @@
-"""`acesplat splat` and `acesplat render`. Torch and the numba kernels are imported inside the commands."""
+"""`acesplat splat` and `acesplat render`; defaults and help come from the knobs (SplatConfig, ValidityConfig)."""
 
 from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import typer
 from rich.console import Console
 
-from acesplat.apps.support import PhaseProgress, one_line_errors, parse_int_pair, report_json
+from acesplat.apps.support import PhaseProgress, one_line_errors, option, parse_int_pair, report_json
 from acesplat.core.errors import InputError
-
-if TYPE_CHECKING:
-    pass
+from acesplat.splat.pipeline import SplatConfig
+from acesplat.splatcore.validity import ValidityConfig
 
 console = Console()
 
@@ -27,35 +25,30 @@ def splat_command(
     out: Path = typer.Option(
         ..., "-o", "--out", help="Splat folder to write (gaussians.ply, adapter.pt, init_head.pt, splat.json)."
     ),
-    minutes: float = typer.Option(10.0, help="Wall-clock budget of Stage 2."),
-    protocol: str = typer.Option(
-        "static", help="static (reconstruct the captured views) or sparse (two views in, held-out targets)."
-    ),
-    views: str | None = typer.Option(
-        None, "--views", help="Sparse protocol: the two training frame indices, e.g. 10,14."
-    ),
+    minutes: float = option(SplatConfig, "minutes"),
+    protocol: str = option(SplatConfig, "protocol"),
+    views: str | None = option(SplatConfig, "sparse_views", "--views"),
     encoder: Path | None = typer.Option(None, help="Encoder weights if not where the map says."),
-    max_gaussians: int = typer.Option(200_000, help="Cap on the number of Gaussians."),
-    reproj_px: float = typer.Option(8.0, help="Validity: SCR coordinates must reproject within this many pixels."),
-    fill: bool = typer.Option(True, help="Also seed untrusted pixels, at the depth of the nearest trusted cell."),
-    iterations: int | None = typer.Option(
-        None,
-        help="Fixed optimisation iterations (and 1/5 as many head warm-up steps) instead of the budget: reproducible runs.",
+    max_gaussians: int = option(SplatConfig, "max_gaussians"),
+    reproj_px: float = option(ValidityConfig, "reproj_max_px", "--reproj-px"),
+    fill: bool = option(SplatConfig, "fill"),
+    iterations: int | None = option(
+        SplatConfig,
+        "iterations",
+        help="Fixed optimisation iterations (and 1/5 as many head warm-up steps) instead of the budget: "
+        "reproducible runs.",
     ),
     device: str = typer.Option("auto", help="auto, cpu or cuda (networks only: the rasterizer runs on the CPU)."),
     threads: int = typer.Option(
         1,
-        help="Torch threads. The rasterizer has its own numba threads; measured on 2 busy cores, one torch thread "
-        "ran this loop's many small tensor ops several times faster than two.",
+        help="Torch threads (the rasterizer has its own numba threads; one torch thread runs this loop's many small "
+        "tensor ops fastest on a busy CPU: bench/stage2.md).",
     ),
-    seed: int = typer.Option(0),
+    seed: int = option(SplatConfig, "seed"),
     json_out: Path | None = typer.Option(None, "--json", help="Write the numbers here."),
 ) -> None:
     """Optimise Gaussians for a scene, seeded by its SCR map (Stage 2)."""
     import torch
-
-    from acesplat.splat.pipeline import SplatConfig
-    from acesplat.splatcore.validity import ValidityConfig
 
     if max_gaussians < 1:
         raise InputError(None, f"--max-gaussians must be positive, got {max_gaussians}")
@@ -101,8 +94,8 @@ def render_command(
     lpips_weights: list[Path] | None = typer.Option(
         None,
         "--lpips-weights",
-        help="Report LPIPS: give torchvision's AlexNet weights and LPIPS v0.1 alex.pth (repeat the option, or one merged file). "
-        "Nothing is downloaded.",
+        help="Report LPIPS: give torchvision's AlexNet weights and LPIPS v0.1 alex.pth (repeat the option, or one "
+        "merged file). Nothing is downloaded.",
     ),
     json_out: Path | None = typer.Option(None, "--json", help="Write the numbers here."),
 ) -> None:

@@ -18,6 +18,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from acesplat.core.config import knob
+
 UPSAMPLE_STAGES = 3
 """Three x2 stages: 1/8 -> 1/4 -> 1/2 -> 1/1."""
 
@@ -26,8 +28,10 @@ UPSAMPLE_STAGES = 3
 class AdapterConfig:
     """Input feature width and the widths at 1/8 (after a 1x1 reduction), 1/4, 1/2 and full resolution."""
 
-    in_channels: int = 512
-    widths: tuple[int, int, int, int] = (32, 24, 16, 8)
+    in_channels: int = knob(512, "Width of the SCR encoder's features (set from the map's encoder).")
+    widths: tuple[int, int, int, int] = knob(
+        (32, 24, 16, 8), "Widths at 1/8, 1/4, 1/2 and full resolution (narrow where the resolution is high: CPU cost)."
+    )
 
     def __post_init__(self) -> None:
         if len(self.widths) != UPSAMPLE_STAGES + 1 or min(self.widths) < 1 or self.in_channels < 1:

@@ -13,11 +13,14 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from acesplat.splat.init_head import SceneNorm
-from acesplat.splat.instantiate import GaussianInitializer, ViewPixels, lattice_pixels, view_pixels
+from acesplat.core.config import knob_default
+from acesplat.splat.instantiate import GaussianInitializer, ViewPixels, view_pixels
 from acesplat.splat.losses import rendering_loss
 from acesplat.splat.raster_torch import render
 from acesplat.splat.views import SplatView
+from acesplat.splatcore.head_io import SceneNorm
+from acesplat.splatcore.lattice import lattice_pixels
+from acesplat.splatcore.validity import ValidityConfig
 
 HEAD_STRIDE = 2
 """Lattice stride of the Gaussians a head step renders (finer than the scene set's; one view only)."""
@@ -54,6 +57,7 @@ class HeadTrainer:
         neighbours: int = HEAD_NEIGHBOURS,
         background: np.ndarray | None = None,
         fill: bool = False,
+        max_depth_ratio: float = knob_default(ValidityConfig, "max_depth_ratio"),
     ) -> None:
         self.init = init
         self.views = list(views)
@@ -61,6 +65,7 @@ class HeadTrainer:
         self.sh_degree = sh_degree
         self.stride = stride
         self.fill = fill
+        self.max_depth_ratio = max_depth_ratio
         self.neighbours = nearest_views(np.stack([v.pose for v in self.views]), neighbours)
         self.background = np.zeros(3) if background is None else np.asarray(background, np.float64)
         self._pixels: dict[int, ViewPixels] = {}
@@ -68,11 +73,12 @@ class HeadTrainer:
 
     def pixels(self, i: int) -> ViewPixels:
         if i not in self._pixels:
-            self._pixels[i] = view_pixels(self.views[i], self.norm, fill=self.fill)
+            self._pixels[i] = view_pixels(self.views[i], self.norm, self.max_depth_ratio, fill=self.fill)
         return self._pixels[i]
 
     def loss(self, rng: np.random.Generator) -> torch.Tensor | None:
-        """The rendering loss of one random view's head Gaussians in it or a neighbour (None if it has no valid pixel)."""
+        """The rendering loss of one random view's head Gaussians in it or a neighbour (None if it has no valid
+        pixel)."""
         i = int(rng.integers(len(self.views)))
         pix = self.pixels(i)
         idx = lattice_pixels(pix.valid, self.stride, (int(rng.integers(self.stride)), int(rng.integers(self.stride))))

@@ -1,11 +1,11 @@
 """Gaussian initialisation head: per-pixel Gaussian attributes from [adapted features, coordinate prior].
 
-Fully convolutional. It predicts residuals around an analytic start, with its last layer zeroed so a
-fresh head already gives a usable set: colour = the pixel's colour (SH DC), opacity = OPACITY_PRIOR,
-an isotropic scale that covers the spacing between instantiated pixels at the pixel's depth, identity
-rotation. Centres are not predicted: they are the SCR coordinates at pixel resolution
-(:mod:`.pixel_coords`). The coordinate prior holds the pixel's colour, its centre in normalised scene
-coordinates and its log depth; colour is part of it because the SCR encoder sees grayscale only.
+Fully convolutional. It predicts residuals around the analytic start of acesplat/splatcore/seeding.py, with its
+last layer zeroed so a fresh head already gives a usable set: colour = the pixel's colour (SH DC), opacity =
+OPACITY_PRIOR, an isotropic scale that covers the spacing between instantiated pixels at the pixel's depth,
+identity rotation. Centres are not predicted: they are the SCR coordinates at pixel resolution
+(acesplat/splatcore/pixel_coords.py). Its prior input and residual layout are acesplat/splatcore/head_io.py's,
+which the exported graph and the edge share.
 """
 
 from __future__ import annotations
@@ -13,27 +13,28 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 
-import numpy as np
 import torch
 import torch.nn as nn
 
+from acesplat.core.config import knob
 from acesplat.core.gaussians import MAX_SH_DEGREE, SH_C0, sh_coeff_count
-
-OPACITY_PRIOR = 0.8
-"""Opacity a fresh head gives every Gaussian (3DGS starts random points at 0.1; ours sit on surfaces)."""
-SCALE_PRIOR = 0.7
-"""Standard deviation of a fresh Gaussian in units of the spacing between instantiated pixels."""
-PRIOR_CHANNELS = 7
-"""rgb - 0.5 (3), normalised world centre (3), log(depth / scene scale) (1)."""
+from acesplat.splatcore.head_io import (
+    IDENTITY_QUAT,
+    OPACITY_CHANNEL,
+    PRIOR_CHANNELS,
+    residual_channels,
+    residual_slices,
+)
+from acesplat.splatcore.seeding import OPACITY_PRIOR, SCALE_PRIOR
 
 
 @dataclass(frozen=True)
 class InitHeadConfig:
-    feature_channels: int = 8
-    """Adapter output width."""
-    width: int = 32
-    sh_degree: int = 0
-    """SH degree the head predicts (higher bands start at zero in the scene set; one view cannot observe them)."""
+    feature_channels: int = knob(8, "Adapter output width the head takes.")
+    width: int = knob(32, "Width of the head's 1x1 layers.")
+    sh_degree: int = knob(
+        0, "SH degree the head predicts (higher bands start at zero in the scene set; one view cannot observe them)."
+    )
 
     def __post_init__(self) -> None:
         if self.feature_channels < 1 or self.width < 1 or not 0 <= self.sh_degree <= MAX_SH_DEGREE:
@@ -42,38 +43,10 @@ class InitHeadConfig:
     @property
     def out_channels(self) -> int:
         """opacity (1) + SH (3K) + log-scale (3) + quaternion (4)."""
-        return 1 + 3 * sh_coeff_count(self.sh_degree) + 3 + 4
+        return residual_channels(self.sh_degree)
 
     def as_dict(self) -> dict:
         return asdict(self)
-
-
-@dataclass(frozen=True)
-class SceneNorm:
-    """Centre and scale (metres) that bring the scene's coordinates to roughly unit size for the head."""
-
-    centre: tuple[float, float, float]
-    scale: float
-
-    @classmethod
-    def from_views(cls, camera_centres: np.ndarray, depths: np.ndarray) -> SceneNorm:
-        c = np.asarray(camera_centres, np.float64).reshape(-1, 3)
-        d = np.asarray(depths, np.float64).reshape(-1)
-        spread = float(np.max(np.linalg.norm(c - c.mean(0), axis=1))) if len(c) else 0.0
-        depth = float(np.median(d)) if d.size else 1.0
-        return cls(tuple(float(v) for v in c.mean(0)), max(spread, depth, 1e-3))  # type: ignore[arg-type]
-
-    def as_dict(self) -> dict:
-        return {"centre": list(self.centre), "scale": self.scale}
-
-
-def coordinate_prior(rgb: np.ndarray, centres: np.ndarray, depth: np.ndarray, norm: SceneNorm) -> np.ndarray:
-    """The head's prior input (PRIOR_CHANNELS, H, W) float32 from rgb (H, W, 3) in [0, 1], world
-    centres (H, W, 3) and camera depths (H, W)."""
-    c = (centres - np.asarray(norm.centre)) / norm.scale
-    logd = np.log(np.maximum(depth, 1e-6) / norm.scale)[..., None]
-    prior = np.concatenate([rgb - 0.5, c, logd], axis=-1)
-    return np.ascontiguousarray(np.nan_to_num(prior).transpose(2, 0, 1), dtype=np.float32)
 
 
 class InitHead(nn.Module):
@@ -124,16 +97,16 @@ def decode_gaussians(
     n = raw.shape[0]
     k_head = sh_coeff_count(head_sh_degree)
     k = sh_coeff_count(sh_degree)
-    if raw.ndim != 2 or raw.shape[1] != 1 + 3 * k_head + 7:
-        raise ValueError(f"raw must have shape (N, {1 + 3 * k_head + 7}), got {tuple(raw.shape)}")
+    if raw.ndim != 2 or raw.shape[1] != residual_channels(head_sh_degree):
+        raise ValueError(f"raw must have shape (N, {residual_channels(head_sh_degree)}), got {tuple(raw.shape)}")
     if k < k_head:
         raise ValueError(f"scene SH degree {sh_degree} is below the head's {head_sh_degree}")
-    opacity = raw[:, 0] + math.log(OPACITY_PRIOR / (1.0 - OPACITY_PRIOR))
-    sh_head = raw[:, 1 : 1 + 3 * k_head].reshape(n, k_head, 3)
+    sl = residual_slices(head_sh_degree)
+    opacity = raw[:, OPACITY_CHANNEL] + math.log(OPACITY_PRIOR / (1.0 - OPACITY_PRIOR))
+    sh_head = raw[:, sl["sh"]].reshape(n, k_head, 3)
     dc = (rgb - 0.5) / SH_C0
     sh = torch.cat([(sh_head[:, :1] + dc[:, None]), sh_head[:, 1:], raw.new_zeros((n, k - k_head, 3))], dim=1)
-    base_scale = torch.log(SCALE_PRIOR * spacing_px * depth / focal_px)
-    log_scales = raw[:, 1 + 3 * k_head : 4 + 3 * k_head] + base_scale[:, None]
-    identity = raw.new_tensor([1.0, 0.0, 0.0, 0.0])
-    quats = raw[:, 4 + 3 * k_head : 8 + 3 * k_head] + identity
+    base_scale = torch.log(SCALE_PRIOR * spacing_px * depth / focal_px)  # splatcore.seeding.start_log_scales
+    log_scales = raw[:, sl["log_scales"]] + base_scale[:, None]
+    quats = raw[:, sl["quats"]] + raw.new_tensor(IDENTITY_QUAT)
     return {"means": centres, "log_scales": log_scales, "quats": quats, "opacity_logits": opacity, "sh": sh}

@@ -1,30 +1,31 @@
 """From views to Gaussians: the adapter and init head run on one view; views merge into a scene set.
 
 Every valid pixel could become a Gaussian, far more than a CPU can optimise. Merging keeps, per view,
-only the pixels no earlier view already seeded (:mod:`.fusion`), then takes them on a lattice whose
-stride is chosen so the set fits the budget of initial Gaussians (with a per-view offset, so views
-do not stack their Gaussians on one lattice). A Gaussian standing for a stride x stride block takes
-the block's colour (the image low-passed at the stride), not one aliased pixel's.
+only the pixels no earlier view already seeded (acesplat/splatcore/fusion.py), then takes them on a lattice
+whose stride is chosen so the set fits the budget of initial Gaussians (acesplat/splatcore/lattice.py), each
+coloured by its block (acesplat/splatcore/seeding.py).
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 import torch
 import torch.nn as nn
 
+from acesplat.core.config import knob_default
 from acesplat.splat.adapter import AdapterConfig, FeatureAdapter
-from acesplat.splat.init_head import InitHead, InitHeadConfig, SceneNorm, coordinate_prior, decode_gaussians
+from acesplat.splat.init_head import InitHead, InitHeadConfig, decode_gaussians
 from acesplat.splat.params import cat_tensors
 from acesplat.splat.views import SplatView
 from acesplat.splatcore.fusion import DEPTH_TOLERANCE, novel_masks
+from acesplat.splatcore.head_io import SceneNorm, coordinate_prior
+from acesplat.splatcore.lattice import choose_stride, lattice_pixels
 from acesplat.splatcore.pixel_coords import filled_depths, pixel_coordinates
-from acesplat.splatcore.validity import MAX_DEPTH_RATIO
+from acesplat.splatcore.seeding import block_colours
+from acesplat.splatcore.validity import ValidityConfig
 
 
 @dataclass
@@ -50,7 +51,10 @@ class ViewPixels:
 
 
 def view_pixels(
-    view: SplatView, norm: SceneNorm, max_depth_ratio: float = MAX_DEPTH_RATIO, fill: bool = False
+    view: SplatView,
+    norm: SceneNorm,
+    max_depth_ratio: float = knob_default(ValidityConfig, "max_depth_ratio"),
+    fill: bool = False,
 ) -> ViewPixels:
     """Pixel-resolution centres, depths, prior and validity of a view whose SCR outputs are filled.
 
@@ -78,36 +82,6 @@ def view_pixels(
         valid=valid,
         trusted=trusted,
     )
-
-
-def lattice_pixels(valid: np.ndarray, stride: int, offset: tuple[int, int] = (0, 0)) -> np.ndarray:
-    """Flat indices (N,) of the valid pixels at rows offset[0] + k*stride and columns offset[1] + l*stride."""
-    if stride < 1:
-        raise ValueError(f"stride must be >= 1, got {stride}")
-    H, W = valid.shape
-    oy, ox = offset[0] % stride, offset[1] % stride
-    sel = np.zeros_like(valid, dtype=bool)
-    sel[oy::stride, ox::stride] = True
-    return np.flatnonzero(sel & valid)
-
-
-BLOCK_SIGMA = 0.4
-"""Low-pass of the colour a Gaussian takes, in units of the lattice spacing."""
-
-
-def block_colours(rgb: np.ndarray, spacing_px: float) -> np.ndarray:
-    """rgb (H, W, 3) float32 low-passed with a Gaussian of BLOCK_SIGMA x spacing (unchanged at spacing 1)."""
-    sigma = BLOCK_SIGMA * spacing_px
-    if spacing_px <= 1.0:
-        return rgb
-    return cv2.GaussianBlur(rgb, (0, 0), sigmaX=sigma, sigmaY=sigma, borderType=cv2.BORDER_REFLECT)
-
-
-def choose_stride(valid_pixels: int, max_gaussians: int) -> int:
-    """Smallest lattice stride that keeps about ``valid_pixels / stride^2`` within ``max_gaussians``."""
-    if max_gaussians < 1:
-        raise ValueError(f"max_gaussians must be >= 1, got {max_gaussians}")
-    return max(1, math.ceil(math.sqrt(valid_pixels / max_gaussians)))
 
 
 class GaussianInitializer(nn.Module):

@@ -9,9 +9,7 @@ scaled by ``total / REFERENCE_ITERATIONS`` (:meth:`LifecycleSchedule.scaled`), w
 statistics still average over enough views and an opacity reset still has time to recover. The
 densification window (and with it the last opacity reset) is a fraction of the run, judged by the
 caller's progress: under a wall-clock budget the iteration count is only an estimate, and iterations
-slow down as Gaussians multiply (measured: a 5-iteration probe predicted 4160 iterations of a 10-minute
-run that made 2074, so a window in iterations put an opacity reset 74 iterations before the end, and
-PSNR on the evaluation views fell from 34.1 to 25.9 dB).
+slow down as Gaussians multiply (bench/stage2.md: a window in iterations).
 """
 
 from __future__ import annotations
@@ -22,10 +20,12 @@ from dataclasses import asdict, dataclass, field
 import torch
 
 from acesplat.core.camera import Intrinsics
+from acesplat.core.config import knob
 from acesplat.core.gaussians import MAX_SH_DEGREE
 from acesplat.core.geometry import quat_to_matrix
 from acesplat.splat.params import PARAM_NAMES, GaussianParams
 from acesplat.splat.raster_torch import RenderOutput, screen_grad_norm
+from acesplat.splatcore.prune import PRUNE_OPACITY
 
 REFERENCE_ITERATIONS = 30_000
 """3DGS's iteration count, the unit of the counts below."""
@@ -37,19 +37,13 @@ DENSIFY_UNTIL_FRACTION = DENSIFY_UNTIL / REFERENCE_ITERATIONS
 """3DGS densifies (and resets opacities) in the first half of the run and only optimises in the second."""
 OPACITY_RESET_EVERY = 3_000
 SH_UP_EVERY = 1_000
-GRAD_THRESHOLD = 2e-4
-"""Mean NDC norm of the projected-centre gradient above which a Gaussian is densified."""
-PRUNE_OPACITY = 0.005
-PERCENT_DENSE = 0.01
-"""Gaussians larger than this fraction of the scene extent are split, smaller ones cloned."""
 SPLIT_COUNT = 2
 SPLIT_SCALE_DIVISOR = 0.8 * SPLIT_COUNT
 RESET_OPACITY = 0.01
 MIN_DENSIFY_EVERY = 20
 """Never densify on statistics from fewer iterations than this (a Gaussian must be seen from several views)."""
 MIN_RESET_EVERY = 1000
-"""Never reset opacities more often than this: recovering from a reset takes a few hundred steps (measured on
-the built-in scene: a reset at step 300 of 592 dropped PSNR from 29.7 to 12 dB and it took 260 steps to return)."""
+"""Never reset opacities more often than this: recovering from a reset takes a few hundred steps (bench/stage2.md)."""
 
 
 @dataclass(frozen=True)
@@ -82,16 +76,18 @@ class LifecycleSchedule:
 
 @dataclass(frozen=True)
 class LifecycleConfig:
-    scene_extent: float
-    """Scene size in metres (3DGS: 1.1 x the largest camera distance from their mean)."""
-    max_gaussians: int
-    grad_threshold: float = GRAD_THRESHOLD
-    prune_opacity: float = PRUNE_OPACITY
-    percent_dense: float = PERCENT_DENSE
-    max_sh_degree: int = MAX_SH_DEGREE
-    opacity_reset: bool = True
-    densify: bool = True
-    """False: prune on schedule but never clone or split."""
+    scene_extent: float = knob(reason="Scene size in metres (3DGS: 1.1 x the largest camera distance from their mean).")
+    max_gaussians: int = knob(reason="Cap on the number of Gaussians (clones and splits stop there).")
+    grad_threshold: float = knob(
+        2e-4, "Mean NDC norm of the projected-centre gradient above which a Gaussian is densified (3DGS's)."
+    )
+    prune_opacity: float = knob(PRUNE_OPACITY, "Gaussians less opaque than this are pruned (3DGS's threshold).")
+    percent_dense: float = knob(
+        0.01, "Gaussians larger than this fraction of the scene extent are split, smaller ones cloned (3DGS's)."
+    )
+    max_sh_degree: int = knob(MAX_SH_DEGREE, "Highest SH degree the bands grow to.")
+    opacity_reset: bool = knob(True, "Reset opacities on 3DGS's (scaled) schedule inside the densification window.")
+    densify: bool = knob(True, "Clone and split on schedule (False: prune on schedule but never clone or split).")
 
 
 @dataclass

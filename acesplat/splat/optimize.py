@@ -3,7 +3,7 @@
 One AdamW over everything: the Gaussian attributes with 3DGS's learning rates (weight decay 0: it
 would pull log-scales and logits towards arbitrary values) and the adapter + head with the paper's
 2e-4..2e-3, all under one one-cycle shape driven by the fraction of the wall-clock budget used.
-Each iteration renders one training view; every HEAD_EVERY iterations the head's own rendering
+Each iteration renders one training view; every ``head_every`` iterations the head's own rendering
 loss joins it. A step whose gradients are not all finite is skipped and counted: no parameter and
 no optimiser moment ever sees a NaN or an infinity.
 """
@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from acesplat.core.config import knob
 from acesplat.splat.head_training import HeadTrainer
 from acesplat.splat.lifecycle import GaussianLifecycle, LifecycleConfig, LifecycleSchedule, LifecycleState
 from acesplat.splat.losses import psnr_from_mse, rendering_loss
@@ -35,8 +36,6 @@ LR_QUATS = 1e-3
 ADAM_EPS = 1e-15
 """3DGS's epsilon: position gradients are tiny, and Adam's default 1e-8 would swamp them."""
 NET_WEIGHT_DECAY = 0.01
-HEAD_EVERY = 5
-"""The head's rendering loss joins every this many iterations (it costs about one more render)."""
 PROBE_ITERATIONS = 5
 """Iterations timed before the lifecycle schedule is scaled to the iterations the budget affords."""
 HISTORY_EVERY = 10
@@ -45,16 +44,15 @@ GAUSSIAN_ONE_CYCLE = False
 
 @dataclass
 class OptimizeConfig:
-    scene_extent: float
-    max_gaussians: int
-    sh_degree: int = 3
-    iterations: int | None = None
-    """Fixed iteration count instead of the wall-clock budget (tests, reproducible runs)."""
-    opacity_reset: bool = True
-    densify: bool = True
-    head_every: int = HEAD_EVERY
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    seed: int = 0
+    scene_extent: float = knob(reason="Scene size in metres: scales the position learning rate and the lifecycle.")
+    max_gaussians: int = knob(reason="Cap on the number of Gaussians.")
+    sh_degree: int = knob(3, "Highest SH degree of the scene set.")
+    iterations: int | None = knob(None, "Fixed iteration count instead of the wall-clock budget (reproducible runs).")
+    opacity_reset: bool = knob(True, "Reset opacities on 3DGS's (scaled) schedule.")
+    densify: bool = knob(True, "Clone and split Gaussians on schedule (pruning runs either way).")
+    head_every: int = knob(5, "The head's rendering loss joins every this many iterations (0: never; ~1 render).")
+    background: tuple[float, float, float] = knob((0.0, 0.0, 0.0), "Background colour of every render.")
+    seed: int = knob(0, "Seed of the view order and of splits.")
 
 
 @dataclass

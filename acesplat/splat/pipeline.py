@@ -2,8 +2,8 @@
 
 Order (all inside one wall-clock budget): read the views at the map's resolution; run the SCR
 network once per initialisation view (features kept); keep trustworthy cells; train the adapter and
-init head alone for HEAD_WARMUP of the budget; merge every view's head Gaussians into one scene set
-on a lattice whose stride fits MAX_INITIAL_GAUSSIANS; then optimise the set and the head jointly.
+init head alone for ``head_warmup`` of the budget; merge every view's head Gaussians into one scene set
+on a lattice whose stride fits ``max_initial``; then optimise the set and the head jointly.
 
 Protocols: ``static`` reconstructs the captured (training) views; ``sparse`` starts from two training
 views only and holds out the training frames between them as targets.
@@ -14,23 +14,25 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from acesplat.core.config import knob, knob_default
 from acesplat.core.errors import InputError
 from acesplat.core.scene import Frame
 from acesplat.splat.adapter import AdapterConfig
 from acesplat.splat.head_training import HeadTrainer
-from acesplat.splat.init_head import InitHeadConfig, SceneNorm
+from acesplat.splat.init_head import InitHeadConfig
 from acesplat.splat.instantiate import GaussianInitializer, merge_views
-from acesplat.splat.optimize import HEAD_EVERY, EvalFn, OptimizeConfig, OptimizeResult, optimise_gaussians
+from acesplat.splat.optimize import EvalFn, OptimizeConfig, OptimizeResult, optimise_gaussians
 from acesplat.splat.params import GaussianParams, params_from_tensors
 from acesplat.splat.schedule import NET_LR_MAX, NET_LR_MIN, one_cycle
 from acesplat.splat.views import SplatView, load_views, run_scr
 from acesplat.splatcore.fusion import DEPTH_TOLERANCE
+from acesplat.splatcore.head_io import SceneNorm
 from acesplat.splatcore.validity import (
     CROSS_VIEW_NEIGHBOURS,
     CROSS_VIEW_TOLERANCE,
@@ -39,13 +41,6 @@ from acesplat.splatcore.validity import (
 )
 
 PROTOCOLS = ("static", "sparse")
-MAX_INIT_VIEWS = 48
-"""At most this many training views (evenly spread) run the SCR network and seed Gaussians; all train."""
-MAX_INITIAL_GAUSSIANS = 60_000
-MAX_GAUSSIANS = 200_000
-"""Cap of the lifecycle: rendering time grows with the count, and the budget is CPU time."""
-HEAD_WARMUP = 0.08
-"""Share of the budget (after preparation) in which the adapter and head train alone, before they seed the scene set."""
 SPARSE_GAP = 4
 """Default sparse-view pair: two training frames this many frames apart around the middle of the sequence."""
 MIN_VALID_FRACTION = 0.02
@@ -58,33 +53,40 @@ ProgressFn = Callable[[str, float, dict], None]
 
 @dataclass
 class SplatConfig:
-    minutes: float = 10.0
-    protocol: str = "static"
-    iterations: int | None = None
-    """Fixed optimisation iterations instead of the budget (tests)."""
-    head_iterations: int | None = None
-    """Fixed head warm-up steps instead of HEAD_WARMUP of the budget (tests)."""
-    sh_degree: int = 3
-    max_initial: int = MAX_INITIAL_GAUSSIANS
-    max_gaussians: int = MAX_GAUSSIANS
-    init_views: int = MAX_INIT_VIEWS
-    head_warmup: float = HEAD_WARMUP
-    joint_head: bool = True
-    fuse: bool = True
-    fusion_tolerance: float = DEPTH_TOLERANCE
-    """Relative depth difference under which views see the same surface (SCR depth noise needs more than exact depth)."""
-    fill: bool = True
-    cross_view: int = CROSS_VIEW_NEIGHBOURS
-    """Confirm trusted cells against this many nearest views (0: own-view reprojection only)."""
-    cross_view_tol: float = CROSS_VIEW_TOLERANCE
-    """Seed untrusted pixels of views with some trusted cells at their nearest trusted depth (see instantiate.view_pixels)."""
-    sparse_views: tuple[int, int] | None = None
-    validity: ValidityConfig = field(default_factory=ValidityConfig)
-    adapter_widths: tuple[int, int, int, int] = AdapterConfig.widths
-    head: InitHeadConfig = field(default_factory=InitHeadConfig)
-    opacity_reset: bool = True
-    densify: bool = True
-    seed: int = 0
+    minutes: float = knob(10.0, "Wall-clock budget of Stage 2.")
+    protocol: str = knob(
+        "static", "static (reconstruct the captured views) or sparse (two views in, held-out targets)."
+    )
+    iterations: int | None = knob(None, "Fixed optimisation iterations instead of the budget (reproducible runs).")
+    head_iterations: int | None = knob(None, "Fixed head warm-up steps instead of head_warmup of the budget.")
+    sh_degree: int = knob(knob_default(OptimizeConfig, "sh_degree"), "Highest SH degree of the scene set.")
+    max_initial: int = knob(60_000, "Budget of initial Gaussians: the seeding lattice's stride is chosen to fit it.")
+    max_gaussians: int = knob(
+        200_000, "Cap on the number of Gaussians (rendering time, hence CPU time, grows with it)."
+    )
+    init_views: int = knob(48, "At most this many training views (evenly spread) seed Gaussians; all of them train.")
+    head_warmup: float = knob(0.08, "Share of the budget in which the adapter and head train alone before seeding.")
+    joint_head: bool = knob(True, "Keep training the head jointly with the scene set.")
+    fuse: bool = knob(True, "Seed only the pixels no earlier view already seeded (one layer per surface).")
+    fusion_tolerance: float = knob(
+        DEPTH_TOLERANCE, "Relative depth difference under which views see the same surface (SCR depths are noisy)."
+    )
+    fill: bool = knob(True, "Also seed untrusted pixels, at the depth of the nearest trusted cell.")
+    cross_view: int = knob(
+        CROSS_VIEW_NEIGHBOURS, "Confirm trusted cells against this many nearest views (0: own-view reprojection only)."
+    )
+    cross_view_tol: float = knob(
+        CROSS_VIEW_TOLERANCE, "Relative depth agreement with a neighbouring view's prediction that confirms a cell."
+    )
+    sparse_views: tuple[int, int] | None = knob(None, "Sparse protocol: the two training frame indices, e.g. 10,14.")
+    validity: ValidityConfig = knob(reason="Which SCR cells become Gaussian centres.", factory=ValidityConfig)
+    adapter_widths: tuple[int, int, int, int] = knob(
+        knob_default(AdapterConfig, "widths"), "Feature adapter widths at 1/8, 1/4, 1/2 and full resolution."
+    )
+    head: InitHeadConfig = knob(reason="The init head.", factory=InitHeadConfig)
+    opacity_reset: bool = knob(knob_default(OptimizeConfig, "opacity_reset"), "Reset opacities on 3DGS's schedule.")
+    densify: bool = knob(knob_default(OptimizeConfig, "densify"), "Clone and split Gaussians on schedule.")
+    seed: int = knob(0, "Seed of view sampling, seeding offsets and initialisation.")
 
     def __post_init__(self) -> None:
         if self.protocol not in PROTOCOLS:
@@ -196,7 +198,9 @@ def splat_scene(
 
     adapter_cfg = AdapterConfig(in_channels=int(usable[0].features.shape[1]), widths=cfg.adapter_widths)  # type: ignore[union-attr]
     initializer = GaussianInitializer(adapter_cfg, cfg.head)
-    head = HeadTrainer(initializer, usable, norm, cfg.sh_degree, fill=cfg.fill)
+    head = HeadTrainer(
+        initializer, usable, norm, cfg.sh_degree, fill=cfg.fill, max_depth_ratio=cfg.validity.max_depth_ratio
+    )
     t_prep = time.monotonic() - t0
     warm_steps, warm_skipped = _warm_up(head, cfg, time.monotonic() + cfg.head_warmup * budget, rng, progress)
     t_warm = time.monotonic() - t0 - t_prep
@@ -219,7 +223,7 @@ def splat_scene(
         iterations=cfg.iterations,
         opacity_reset=cfg.opacity_reset,
         densify=cfg.densify,
-        head_every=HEAD_EVERY if cfg.joint_head else 0,
+        head_every=knob_default(OptimizeConfig, "head_every") if cfg.joint_head else 0,
         seed=cfg.seed,
     )
     opt = optimise_gaussians(

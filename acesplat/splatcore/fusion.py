@@ -18,9 +18,8 @@ from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import invert_pose
 
 DEPTH_TOLERANCE = 0.1
-"""Relative depth difference under which two views see the same surface point. SCR depths are noisy: on the
-built-in scene (shipped encoder, 4-minute map) 3% kept so many duplicates that the budget forced stride 6,
-10% gave stride 5 and a 0.3 dB better start; with exact depths the two start alike (24.6 / 24.7 dB)."""
+"""Relative depth difference under which two views see the same surface point (SCR depths are noisy; 10% vs 3%:
+bench/stage2.md)."""
 FINER_RATIO = 1.5
 """An earlier view covers a pixel only if its footprint there is at most this times the pixel's own."""
 FUSION_NEIGHBOURS = 8

@@ -1,4 +1,4 @@
-"""SCR coordinates (one per 8x8 cell) brought to pixel resolution, torch-free.
+"""SCR coordinates (one per 8x8 cell of the SCR output grid) brought to pixel resolution, torch-free.
 
 Interpolating the 3D coordinates themselves would put pixels that straddle a depth edge on a
 straight line between foreground and background, off every pixel's ray. Instead each cell's
@@ -7,19 +7,27 @@ adapter) and every pixel is unprojected along its own ray with the known pose, s
 reprojects onto its pixel and only its distance comes from the SCR prediction. Where the cells that
 feed a pixel disagree in depth by more than a ratio, the pixel is marked as an edge. Invalid cells
 take no part: depth is interpolated over the valid ones.
+
+Two samplers share that recipe. :func:`pixel_coordinates` (Stage 2) works at the network's input resolution in
+float64, the edge test over the 2x2 cells each pixel is interpolated from. :func:`pixel_depths` (the edge) works at
+any resolution of the same image (refinement runs at the camera's, not the network's), with OpenCV's float32
+resize, and tests edges over each cell's 3x3 neighbourhood so it needs no per-pixel corner bookkeeping.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
+import cv2
 import numpy as np
 from scipy.ndimage import distance_transform_edt
 
 from acesplat.core.camera import Intrinsics
+from acesplat.core.config import knob_default
 from acesplat.core.geometry import invert_pose
 from acesplat.core.grid import OUTPUT_STRIDE
+from acesplat.splatcore.validity import ValidityConfig, cell_trust
 
-STRIDE = OUTPUT_STRIDE
-"""Stage 2 lifts the SCR's stride-8 cells (never the dense grid of `acesplat eval --dense`)."""
 MIN_VALID_WEIGHT = 0.5
 """A pixel needs valid cells to carry at least this share of its bilinear interpolation weight."""
 
@@ -27,10 +35,11 @@ MIN_VALID_WEIGHT = 0.5
 def _axis_weights(n_out: int, n_in: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Indices i0, i1 (n_out,) and weight of i1 for x8 bilinear upsampling with half-pixel centres.
 
-    Matches torch's ``interpolate(..., align_corners=False)``: source = (dst + 0.5) / 8 - 0.5,
+    Stage 2 lifts the SCR's stride-8 cells (never the dense grid of `acesplat eval --dense`). Matches torch's
+    ``interpolate(..., align_corners=False)``: source = (dst + 0.5) / 8 - 0.5,
     clamped at 0 below and at the last cell above.
     """
-    src = np.maximum((np.arange(n_out) + 0.5) / STRIDE - 0.5, 0.0)
+    src = np.maximum((np.arange(n_out) + 0.5) / OUTPUT_STRIDE - 0.5, 0.0)
     i0 = np.minimum(np.floor(src).astype(np.int64), n_in - 1)
     i1 = np.minimum(i0 + 1, n_in - 1)
     return i0, i1, src - i0
@@ -40,8 +49,9 @@ def _corners(values: np.ndarray, height: int, width: int):
     """The four cells (each (height, width)) every pixel is interpolated from, and the weights of the
     second row (height, 1) and second column (1, width)."""
     h, w = values.shape
-    if not (STRIDE * (h - 1) < height <= STRIDE * h and STRIDE * (w - 1) < width <= STRIDE * w):
-        raise ValueError(f"a {h}x{w} cell grid (stride {STRIDE}) does not cover a {height}x{width} image")
+    s = OUTPUT_STRIDE
+    if not (s * (h - 1) < height <= s * h and s * (w - 1) < width <= s * w):
+        raise ValueError(f"a {h}x{w} cell grid (stride {OUTPUT_STRIDE}) does not cover a {height}x{width} image")
     y0, y1, wy = _axis_weights(height, h)
     x0, x1, wx = _axis_weights(width, w)
     corners = (values[y0][:, x0], values[y0][:, x1], values[y1][:, x0], values[y1][:, x1])
@@ -117,9 +127,51 @@ def filled_depths(
         return np.zeros((H, W, 3)), np.zeros((H, W))
     _, (iy, ix) = distance_transform_edt(~ok, return_indices=True)
     z_full = z[iy, ix]
-    rows = np.minimum(np.arange(H) // STRIDE, z.shape[0] - 1)
-    cols = np.minimum(np.arange(W) // STRIDE, z.shape[1] - 1)
+    rows = np.minimum(np.arange(H) // OUTPUT_STRIDE, z.shape[0] - 1)
+    cols = np.minimum(np.arange(W) // OUTPUT_STRIDE, z.shape[1] - 1)
     depth = z_full[rows][:, cols]
     X_cam = pixel_rays(intrinsics) * depth[..., None]
     pose = np.asarray(pose_c2w, np.float64)
     return X_cam @ pose[:3, :3].T + pose[:3, 3], depth
+
+
+@dataclass(frozen=True)
+class PixelDepths:
+    """Per-pixel camera depth (H, W), world centres (H, W, 3) and validity (H, W) at one resolution."""
+
+    depth: np.ndarray
+    centres: np.ndarray
+    valid: np.ndarray
+
+
+def pixel_depths(
+    coords: np.ndarray,
+    pose_c2w: np.ndarray,
+    k_input: Intrinsics,
+    k_out: Intrinsics,
+    max_depth_ratio: float = knob_default(ValidityConfig, "max_depth_ratio"),
+) -> PixelDepths:
+    """Depths and centres at the resolution of ``k_out`` (the input image rescaled) from the SCR cells
+    ``coords`` (h, w, 3) of the input image of ``k_input`` (trusted cells: :func:`cell_trust`)."""
+    z, ok = cell_trust(coords, pose_c2w, k_input)
+    h, w = z.shape
+    s = OUTPUT_STRIDE
+    if not (s * (h - 1) < k_input.height <= s * h and s * (w - 1) < k_input.width <= s * w):
+        raise ValueError(f"a {h}x{w} cell grid does not tile a {k_input.height}x{k_input.width} input image")
+    size = (k_out.width, k_out.height)
+    # The grid spans OUTPUT_STRIDE * (w, h) input pixels; resize maps it onto the output image with half-pixel
+    # centres when the output has the input's aspect (crop the overhang of a rounded-up grid first).
+    sx, sy = k_out.width / k_input.width, k_out.height / k_input.height
+    full = (int(round(s * w * sx)), int(round(s * h * sy)))
+    okf = ok.astype(np.float32)
+    zw = cv2.resize(np.where(ok, z, 0.0).astype(np.float32), full, interpolation=cv2.INTER_LINEAR)[: size[1], : size[0]]
+    wt = cv2.resize(okf, full, interpolation=cv2.INTER_LINEAR)[: size[1], : size[0]]
+    kernel = np.ones((3, 3), np.uint8)
+    z_lo = cv2.erode(np.where(ok, z, np.inf).astype(np.float32), kernel, borderType=cv2.BORDER_REPLICATE)
+    z_hi = cv2.dilate(np.where(ok, z, 0.0).astype(np.float32), kernel, borderType=cv2.BORDER_REPLICATE)
+    ratio = cv2.resize(z_hi / np.maximum(z_lo, 1e-6), full, interpolation=cv2.INTER_NEAREST)[: size[1], : size[0]]
+    valid = (wt >= MIN_VALID_WEIGHT) & (ratio <= max_depth_ratio)
+    depth = np.where(valid, zw / np.maximum(wt, 1e-6), 0.0).astype(np.float64)
+    X_cam = pixel_rays(k_out) * depth[..., None]
+    pose = np.asarray(pose_c2w, np.float64)
+    return PixelDepths(depth=depth, centres=X_cam @ pose[:3, :3].T + pose[:3, 3], valid=valid)

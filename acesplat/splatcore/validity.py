@@ -15,24 +15,23 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from acesplat.core.camera import Intrinsics
+from acesplat.core.config import knob
 from acesplat.core.geometry import invert_pose
-from acesplat.core.grid import cell_centers
-from acesplat.splatcore.pixel_coords import STRIDE
-
-DEPTH_MIN_M = 0.05
-DEPTH_MAX_M = 200.0
-REPROJ_MAX_PX = 8.0
-"""Reprojection tolerance in pixels of the map's input image: one cell (ACE's PnP inlier threshold is 10 px)."""
-MAX_DEPTH_RATIO = 1.25
-"""Pixels interpolated from cells whose depths differ by more than this ratio straddle an edge."""
+from acesplat.core.grid import OUTPUT_STRIDE, cell_centers
 
 
 @dataclass(frozen=True)
 class ValidityConfig:
-    depth_min: float = DEPTH_MIN_M
-    depth_max: float = DEPTH_MAX_M
-    reproj_max_px: float = REPROJ_MAX_PX
-    max_depth_ratio: float = MAX_DEPTH_RATIO
+    """Which SCR cells become Gaussian centres (Stage 2 and the edge read the same defaults)."""
+
+    depth_min: float = knob(0.05, "Nearest trusted camera depth of a scene coordinate, metres.")
+    depth_max: float = knob(200.0, "Farthest trusted camera depth of a scene coordinate, metres.")
+    reproj_max_px: float = knob(
+        8.0, "Validity: SCR coordinates must reproject within this many pixels (one cell; ACE's PnP inliers: 10)."
+    )
+    max_depth_ratio: float = knob(
+        1.25, "Pixels interpolated from cells whose depths differ by more than this ratio straddle an edge."
+    )
 
     def __post_init__(self) -> None:
         if not (0 < self.depth_min < self.depth_max) or self.reproj_max_px <= 0 or self.max_depth_ratio < 1:
@@ -44,12 +43,14 @@ class ValidityConfig:
 
 @dataclass(frozen=True)
 class CellValidity:
-    """Per-cell verdicts (h, w) bool; ``valid`` is their conjunction."""
+    """Per-cell verdicts (h, w) bool; ``valid`` is their conjunction. ``depth`` (h, w) is each cell's camera z
+    (0 where the coordinate is not finite)."""
 
     finite: np.ndarray
     in_depth_range: np.ndarray
     reprojects: np.ndarray
     valid: np.ndarray
+    depth: np.ndarray
 
     @property
     def fraction(self) -> float:
@@ -73,7 +74,7 @@ def cell_validity(
     h, w = coords.shape[:2]
     finite = np.all(np.isfinite(coords), axis=-1)
     w2c = invert_pose(pose_c2w)
-    Xc = np.where(finite[..., None], coords, 0.0) @ w2c[:3, :3].T + w2c[:3, 3]
+    Xc = (np.where(finite[..., None], coords, 0.0).reshape(-1, 3) @ w2c[:3, :3].T + w2c[:3, 3]).reshape(h, w, 3)
     z = Xc[..., 2]
     in_range = finite & (z >= cfg.depth_min) & (z <= cfg.depth_max)
     z_safe = np.where(in_range, z, 1.0)
@@ -81,7 +82,16 @@ def cell_validity(
     uv = np.stack([k.fx * Xc[..., 0] / z_safe + k.cx, k.fy * Xc[..., 1] / z_safe + k.cy], axis=-1)
     err = np.linalg.norm(uv - cell_pixels(h, w), axis=-1)
     reprojects = in_range & (err <= cfg.reproj_max_px)
-    return CellValidity(finite=finite, in_depth_range=in_range, reprojects=reprojects, valid=reprojects.copy())
+    return CellValidity(finite=finite, in_depth_range=in_range, reprojects=reprojects, valid=reprojects.copy(), depth=z)
+
+
+def cell_trust(
+    coords: np.ndarray, pose_c2w: np.ndarray, k_input: Intrinsics, cfg: ValidityConfig = ValidityConfig()
+) -> tuple[np.ndarray, np.ndarray]:
+    """Camera depths (h, w) of SCR coordinates ``coords`` (h, w, 3) (NaN where not trusted) and which cells to
+    trust (h, w) bool: :func:`cell_validity` of an image of ``k_input``'s size seen from ``pose_c2w``."""
+    v = cell_validity(coords, pose_c2w, k_input, cfg)
+    return np.where(v.valid, v.depth, np.nan), v.valid
 
 
 CROSS_VIEW_TOLERANCE = 0.1
@@ -115,8 +125,8 @@ def cross_view_agreement(
     u = k.fx * Xc[:, 0] / zs + k.cx
     v = k.fy * Xc[:, 1] / zs + k.cy
     oh, ow = other_coords.shape[:2]
-    j = np.floor(u / STRIDE).astype(np.int64)
-    i = np.floor(v / STRIDE).astype(np.int64)
+    j = np.floor(u / OUTPUT_STRIDE).astype(np.int64)
+    i = np.floor(v / OUTPUT_STRIDE).astype(np.int64)
     inside = front & np.isfinite(u) & np.isfinite(v) & (i >= 0) & (i < oh) & (j >= 0) & (j < ow)
     ii, jj = np.where(inside, i, 0), np.where(inside, j, 0)
     seen = inside & np.asarray(other_valid, bool)[ii, jj]

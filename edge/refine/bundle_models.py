@@ -1,8 +1,8 @@
 """The refinement models a bundle may carry (written by export/splat_export.py), torch-free.
 
-Roles in the manifest's file list: ``gaussians`` (the scene's 3DGS PLY) and ``splat_init_fp32``
-(the Gaussian initializer: feature adapter + init head in one ONNX graph, fed the SCR graph's features). The
-manifest's ``splat`` section says how to use them.
+Roles in the manifest's file list (acesplat/splatcore/bundle_section.py): ``gaussians`` (the scene's 3DGS PLY)
+and ``splat_init_fp32`` (the Gaussian initializer: feature adapter + init head in one ONNX graph, fed the SCR
+graph's features). The manifest's ``splat`` section says how to use them.
 """
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ from acesplat.core.bundle import Bundle, verify_file
 from acesplat.core.errors import InputError
 from acesplat.core.gaussians import Gaussians
 from acesplat.core.ply import read_ply
+from acesplat.splatcore.bundle_section import ROLE_GAUSSIANS, ROLE_SPLAT_INIT
 
-ROLE_GAUSSIANS = "gaussians"
-ROLE_SPLAT_INIT = "splat_init_fp32"
+__all__ = ["ROLE_GAUSSIANS", "ROLE_SPLAT_INIT", "bundle_gaussians", "no_models_message", "splat_section"]
 
 
 def bundle_gaussians(bundle: Bundle) -> Gaussians | None:

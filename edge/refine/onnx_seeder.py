@@ -5,7 +5,7 @@ format 2), so seeding costs the adapter and head only, not a second encoder run.
 residuals around the same analytic start the SCR seeder uses (colour from the pixel, isotropic scale
 covering the seeding gap, identity rotation, a prior opacity); it runs at the network input
 resolution and its residuals are resampled to the refinement resolution. Centres stay the SCR depths
-along pixel rays. Decoding mirrors acesplat/splat/init_head.decode_gaussians.
+along pixel rays. The prior and the residual layout are acesplat/splatcore/head_io's, shared with Stage 2.
 
 A format 1 bundle's initializer takes the image and runs its own encoder: it is not used (one line
 says so) and refinement seeds from SCR coordinates.
@@ -22,14 +22,21 @@ import onnxruntime as ort
 
 from acesplat.core.bundle import Bundle, verify_file
 from acesplat.core.errors import InputError
-from acesplat.core.gaussians import SH_C0, Gaussians, logit, sh_coeff_count
-from edge.refine.bundle_models import ROLE_SPLAT_INIT, splat_section
-from edge.refine.seeding import block_colours, pixel_depths, seed_pixels
+from acesplat.core.gaussians import Gaussians
+from acesplat.splatcore.bundle_section import INIT_INPUTS, ROLE_SPLAT_INIT
+from acesplat.splatcore.head_io import (
+    PRIOR_CHANNELS,
+    SceneNorm,
+    coordinate_prior,
+    decode_residuals,
+    residual_channels,
+)
+from acesplat.splatcore.lattice import seed_pixels
+from acesplat.splatcore.pixel_coords import pixel_depths
+from acesplat.splatcore.seeding import block_colours
+from edge.refine.bundle_models import splat_section
 
-PRIOR_CHANNELS = 7
 CALIBRATION_RUNS = 3
-INPUTS = ("features", "prior")
-"""The initializer's inputs (export/splat_export.py INIT_INPUTS)."""
 
 
 class OnnxSeeder:
@@ -46,9 +53,7 @@ class OnnxSeeder:
             self.opacity_prior = float(init["opacity_prior"])
             self.scale_prior = float(init["scale_prior"])
             self.head_degree = int(splat["head"]["sh_degree"])
-            norm = splat["scene_norm"]
-            self.centre = np.asarray(norm["centre"], np.float64).reshape(3)
-            self.scale = float(norm["scale"])
+            self.norm = SceneNorm.from_dict(splat["scene_norm"])
         except (KeyError, TypeError, ValueError):
             raise InputError(
                 self.path, "bundle manifest's 'splat' section lacks the initializer's description"
@@ -64,17 +69,17 @@ class OnnxSeeder:
                 self.path, f"onnxruntime cannot load the initializer ({str(e).splitlines()[0][:200]})"
             ) from None
         names = [i.name for i in self.sess.get_inputs()]
-        if tuple(names) != INPUTS:
+        if tuple(names) != INIT_INPUTS:
             raise InputError(
-                self.path, f"initializer takes {names}, expected {list(INPUTS)} (a bundle format 1 graph?)"
+                self.path, f"initializer takes {names}, expected {list(INIT_INPUTS)} (a bundle format 1 graph?)"
             )
         self.features_shape = tuple(int(d) for d in self.sess.get_inputs()[0].shape[1:])
         self.spacing = spacing
-        self.channels = 1 + 3 * sh_coeff_count(self.head_degree) + 7
+        self.channels = residual_channels(self.head_degree)
 
     def time_once(self, estimate=None, runs: int = CALIBRATION_RUNS) -> float:
         """Run the graph once on a blank input (loads it), then ``runs`` times timed; records the median seconds in
-        ``estimate`` (one run on a shared CPU was seen at 3-6x the typical cost) and returns it."""
+        ``estimate`` (the median: single runs on a shared CPU vary several-fold, bench/stage2.md) and returns it."""
         import time
 
         feats = np.zeros(self.features_shape, np.float32)
@@ -95,8 +100,8 @@ class OnnxSeeder:
         if features.shape != self.features_shape:
             raise ValueError(f"features must have shape {self.features_shape}, got {features.shape}")
         feed = {
-            INPUTS[0]: np.ascontiguousarray(features, dtype=np.float32)[None],
-            INPUTS[1]: np.ascontiguousarray(prior, dtype=np.float32)[None],
+            INIT_INPUTS[0]: np.ascontiguousarray(features, dtype=np.float32)[None],
+            INIT_INPUTS[1]: np.ascontiguousarray(prior, dtype=np.float32)[None],
         }
         out = self.sess.run(None, feed)[0]
         if out.shape != (1, self.channels, *self.size):
@@ -129,18 +134,11 @@ class OnnxSeeder:
 
     def prior(self, kf) -> np.ndarray:
         """The head's prior (PRIOR_CHANNELS, H, W) float32 at the network input size: rgb - 0.5, normalised
-        world centres, log(depth / scale) (acesplat/splat/init_head.coordinate_prior), written in place."""
+        world centres, log(depth / scale) (acesplat/splatcore/head_io.coordinate_prior), computed in float32."""
         k_in = kf.k_input
         pix = pixel_depths(kf.coords, kf.pose, k_in, k_in)
         rgb = cv2.resize(kf.rgb, (k_in.width, k_in.height), interpolation=cv2.INTER_LINEAR)
-        prior = np.empty((PRIOR_CHANNELS, k_in.height, k_in.width), np.float32)
-        prior[0:3] = np.moveaxis(rgb, -1, 0)
-        prior[0:3] -= 0.5
-        prior[3:6] = np.moveaxis(pix.centres, -1, 0)
-        prior[3:6] -= self.centre.astype(np.float32)[:, None, None]
-        prior[3:6] /= np.float32(self.scale)
-        prior[6] = np.log(np.maximum(pix.depth, 1e-6) / self.scale)
-        return np.nan_to_num(prior, copy=False)
+        return coordinate_prior(rgb, pix.centres, pix.depth, self.norm, float32_in_place=True)
 
     def decode(
         self,
@@ -153,17 +151,10 @@ class OnnxSeeder:
         sh_degree: int,
     ) -> Gaussians:
         """Gaussians from residuals raw (N, C), colours (N, 3), centres (N, 3), camera depths (N,)."""
-        n, kh = raw.shape[0], sh_coeff_count(self.head_degree)
-        g = Gaussians.zeros(n, sh_degree, np.float32)
-        g.opacity_logits[:] = raw[:, 0] + float(logit(np.array(self.opacity_prior)))
-        sh_head = raw[:, 1 : 1 + 3 * kh].reshape(n, kh, 3)
-        g.sh[:, :kh] = sh_head
-        g.sh[:, 0] += (rgb - 0.5) / SH_C0
-        base = np.log(self.scale_prior * spacing_px * np.maximum(depth, 1e-6) / focal_px)
-        g.log_scales[:] = raw[:, 1 + 3 * kh : 4 + 3 * kh] + base[:, None]
-        g.quats[:] = raw[:, 4 + 3 * kh : 8 + 3 * kh] + np.array([1.0, 0.0, 0.0, 0.0])
-        g.means[:] = centres
-        return g
+        return decode_residuals(
+            raw, rgb, centres, depth, focal_px, spacing_px, self.head_degree, sh_degree,
+            self.opacity_prior, self.scale_prior,
+        )  # fmt: skip
 
 
 def onnx_seeder_for(

@@ -2,9 +2,8 @@
 
 A commit overwrites the rows of the Gaussians its keyframe saw, appends its new ones, and hides the
 ones it pruned (opacity logit set to HIDDEN, which the rasterizer culls like any transparent Gaussian).
-Only when hidden rows pile up (or the cap is exceeded) are the arrays compacted, which copies. On a
-45k-Gaussian map, copying it at every commit measured 10-60 ms on 2 busy cores, more than a window
-of the per-frame budget.
+Only when hidden rows pile up (or the cap is exceeded) are the arrays compacted, which copies
+(copying the whole map at every commit costs more than a window of the per-frame budget: bench/stage2.md).
 """
 
 from __future__ import annotations
@@ -12,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from acesplat.core.gaussians import Gaussians
-from edge.refine.prune import cap_keep
+from acesplat.splatcore.prune import cap_keep
 
 PARAMS = ("means", "log_scales", "quats", "opacity_logits", "sh")
 HIDDEN = -30.0
