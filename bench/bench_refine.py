@@ -143,15 +143,13 @@ def replay(
     from acesplat.core.bundle import load_bundle
     from edge.refine.session import RefineOptions, start_refinement
     from edge.replay import replay_split
-    from edge.runtime import EdgeLocalizer, paced
+    from edge.runtime import EdgeLocalizer
 
     b = load_bundle(bundle)
-    loc = EdgeLocalizer(b, precision, threads)
+    loc = EdgeLocalizer(b, precision, threads, pace_ms=pace_ms if refine is None else None)
     session = None
     if refine is not None:
         session = start_refinement(loc, b, RefineOptions(evaluate=True, **refine), log)
-    elif pace_ms is not None:
-        paced(loc, pace_ms)
     t0 = time.monotonic()
     try:
         s = replay_split(loc, split_root, "test")

@@ -86,7 +86,7 @@ def profile_precision(
     for i, (f, cap_ms) in enumerate(frames):
         out = localizer.localize(f, cap_ms)
         if i >= warmup:
-            timed.append(out)
+            timed.append(out.without_data())
             localized += bool(out.result is not None and out.result.localized)
         if progress:
             progress(f"profile {localizer.precision}", (i + 1) / len(frames), {"frame": i + 1})

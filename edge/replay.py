@@ -59,7 +59,7 @@ def replay_split(
     outcomes: list[FrameOutcome] = []
 
     def keep(o: FrameOutcome) -> None:
-        outcomes.append(o)
+        outcomes.append(o.without_data())
         if progress:
             progress(len(outcomes), n)
 

@@ -259,6 +259,6 @@ def test_saver_survives_a_crash_mid_write(tmp_path, monkeypatch) -> None:
         raise OSError(5, "Input/output error")
 
     monkeypatch.setattr(atomic.os, "replace", crash)
-    saver = SplatSaver(path)
+    saver = SplatSaver(path, every_s=30.0)
     assert not saver.save(Gaussians.zeros(30, 0))
     assert path.read_bytes() == good and len(list(tmp_path.iterdir())) == 1

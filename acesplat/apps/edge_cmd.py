@@ -20,7 +20,7 @@ from acesplat.core.pose import TrackingState
 from edge.calibration import read_calibration_file
 from edge.inference import default_threads
 from edge.loop import LoopEvent, run_loop
-from edge.runtime import STAGES, EdgeLocalizer, FrameOutcome, PnPSettings
+from edge.runtime import STAGES, EdgeLocalizer, FrameOutcome, FrameTap, PnPSettings
 from edge.sources import SourceOptions, open_source
 
 console = Console(stderr=True)
@@ -129,41 +129,26 @@ def localize_command(
     loc = EdgeLocalizer(b, precision, threads, _pnp(pnp, min_inliers), align=align)
     src = open_source(source, SourceOptions(calibration=calib, input_size=b.input_size, realtime=realtime))
     refiner = refine_session(refine, loc, b, budget_ms, save_splat, _warn)
-    sink = None
+    log = None
+    if json_lines is not None:
+        from edge.outputs import JsonLinesTap
+
+        log = JsonLinesTap(json_lines)
+        loc.add_tap(log)
+    bridge = None
     if serial is not None:
         from firmware_bridge.sink import open_sink
 
-        sink = open_sink(serial, baud, protocol, rate)
-    writer = None
-    if json_lines is not None:
-        from edge.outputs import JsonLinesWriter
-
-        writer = JsonLinesWriter(json_lines)
-    paused = threading.Event()
+        bridge = BridgeTap(open_sink(serial, baud, protocol, rate))
+        loc.add_tap(bridge)
     out_stream = sys.stdout
 
     def on_outcome(out: FrameOutcome) -> None:
-        if writer is not None:
-            from edge.outputs import outcome_line
-
-            writer.write(outcome_line(out))
-        if sink is not None:
-            _bridge_step(sink, out, paused)
         if not quiet:
             out_stream.write(frame_text(out) + "\n")
             out_stream.flush()
 
     def on_event(e: LoopEvent) -> None:
-        if writer is not None:
-            from edge.outputs import event_line
-
-            writer.write(event_line(e))
-        if e.kind == "disconnected" and sink is not None:
-            from acesplat.core.pose import PoseRecord
-            from firmware_bridge.protocol import RuntimeState
-
-            sink.update_status(state=RuntimeState.LOST)
-            sink.submit(PoseRecord(int(e.wall_time * 1e6), np.full((4, 4), np.nan), 0, TrackingState.LOST, 0.0, 0))
         console.print(f"[yellow]{e.kind}[/yellow]: {e.detail}" + (f" (gap {e.gap_s:.1f} s)" if e.gap_s else ""))
 
     console.print(
@@ -173,12 +158,9 @@ def localize_command(
     try:
         stats = run_loop(src, loc, on_outcome, on_event, max_frames=frames)
     finally:
-        if writer is not None:
-            writer.close()
-        bridge_stats = None
-        if sink is not None:
-            sink.close()
-            bridge_stats = sink.stats().as_dict()
+        if log is not None:
+            log.close()
+        bridge_stats = bridge.close() if bridge is not None else None
         refine_stats = refiner.close() if refiner is not None else None
     summary = {"bundle": str(b.root), "source": src.description, "precision": precision, **stats.as_dict()}
     if refine_stats is not None:
@@ -195,22 +177,43 @@ def localize_command(
     report_json(json_out, summary)
 
 
-def _bridge_step(sink, out: FrameOutcome, paused: threading.Event) -> None:
-    """Forward one pose; honour PAUSE/RESUME from the microcontroller (SET_RATE the sink applies itself)."""
-    from firmware_bridge.protocol import CommandCode, RuntimeState
+class BridgeTap(FrameTap):
+    """A localizer tap forwarding each pose to the firmware bridge's non-blocking sink; honours PAUSE/RESUME from the
+    microcontroller (SET_RATE the sink applies itself) and reports LOST when the source disconnects."""
 
-    for ev in sink.poll_commands():
-        if ev.command == CommandCode.PAUSE:
-            paused.set()
-        elif ev.command == CommandCode.RESUME:
-            paused.clear()
-    if paused.is_set():
-        sink.update_status(state=RuntimeState.PAUSED)
-        return
-    state = RuntimeState.TRACKING if out.record.state == TrackingState.TRACKING else RuntimeState.LOST
-    total = out.times_ms.get("total", 0.0)
-    sink.update_status(state=state, latency_ms=total, fps=1000.0 / total if total > 0 else 0.0)
-    sink.submit(out.record)
+    def __init__(self, sink) -> None:
+        self.sink = sink
+        self.paused = threading.Event()
+
+    def on_frame(self, out: FrameOutcome) -> None:
+        from firmware_bridge.protocol import CommandCode, RuntimeState
+
+        for ev in self.sink.poll_commands():
+            if ev.command == CommandCode.PAUSE:
+                self.paused.set()
+            elif ev.command == CommandCode.RESUME:
+                self.paused.clear()
+        if self.paused.is_set():
+            self.sink.update_status(state=RuntimeState.PAUSED)
+            return
+        state = RuntimeState.TRACKING if out.record.state == TrackingState.TRACKING else RuntimeState.LOST
+        total = out.times_ms.get("total", 0.0)
+        self.sink.update_status(state=state, latency_ms=total, fps=1000.0 / total if total > 0 else 0.0)
+        self.sink.submit(out.record)
+
+    def on_event(self, e: LoopEvent) -> None:
+        if e.kind != "disconnected":
+            return
+        from acesplat.core.pose import PoseRecord
+        from firmware_bridge.protocol import RuntimeState
+
+        self.sink.update_status(state=RuntimeState.LOST)
+        self.sink.submit(PoseRecord(int(e.wall_time * 1e6), np.full((4, 4), np.nan), 0, TrackingState.LOST, 0.0, 0))
+
+    def close(self) -> dict:
+        """Close the sink; its counters."""
+        self.sink.close()
+        return self.sink.stats().as_dict()
 
 
 @one_line_errors
