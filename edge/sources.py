@@ -19,7 +19,7 @@ import numpy as np
 
 from acesplat.core.camera import Intrinsics
 from acesplat.core.errors import InputError
-from acesplat.core.scene import IMAGE_SUFFIXES, read_calibration, read_matrix, read_pose, read_rgb
+from acesplat.core.scene import find_split, list_split, read_calibration, read_matrix, read_pose, read_rgb
 from edge.calibration import CameraCalibration, read_calibration_file
 
 TIMESTAMPS_FILE = "timestamps.txt"
@@ -76,21 +76,6 @@ class FrameSource(Protocol):
 
 
 # --------------------------------------------------------------------------------------------- replay
-def _images(folder: Path) -> list[Path]:
-    return sorted(
-        (
-            p
-            for p in folder.iterdir()
-            if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")
-        ),
-        key=lambda p: p.name,
-    )
-
-
-def _text_files(folder: Path) -> list[Path]:
-    return sorted((p for p in folder.iterdir() if p.is_file() and not p.name.startswith(".")), key=lambda p: p.name)
-
-
 def read_timestamps(path: Path, names: list[str]) -> list[float]:
     """``timestamps.txt``: one line per frame, either 'seconds' or 'name seconds', in name order."""
     lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip() and not ln.startswith("#")]
@@ -113,19 +98,15 @@ def read_timestamps(path: Path, names: list[str]) -> list[float]:
 
 
 def resolve_replay_dir(path: Path) -> Path:
-    """A split folder (has rgb/), a scene (uses test/, else train/), or a plain folder of images."""
+    """A split folder, a scene (its test split, else train), or a plain folder of images (acesplat.core.scene)."""
     if not path.is_dir():
         raise InputError(path, "replay folder does not exist")
-    if (path / "rgb").is_dir():
-        return path
-    for split in ("test", "train"):
-        if (path / split / "rgb").is_dir():
-            return path / split
-    return path
+    return find_split(path)
 
 
 class ReplaySource:
-    """Frames from disk in name order: the ACE layout or what `record` writes, or a folder of images plus one intrinsics file.
+    """Frames from disk in name order: the ACE layout or what `record` writes, or a folder of images plus one
+    intrinsics file.
 
     ``realtime`` replays at the recorded timestamps (frames are then dropped when processing is slower);
     otherwise frames come as fast as they are asked for.
@@ -144,23 +125,15 @@ class ReplaySource:
         self.description = f"replay:{root}"
         self.live = realtime
         self._clock, self._sleep = clock, sleep
-        img_dir = root / "rgb" if (root / "rgb").is_dir() else root
-        self.images = _images(img_dir)
-        if not self.images:
-            raise InputError(img_dir, "no images to replay")
+        files = list_split(root)
+        self.images = files.images
         names = [p.stem for p in self.images]
-        self.poses: list[Path] | None = None
-        if (root / "poses").is_dir():
-            self.poses = _text_files(root / "poses")
-            if len(self.poses) != len(self.images):
-                raise InputError(root / "poses", f"{len(self.poses)} files but {len(self.images)} images")
+        self.poses: list[Path] | None = files.poses
         self.calibs: list[Path] | None = None
         self.calibration = calibration
         if calibration is None:
-            if (root / "calibration").is_dir():
-                self.calibs = _text_files(root / "calibration")
-                if len(self.calibs) != len(self.images):
-                    raise InputError(root / "calibration", f"{len(self.calibs)} files but {len(self.images)} images")
+            if files.calibrations is not None:
+                self.calibs = files.calibrations
             else:
                 for n in INTRINSICS_NAMES:
                     if (root / n).is_file():

@@ -1,4 +1,5 @@
-"""Refinement primitives: keyframe selection, deadlines, row Adam, seeding geometry, coverage, prune/cap, atomic saving."""
+"""Refinement primitives: keyframe selection, deadlines, row Adam, seeding geometry, coverage, prune/cap, atomic
+saving."""
 
 from __future__ import annotations
 

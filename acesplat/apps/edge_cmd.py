@@ -170,7 +170,8 @@ def localize_command(
         summary["bridge"] = bridge_stats
     ended = "interrupted" if stats.interrupted else "done"
     console.print(
-        f"{ended}: {stats.frames} frames in {stats.seconds:.1f} s ({summary['fps']:.1f} fps), {stats.tracking} tracking, "
+        f"{ended}: {stats.frames} frames in {stats.seconds:.1f} s ({summary['fps']:.1f} fps), "
+        f"{stats.tracking} tracking, "
         f"{stats.lost} lost, {stats.dropped} dropped, {stats.skipped} unreadable skipped, "
         f"{stats.disconnects} disconnects ({stats.gap_s:.1f} s without frames)"
     )
