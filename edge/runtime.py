@@ -9,7 +9,7 @@ capture to the pose, including any wait between capture and processing).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -18,6 +18,7 @@ from acesplat.align.keyframe_align import align_scr_pose
 from acesplat.align.keyframe_set import bundle_keyframes
 from acesplat.core.bundle import Bundle
 from acesplat.core.camera import Intrinsics
+from acesplat.core.config import knob
 from acesplat.core.errors import InputError
 from acesplat.core.pnp import DEFAULT_MIN_INLIERS, PnPResult, solve_from_grid
 from acesplat.core.pose import PoseRecord, TrackingState
@@ -26,12 +27,6 @@ from edge.inference import ScrSession
 from edge.sources import SourceFrame
 
 STAGES = ("capture", "preprocess", "inference", "pnp", "align", "total")
-
-DEFAULT_PNP_METHOD = "ransac_ap3p"
-"""Chosen by measurement on real predictions (bench/pnp_choice.md)."""
-DEFAULT_PNP_ITERATIONS = 256
-"""RANSAC cap for the edge: a lost frame (nothing matches) costs a third of the desktop's 1000 iterations,
-and good frames converge long before it (bench/pnp_choice.md)."""
 
 
 @dataclass
@@ -94,10 +89,12 @@ class FrameTap:
 
 @dataclass
 class PnPSettings:
-    method: str = DEFAULT_PNP_METHOD
-    min_inliers: int = DEFAULT_MIN_INLIERS
-    iterations: int = DEFAULT_PNP_ITERATIONS
-    extra: dict = field(default_factory=dict)
+    """The edge's PnP solver (acesplat.core.pnp.solve_from_grid)."""
+
+    method: str = knob("ransac_ap3p", "PnP method (the measured choice: bench/pnp_choice.md).")
+    min_inliers: int = knob(DEFAULT_MIN_INLIERS, "Inlier gate for TRACKING.")
+    iterations: int = knob(256, "RANSAC cap: a lost frame costs a third of the desktop's (bench/pnp_choice.md).")
+    extra: dict = knob(reason="Further keyword arguments of solve_from_grid.", factory=dict)
 
     def kwargs(self) -> dict:
         return {"method": self.method, "min_inliers": self.min_inliers, "iterations": self.iterations, **self.extra}

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from acesplat.core.camera import Intrinsics
+from acesplat.core.config import knob
 from acesplat.core.errors import InputError
 from acesplat.core.scene import find_split, list_split, read_calibration, read_matrix, read_pose, read_rgb
 from edge.calibration import CameraCalibration, read_calibration_file
@@ -290,11 +291,12 @@ class CameraSource:
 # --------------------------------------------------------------------------------------------- open
 @dataclass
 class SourceOptions:
-    calibration: CameraCalibration | None = None
-    input_size: tuple[int, int] | None = None
-    """(H, W) the consumer wants; cameras that can resize on the device (OAK) deliver this size."""
-    realtime: bool = False
-    extra: dict = field(default_factory=dict)
+    """How a source is opened (``open_source``)."""
+
+    calibration: CameraCalibration | None = knob(None, "Calibration for sources without one (--intrinsics).")
+    input_size: tuple[int, int] | None = knob(None, "(H, W) the consumer wants; an OAK resizes on the device.")
+    realtime: bool = knob(False, "Replay at the recorded timestamps (drops frames when slower).")
+    extra: dict = knob(reason="Source-specific settings.", factory=dict)
 
 
 def open_source(spec: str, opts: SourceOptions) -> FrameSource:

@@ -12,7 +12,7 @@ from rich.console import Console
 from rich.table import Table
 
 from acesplat.apps.refine_cmd import refine_line, refine_session
-from acesplat.apps.support import PhaseProgress, one_line_errors, report_json
+from acesplat.apps.support import PhaseProgress, one_line_errors, option, report_json
 from acesplat.core.bundle import PRECISION_ROLES, Bundle, load_bundle
 from acesplat.core.errors import InputError
 from acesplat.core.geometry import matrix_to_quat
@@ -20,6 +20,8 @@ from acesplat.core.pose import TrackingState
 from edge.calibration import read_calibration_file
 from edge.inference import default_threads
 from edge.loop import LoopEvent, run_loop
+from edge.profile import ProfileOptions
+from edge.refine.session import RefineOptions
 from edge.runtime import STAGES, EdgeLocalizer, FrameOutcome, FrameTap, PnPSettings
 from edge.sources import SourceOptions, open_source
 
@@ -98,10 +100,10 @@ def localize_command(
     int8: bool = typer.Option(False, "--int8", help="Run the bundle's INT8 model."),
     json_lines: Path | None = typer.Option(None, "--json-lines", help="Write one JSON object per frame here."),
     frames: int | None = typer.Option(None, help="Stop after this many frames."),
-    realtime: bool = typer.Option(False, help="Replay at the recorded timestamps (drops frames when slower)."),
+    realtime: bool = option(SourceOptions, "realtime"),
     threads: int | None = typer.Option(None, help="onnxruntime intra-op threads (default: all cores)."),
-    pnp: str | None = typer.Option(None, help="PnP method (default: the measured choice)."),
-    min_inliers: int | None = typer.Option(None, help="Inlier gate for TRACKING."),
+    pnp: str | None = option(PnPSettings, "method", "--pnp", default=None),
+    min_inliers: int | None = option(PnPSettings, "min_inliers", default=None),
     quiet: bool = typer.Option(False, help="No per-frame lines, only the summary."),
     serial: str | None = typer.Option(None, help="Send poses to this serial port (device path or pyserial URL)."),
     baud: int = typer.Option(115200, help="Serial baud rate."),
@@ -111,10 +113,8 @@ def localize_command(
     refine: bool = typer.Option(
         False, "--refine", help="Refine the bundle's Gaussians from keyframes on a second thread."
     ),
-    budget_ms: float = typer.Option(100.0, "--budget-ms", help="Per-frame time of localization + refinement."),
-    save_splat: Path | None = typer.Option(
-        None, "--save-splat", help="With --refine: write the refined Gaussians here (PLY)."
-    ),
+    budget_ms: float = option(RefineOptions, "budget_ms", "--budget-ms"),
+    save_splat: Path | None = option(RefineOptions, "save_path", "--save-splat"),
     align: bool = typer.Option(
         False,
         "--align",
@@ -224,15 +224,13 @@ def replay_command(
     split: str = typer.Option("test", help="Split to replay."),
     int8: bool = typer.Option(False, "--int8", help="Run the bundle's INT8 model."),
     threads: int | None = typer.Option(None, help="onnxruntime intra-op threads (default: all cores)."),
-    pnp: str | None = typer.Option(None, help="PnP method (default: the measured choice)."),
+    pnp: str | None = option(PnPSettings, "method", "--pnp", default=None),
     json_out: Path | None = typer.Option(None, "--json", help="Write the numbers here."),
     refine: bool = typer.Option(
         False, "--refine", help="Refine the bundle's Gaussians from keyframes; report PSNR before/after."
     ),
-    budget_ms: float = typer.Option(100.0, "--budget-ms", help="Per-frame time of localization + refinement."),
-    save_splat: Path | None = typer.Option(
-        None, "--save-splat", help="With --refine: write the refined Gaussians here (PLY)."
-    ),
+    budget_ms: float = option(RefineOptions, "budget_ms", "--budget-ms"),
+    save_splat: Path | None = option(RefineOptions, "save_path", "--save-splat"),
     align: bool = typer.Option(
         False,
         "--align",
@@ -290,17 +288,17 @@ def profile_command(
     bundle: Path = typer.Argument(..., help="Bundle directory."),
     source: str | None = typer.Option(None, help="Frames to profile on (default: the bundle's scene, test split)."),
     intrinsics: Path | None = typer.Option(None, help="Calibration file for sources without one."),
-    frames: int = typer.Option(50, help="Timed frames (after the warm-up)."),
-    warmup: int = typer.Option(5, help="Warm-up frames, excluded from the statistics."),
+    frames: int = option(ProfileOptions, "frames"),
+    warmup: int = option(ProfileOptions, "warmup"),
     compare: bool = typer.Option(False, "--compare", help="FP32 and INT8 side by side on the same frames."),
     int8: bool = typer.Option(False, "--int8", help="Profile INT8 (without --compare)."),
     threads: int | None = typer.Option(None, help="onnxruntime intra-op threads (default: all cores)."),
-    pnp: str | None = typer.Option(None, help="PnP method (default: the measured choice)."),
+    pnp: str | None = option(PnPSettings, "method", "--pnp", default=None),
     json_out: Path | None = typer.Option(None, "--json", help="Write the numbers here."),
     refine: bool = typer.Option(
         False, "--refine", help="Refine the bundle's Gaussians beside localization; time both."
     ),
-    budget_ms: float = typer.Option(100.0, "--budget-ms", help="Per-frame time of localization + refinement."),
+    budget_ms: float = option(RefineOptions, "budget_ms", "--budget-ms"),
 ) -> None:
     """Per-stage latency (mean/p50/p90/p95/p99/max) and FPS, warm-up excluded."""
     from edge.profile import run_profile
