@@ -1,9 +1,9 @@
-"""`record`: write what a source delivers in the layout ``replay:`` reads back (rgb/, calibration/, timestamps.txt).
+"""`record`: write what a source delivers in the layout ``replay:`` reads back (acesplat.core.scene.write_capture:
+images, calibrations and, when the source has them, ground-truth poses; plus timestamps.txt and distortion.txt).
 
-Every file is written atomically and ``timestamps.txt`` is rewritten after each frame, so an
-interrupted recording is a valid, shorter recording. Ground-truth poses are kept when the source
-has them (poses/), distortion when the camera has it (distortion.txt); images are stored as
-captured (still distorted) so replay applies the same correction as live.
+Every file is written atomically and ``timestamps.txt`` is rewritten after each frame, so an interrupted recording
+is a valid, shorter recording. Images are stored as captured (still distorted) so replay applies the same
+correction as live.
 """
 
 from __future__ import annotations

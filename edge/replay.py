@@ -8,7 +8,7 @@ from pathlib import Path
 
 from acesplat.core.geometry import pose_error
 from acesplat.core.metrics import FrameResult, accuracy_summary, timing_stats
-from acesplat.core.scene import split_folder
+from acesplat.core.scene import TEST, split_folder
 from edge.loop import RunStats, run_loop
 from edge.runtime import STAGES, EdgeLocalizer, FrameOutcome
 from edge.sources import ReplaySource
@@ -45,7 +45,7 @@ def summarize(outcomes: Sequence[FrameOutcome], stats: RunStats | None = None) -
 
 
 def replay_split(
-    localizer: EdgeLocalizer, scene: str | Path, split: str = "test", progress: Callable[[int, int], None] | None = None
+    localizer: EdgeLocalizer, scene: str | Path, split: str = TEST, progress: Callable[[int, int], None] | None = None
 ) -> dict:
     """Localize every frame of ``scene``/``split`` as fast as possible and compare with its poses."""
     source = ReplaySource(split_folder(scene, split, need_poses=True))

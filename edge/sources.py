@@ -229,8 +229,7 @@ class VideoSource:
 
 # --------------------------------------------------------------------------------------------- camera
 def _open_v4l2(index: int) -> cv2.VideoCapture:
-    backend = getattr(cv2, "CAP_V4L2", cv2.CAP_ANY)
-    cap = cv2.VideoCapture(index, backend)
+    cap = cv2.VideoCapture(index, cv2.CAP_V4L2)
     if not cap.isOpened():
         cap.release()
         cap = cv2.VideoCapture(index)

@@ -20,6 +20,7 @@ from acesplat.core.geometry import rigidity_problem
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm", ".jp2", ".exr"}
 SPLITS = ("train", "test")
+TRAIN, TEST = SPLITS
 RGB, POSES, CALIBRATION, DEPTH = "rgb", "poses", "calibration", "depth"
 """A split's folders: images, 4x4 camera-to-world poses, calibrations, depth maps (synthetic scenes)."""
 
@@ -185,7 +186,7 @@ class SplitFiles:
     calibrations: list[Path] | None = None
 
 
-def find_split(path: str | Path, splits: tuple[str, ...] = ("test", "train")) -> Path:
+def find_split(path: str | Path, splits: tuple[str, ...] = (TEST, TRAIN)) -> Path:
     """A split folder (has rgb/) as is; a scene: its first split of ``splits`` that has images; else ``path`` itself
     (a plain folder of images)."""
     path = Path(path)
