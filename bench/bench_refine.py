@@ -1,6 +1,6 @@
 """Edge refinement on the built-in scene: PSNR gain on unseen frames, localization latency with and without it.
 
-Protocol (issue 6): Gaussians optimised by Stage 2 (`acesplat splat`) on the first half of the training
+Protocol: Gaussians optimised by Stage 2 (`acesplat splat`) on the first half of the training
 trajectory; the second half is replayed through the edge runtime with `--refine --budget-ms 100`.
 Reported: PSNR over the replayed frames rendered from their true poses (the map before vs after the
 replay), localization latency (the 'total' stage: capture to pose) without refinement, with paced
