@@ -1,6 +1,6 @@
 """Edge refinement on the built-in scene: PSNR gain on unseen frames, localization latency with and without it.
 
-Protocol (issue 6): Gaussians optimised by Stage 2 (`acesplat splat`) on the first half of the training
+Protocol: Gaussians optimised by Stage 2 (`acesplat splat`) on the first half of the training
 trajectory; the second half is replayed through the edge runtime with `--refine --budget-ms 100`.
 Reported: PSNR over the replayed frames rendered from their true poses (the map before vs after the
 replay), localization latency (the 'total' stage: capture to pose) without refinement, with paced
@@ -82,7 +82,8 @@ def prepare(work: Path, args) -> dict:
         if not every.is_dir():
             link_split(scene / "train", names[:: args.map_every], every / "train")
         log(
-            f"fit an SCR map to every {args.map_every}th training frame (depth-derived coordinates), {args.map_steps} steps"
+            f"fit an SCR map to every {args.map_every}th training frame (depth-derived coordinates), "
+            f"{args.map_steps} steps"
         )
         t0 = time.monotonic()
         train_tiny_map(every, work, steps=args.map_steps)
@@ -143,15 +144,13 @@ def replay(
     from acesplat.core.bundle import load_bundle
     from edge.refine.session import RefineOptions, start_refinement
     from edge.replay import replay_split
-    from edge.runtime import EdgeLocalizer, paced
+    from edge.runtime import EdgeLocalizer
 
     b = load_bundle(bundle)
-    loc = EdgeLocalizer(b, precision, threads)
+    loc = EdgeLocalizer(b, precision, threads, pace_ms=pace_ms if refine is None else None)
     session = None
     if refine is not None:
         session = start_refinement(loc, b, RefineOptions(evaluate=True, **refine), log)
-    elif pace_ms is not None:
-        paced(loc, pace_ms)
     t0 = time.monotonic()
     try:
         s = replay_split(loc, split_root, "test")
@@ -331,14 +330,17 @@ def main() -> None:
     )
     if gil:
         print(
-            f"GIL probe (lateness of a 1 ms sleep): idle p95 {gil['idle_ms']['p95']:.2f} max {gil['idle_ms']['max']:.2f} ms; "
+            f"GIL probe (lateness of a 1 ms sleep): idle p95 {gil['idle_ms']['p95']:.2f} "
+            f"max {gil['idle_ms']['max']:.2f} ms; "
             f"beside refinement p95 {gil['refining_ms']['p95']:.2f} max {gil['refining_ms']['max']:.2f} ms"
         )
     r = paced
     print(
         f"refinement (paced): {r['keyframes']} keyframes, {r['keyframes_committed']} committed, {r['steps']} steps, "
-        f"step p50 {r['timing_ms']['step']['p50']:.1f} ms, refinement work per frame window p95 {r['timing_ms']['window']['p95']:.1f} ms, "
-        f"Gaussians {r['gaussians_initial']} -> {r['gaussians_final']} (cap {r['gaussian_cap']}); localization waited for "
+        f"step p50 {r['timing_ms']['step']['p50']:.1f} ms, "
+        f"refinement work per frame window p95 {r['timing_ms']['window']['p95']:.1f} ms, "
+        f"Gaussians {r['gaussians_initial']} -> {r['gaussians_final']} (cap {r['gaussian_cap']}); "
+        "localization waited for "
         f"a running piece p95 {r['timing_ms']['park']['p95']:.1f} max {r['timing_ms']['park']['max']:.1f} ms"
     )
     counts = r["gaussians_over_time"]

@@ -32,7 +32,8 @@ class CameraCalibration:
     source: str = ""
 
     def intrinsics_for(self, width: int, height: int) -> Intrinsics:
-        """Intrinsics of a frame of ``width`` x ``height``; rescaled when the calibration was made at another resolution."""
+        """Intrinsics of a frame of ``width`` x ``height``; rescaled when the calibration was made at another
+        resolution."""
         if self.K is None:
             return Intrinsics.from_focal(float(self.focal), width, height)
         if self.size is None:

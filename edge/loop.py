@@ -169,7 +169,10 @@ def run_loop(
     stop: threading.Event | None = None,
     backoff: tuple[float, float] = BACKOFF_S,
 ) -> RunStats:
-    """Localize frames from ``source`` until it ends, ``max_frames`` are done, ``stop`` is set, or Ctrl-C."""
+    """Localize frames from ``source`` until it ends, ``max_frames`` are done, ``stop`` is set, or Ctrl-C.
+
+    Each outcome goes to ``on_outcome`` after the localizer's taps (EdgeLocalizer.add_tap) have seen it; each event
+    to the taps, then to ``on_event``."""
     stop = stop or threading.Event()
     stats = RunStats()
     events = _Events()
@@ -187,6 +190,7 @@ def run_loop(
             elif e.kind in ("reconnected", "reconnect_abandoned"):
                 stats.reconnects += e.kind == "reconnected"
                 stats.gap_s += e.gap_s
+            localizer.notify(e)
             if on_event:
                 on_event(e)
 

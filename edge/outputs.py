@@ -20,7 +20,7 @@ import numpy as np
 from acesplat.core.errors import InputError
 from acesplat.core.pose import PoseRecord, TrackingState
 from edge.loop import LatestSlot, LoopEvent
-from edge.runtime import FrameOutcome
+from edge.runtime import FrameOutcome, FrameTap
 
 
 def _clean(v: Any) -> Any:
@@ -138,3 +138,19 @@ class AsyncPoseSink:
     def close(self, timeout: float = 2.0) -> None:
         self._slot.close()
         self._thread.join(timeout)
+
+
+class JsonLinesTap(FrameTap):
+    """A localizer tap writing one JSON line per frame (``outcome_line``) and per loop event (``event_line``)."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.writer = JsonLinesWriter(path)
+
+    def on_frame(self, out: FrameOutcome) -> None:
+        self.writer.write(outcome_line(out))
+
+    def on_event(self, event: LoopEvent) -> None:
+        self.writer.write(event_line(event))
+
+    def close(self) -> None:
+        self.writer.close()

@@ -10,6 +10,7 @@ import os
 import platform
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -17,12 +18,19 @@ import numpy as np
 import onnxruntime as ort
 
 from acesplat.core.bundle import Bundle
+from acesplat.core.config import knob, knob_default
 from acesplat.core.errors import InputError
 from edge.replay import timing_summary
 from edge.runtime import EdgeLocalizer, FrameOutcome, PnPSettings
 from edge.sources import FrameSource, SourceFrame, UnreadableFrame
 
-WARMUP_FRAMES = 5
+
+@dataclass
+class ProfileOptions:
+    """How many frames `profile` times."""
+
+    frames: int = knob(50, "Timed frames (after the warm-up).")
+    warmup: int = knob(5, "Warm-up frames, excluded from the statistics.")
 
 
 def cpu_model() -> str:
@@ -86,7 +94,7 @@ def profile_precision(
     for i, (f, cap_ms) in enumerate(frames):
         out = localizer.localize(f, cap_ms)
         if i >= warmup:
-            timed.append(out)
+            timed.append(out.without_data())
             localized += bool(out.result is not None and out.result.localized)
         if progress:
             progress(f"profile {localizer.precision}", (i + 1) / len(frames), {"frame": i + 1})
@@ -108,7 +116,7 @@ def run_profile(
     precisions: Sequence[str],
     frames: int,
     threads: int,
-    warmup: int = WARMUP_FRAMES,
+    warmup: int = knob_default(ProfileOptions, "warmup"),
     pnp: PnPSettings | None = None,
     progress: Callable[[str, float, dict], None] | None = None,
     attach: Callable[[EdgeLocalizer], Callable[[], dict] | None] | None = None,

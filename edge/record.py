@@ -1,9 +1,9 @@
-"""`record`: write what a source delivers in the layout ``replay:`` reads back (rgb/, calibration/, timestamps.txt).
+"""`record`: write what a source delivers in the layout ``replay:`` reads back (acesplat.core.scene.write_capture:
+images, calibrations and, when the source has them, ground-truth poses; plus timestamps.txt and distortion.txt).
 
-Every file is written atomically and ``timestamps.txt`` is rewritten after each frame, so an
-interrupted recording is a valid, shorter recording. Ground-truth poses are kept when the source
-has them (poses/), distortion when the camera has it (distortion.txt); images are stored as
-captured (still distorted) so replay applies the same correction as live.
+Every file is written atomically and ``timestamps.txt`` is rewritten after each frame, so an interrupted recording
+is a valid, shorter recording. Images are stored as captured (still distorted) so replay applies the same
+correction as live.
 """
 
 from __future__ import annotations
@@ -13,12 +13,11 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 
-from acesplat.core.atomic import atomic_path, write_text
+from acesplat.core.atomic import write_text
 from acesplat.core.errors import InputError
-from acesplat.core.scene import format_matrix
+from acesplat.core.scene import remove_calibrations, write_capture
 from edge.loop import reconnect_with_backoff
 from edge.sources import DISTORTION_FILE, TIMESTAMPS_FILE, FrameSource, SourceDisconnected, UnreadableFrame
 
@@ -57,7 +56,7 @@ def record(
     """Copy frames from ``source`` into ``out`` until it ends, ``max_frames`` are written, or Ctrl-C."""
     out = Path(out)
     _check_out(out)
-    (out / "rgb").mkdir(parents=True, exist_ok=True)
+    out.mkdir(parents=True, exist_ok=True)
     stats = RecordStats()
     stop = stop or threading.Event()
     stamps: list[str] = []
@@ -77,16 +76,9 @@ def record(
             if f is None:
                 break
             name = f"{stats.frames:06d}"
-            bgr = cv2.cvtColor(f.image, cv2.COLOR_RGB2BGR) if f.image.ndim == 3 else f.image
-            with atomic_path(out / "rgb" / f"{name}.png") as tmp:
-                if not cv2.imwrite(str(tmp), bgr):
-                    raise InputError(out / "rgb" / f"{name}.png", "cannot write image")
-            if f.intrinsics is not None:
-                write_text(out / "calibration" / f"{name}.txt", format_matrix(f.intrinsics.K))
-            else:
+            write_capture(out, name, f.image, None if f.intrinsics is None else f.intrinsics.K, f.gt_pose)
+            if f.intrinsics is None:
                 stats.without_intrinsics += 1
-            if f.gt_pose is not None:
-                write_text(out / "poses" / f"{name}.txt", format_matrix(f.gt_pose))
             if f.distortion is not None and np.any(np.asarray(f.distortion) != 0) and not wrote_dist:
                 write_text(
                     out / DISTORTION_FILE, " ".join(f"{v:.10g}" for v in np.asarray(f.distortion).reshape(-1)) + "\n"
@@ -104,7 +96,6 @@ def record(
         source.close()
     if 0 < stats.without_intrinsics < stats.frames:
         # replay pairs calibration files with images by count; a partial set would not read back
-        for p in (out / "calibration").glob("*.txt"):
-            p.unlink()
+        remove_calibrations(out)
         stats.without_intrinsics = stats.frames
     return stats

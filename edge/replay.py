@@ -1,13 +1,14 @@
-"""Replay a posed scene split through the edge runtime: `acesplat eval`'s accuracy keys plus per-stage timing statistics."""
+"""Replay a posed scene split through the edge runtime: `acesplat eval`'s accuracy keys plus per-stage timing
+statistics."""
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from acesplat.core.errors import InputError
 from acesplat.core.geometry import pose_error
 from acesplat.core.metrics import FrameResult, accuracy_summary, timing_stats
+from acesplat.core.scene import TEST, split_folder
 from edge.loop import RunStats, run_loop
 from edge.runtime import STAGES, EdgeLocalizer, FrameOutcome
 from edge.sources import ReplaySource
@@ -44,22 +45,15 @@ def summarize(outcomes: Sequence[FrameOutcome], stats: RunStats | None = None) -
 
 
 def replay_split(
-    localizer: EdgeLocalizer, scene: str | Path, split: str = "test", progress: Callable[[int, int], None] | None = None
+    localizer: EdgeLocalizer, scene: str | Path, split: str = TEST, progress: Callable[[int, int], None] | None = None
 ) -> dict:
     """Localize every frame of ``scene``/``split`` as fast as possible and compare with its poses."""
-    root = Path(scene) / split
-    if not Path(scene).is_dir():
-        raise InputError(scene, "scene folder does not exist")
-    if not (root / "rgb").is_dir():
-        raise InputError(root, f"scene has no '{split}' split")
-    if not (root / "poses").is_dir():
-        raise InputError(root / "poses", "replay needs ground-truth poses")
-    source = ReplaySource(root)
+    source = ReplaySource(split_folder(scene, split, need_poses=True))
     n = len(source)
     outcomes: list[FrameOutcome] = []
 
     def keep(o: FrameOutcome) -> None:
-        outcomes.append(o)
+        outcomes.append(o.without_data())
         if progress:
             progress(len(outcomes), n)
 

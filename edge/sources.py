@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
@@ -18,8 +18,9 @@ import cv2
 import numpy as np
 
 from acesplat.core.camera import Intrinsics
+from acesplat.core.config import knob
 from acesplat.core.errors import InputError
-from acesplat.core.scene import IMAGE_SUFFIXES, read_calibration, read_matrix, read_pose, read_rgb
+from acesplat.core.scene import find_split, list_split, read_calibration, read_matrix, read_pose, read_rgb
 from edge.calibration import CameraCalibration, read_calibration_file
 
 TIMESTAMPS_FILE = "timestamps.txt"
@@ -76,21 +77,6 @@ class FrameSource(Protocol):
 
 
 # --------------------------------------------------------------------------------------------- replay
-def _images(folder: Path) -> list[Path]:
-    return sorted(
-        (
-            p
-            for p in folder.iterdir()
-            if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")
-        ),
-        key=lambda p: p.name,
-    )
-
-
-def _text_files(folder: Path) -> list[Path]:
-    return sorted((p for p in folder.iterdir() if p.is_file() and not p.name.startswith(".")), key=lambda p: p.name)
-
-
 def read_timestamps(path: Path, names: list[str]) -> list[float]:
     """``timestamps.txt``: one line per frame, either 'seconds' or 'name seconds', in name order."""
     lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip() and not ln.startswith("#")]
@@ -113,19 +99,15 @@ def read_timestamps(path: Path, names: list[str]) -> list[float]:
 
 
 def resolve_replay_dir(path: Path) -> Path:
-    """A split folder (has rgb/), a scene (uses test/, else train/), or a plain folder of images."""
+    """A split folder, a scene (its test split, else train), or a plain folder of images (acesplat.core.scene)."""
     if not path.is_dir():
         raise InputError(path, "replay folder does not exist")
-    if (path / "rgb").is_dir():
-        return path
-    for split in ("test", "train"):
-        if (path / split / "rgb").is_dir():
-            return path / split
-    return path
+    return find_split(path)
 
 
 class ReplaySource:
-    """Frames from disk in name order: the ACE layout or what `record` writes, or a folder of images plus one intrinsics file.
+    """Frames from disk in name order: the ACE layout or what `record` writes, or a folder of images plus one
+    intrinsics file.
 
     ``realtime`` replays at the recorded timestamps (frames are then dropped when processing is slower);
     otherwise frames come as fast as they are asked for.
@@ -144,23 +126,15 @@ class ReplaySource:
         self.description = f"replay:{root}"
         self.live = realtime
         self._clock, self._sleep = clock, sleep
-        img_dir = root / "rgb" if (root / "rgb").is_dir() else root
-        self.images = _images(img_dir)
-        if not self.images:
-            raise InputError(img_dir, "no images to replay")
+        files = list_split(root)
+        self.images = files.images
         names = [p.stem for p in self.images]
-        self.poses: list[Path] | None = None
-        if (root / "poses").is_dir():
-            self.poses = _text_files(root / "poses")
-            if len(self.poses) != len(self.images):
-                raise InputError(root / "poses", f"{len(self.poses)} files but {len(self.images)} images")
+        self.poses: list[Path] | None = files.poses
         self.calibs: list[Path] | None = None
         self.calibration = calibration
         if calibration is None:
-            if (root / "calibration").is_dir():
-                self.calibs = _text_files(root / "calibration")
-                if len(self.calibs) != len(self.images):
-                    raise InputError(root / "calibration", f"{len(self.calibs)} files but {len(self.images)} images")
+            if files.calibrations is not None:
+                self.calibs = files.calibrations
             else:
                 for n in INTRINSICS_NAMES:
                     if (root / n).is_file():
@@ -255,8 +229,7 @@ class VideoSource:
 
 # --------------------------------------------------------------------------------------------- camera
 def _open_v4l2(index: int) -> cv2.VideoCapture:
-    backend = getattr(cv2, "CAP_V4L2", cv2.CAP_ANY)
-    cap = cv2.VideoCapture(index, backend)
+    cap = cv2.VideoCapture(index, cv2.CAP_V4L2)
     if not cap.isOpened():
         cap.release()
         cap = cv2.VideoCapture(index)
@@ -317,11 +290,12 @@ class CameraSource:
 # --------------------------------------------------------------------------------------------- open
 @dataclass
 class SourceOptions:
-    calibration: CameraCalibration | None = None
-    input_size: tuple[int, int] | None = None
-    """(H, W) the consumer wants; cameras that can resize on the device (OAK) deliver this size."""
-    realtime: bool = False
-    extra: dict = field(default_factory=dict)
+    """How a source is opened (``open_source``)."""
+
+    calibration: CameraCalibration | None = knob(None, "Calibration for sources without one (--intrinsics).")
+    input_size: tuple[int, int] | None = knob(None, "(H, W) the consumer wants; an OAK resizes on the device.")
+    realtime: bool = knob(False, "Replay at the recorded timestamps (drops frames when slower).")
+    extra: dict = knob(reason="Source-specific settings.", factory=dict)
 
 
 def open_source(spec: str, opts: SourceOptions) -> FrameSource:

@@ -440,15 +440,44 @@ def test_localize_sends_poses_over_the_firmware_bridge(tiny, tmp_path: Path) -> 
     assert 1 <= s["bridge"]["sent"] + s["bridge"]["dropped"] <= 4 and s["bridge"]["sent"] >= 1
 
 
-def test_paced_localizer_returns_no_earlier_than_the_budget() -> None:
+def test_paced_localizer_returns_no_earlier_than_the_budget(tiny) -> None:
     import time
-    from types import SimpleNamespace
 
-    from edge.runtime import paced
-
-    loc = SimpleNamespace(localize=lambda frame: SimpleNamespace(times_ms={"total": 5.0}, frame=frame))
-    paced(loc, 40.0)
+    loc = EdgeLocalizer(load_bundle(tiny["bundle"]), "fp32", threads=1, pace_ms=150.0)
+    frame = ReplaySource(Path(tiny["scene"]) / "test").read()
     t0 = time.perf_counter()
-    out = loc.localize("f")
-    assert out.frame == "f"
-    assert time.perf_counter() - t0 >= 0.034  # 40 ms budget less the 5 ms the frame already took
+    out = loc.localize(frame, 0.0, t0)
+    assert out.record.frame_id == frame.frame_id
+    assert time.perf_counter() - t0 >= 0.149  # the budget counts from the capture start
+
+
+def test_taps_see_every_frame_with_its_arrays_and_the_loop_events(tiny) -> None:
+    """A tap gets the frame before and after localization, with the network's coordinates, and the loop's events;
+    features only when it declares it needs them and the graph has them."""
+    from edge.runtime import FrameTap
+
+    class Recorder(FrameTap):
+        def __init__(self, needs_features: bool) -> None:
+            self.needs_features = needs_features
+            self.calls: list = []
+
+        def before_frame(self, frame) -> None:
+            self.calls.append(("before", frame.frame_id))
+
+        def on_frame(self, out) -> None:
+            self.calls.append(("frame", out.record.frame_id, out.coords.shape, out.features is not None))
+
+        def on_event(self, event) -> None:
+            self.calls.append(("event", event.kind))
+
+    loc = EdgeLocalizer(load_bundle(tiny["bundle"]), "fp32", threads=1)
+    plain, feats = Recorder(False), Recorder(True)
+    loc.add_tap(plain)
+    loc.add_tap(feats)
+    with pytest.raises(TypeError):
+        loc.add_tap(object())
+    stats = run_loop(ReplaySource(Path(tiny["scene"]) / "test"), loc, lambda out: None)
+    assert [c[0] for c in plain.calls] == ["before", "frame"] * stats.frames
+    assert all(len(c[2]) == 3 and c[2][2] == 3 for c in plain.calls if c[0] == "frame")
+    with_features = [c[3] for c in feats.calls if c[0] == "frame"]
+    assert with_features == [loc.session.has_features] * stats.frames

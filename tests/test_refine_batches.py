@@ -1,4 +1,5 @@
-"""Refinement batches on a tiny synthetic room: quality goes up, a wrong pose is rolled back, the deadline and the cap hold."""
+"""Refinement batches on a tiny synthetic room: quality goes up, a wrong pose is rolled back, the deadline and the
+cap hold."""
 
 from __future__ import annotations
 
@@ -61,7 +62,8 @@ def test_a_wrong_pose_keyframe_is_rolled_back_and_other_views_keep_their_psnr(fr
 
 
 def test_a_step_that_would_overrun_the_deadline_is_not_started(frames, start_map, monkeypatch) -> None:
-    """Each optimisation step costs 0.1 s on a fake clock; with 0.35 s left, three steps fit and the fourth is not started."""
+    """Each optimisation step costs 0.1 s on a fake clock; with 0.35 s left, three steps fit and the fourth is not
+    started."""
     clock = FakeClock()
     real_backward = refiner_mod.rasterize_backward
 

@@ -1,4 +1,5 @@
-"""Refinement primitives: keyframe selection, deadlines, row Adam, seeding geometry, coverage, prune/cap, atomic saving."""
+"""Refinement primitives: keyframe selection, deadlines, row Adam, seeding geometry, coverage, prune/cap, atomic
+saving."""
 
 from __future__ import annotations
 
@@ -259,6 +260,6 @@ def test_saver_survives_a_crash_mid_write(tmp_path, monkeypatch) -> None:
         raise OSError(5, "Input/output error")
 
     monkeypatch.setattr(atomic.os, "replace", crash)
-    saver = SplatSaver(path)
+    saver = SplatSaver(path, every_s=30.0)
     assert not saver.save(Gaussians.zeros(30, 0))
     assert path.read_bytes() == good and len(list(tmp_path.iterdir())) == 1

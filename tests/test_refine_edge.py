@@ -1,4 +1,5 @@
-"""Refinement in the edge runtime: replay --refine numbers, bundles with and without Gaussian models, the worker thread, export --splat."""
+"""Refinement in the edge runtime: replay --refine numbers, bundles with and without Gaussian models, the worker
+thread, export --splat."""
 
 from __future__ import annotations
 
@@ -450,6 +451,6 @@ def test_a_session_that_fails_to_start_gives_the_thread_settings_back(bundle_wit
     loc = EdgeLocalizer(b, "fp32", 1)
     opts = RefineOptions(budget_ms=100.0, raster_threads=1)
     with pytest.raises(RuntimeError, match="initializer failed"):
-        RefineSession(loc, bundle_gaussians(b), opts, seeder=BrokenSeeder())
+        RefineSession(loc.input_size, bundle_gaussians(b), opts, seeder=BrokenSeeder())
     after = blas_threads()
     assert {k: after[k] for k in before_blas} == before_blas and get_num_threads() == before_raster

@@ -148,7 +148,7 @@ def _stage_edge(map_path: Path, scene: Path, splat_dir: Path, work: Path, budget
     from acesplat.core.bundle import load_bundle
     from edge.refine.session import write_before_after
     from edge.replay import replay_split
-    from edge.runtime import EdgeLocalizer, paced
+    from edge.runtime import EdgeLocalizer
     from export.bundle_export import ExportOptions, export_bundle
     from export.splat_export import export_splat
 
@@ -166,7 +166,7 @@ def _stage_edge(map_path: Path, scene: Path, splat_dir: Path, work: Path, budget
         summary[f"replay_{precision}"] = r
     # The reference for refinement's latency: the same precision paced at one frame per budget without refinement
     # (the refinement replay is paced too; idling between frames changes latency on a shared machine).
-    loc = paced(EdgeLocalizer(bundle, REFINE_PRECISION), budget_ms)
+    loc = EdgeLocalizer(bundle, REFINE_PRECISION, pace_ms=budget_ms)
     with PhaseProgress(f"demo replay {REFINE_PRECISION} paced ") as bar:
         r = replay_split(loc, scene, "test", lambda i, n: bar("localize", i / n, {"frame": i}))
     r.pop("per_frame", None)

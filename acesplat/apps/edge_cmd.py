@@ -12,7 +12,7 @@ from rich.console import Console
 from rich.table import Table
 
 from acesplat.apps.refine_cmd import refine_line, refine_session
-from acesplat.apps.support import PhaseProgress, one_line_errors, report_json
+from acesplat.apps.support import PhaseProgress, one_line_errors, option, report_json
 from acesplat.core.bundle import PRECISION_ROLES, Bundle, load_bundle
 from acesplat.core.errors import InputError
 from acesplat.core.geometry import matrix_to_quat
@@ -20,7 +20,9 @@ from acesplat.core.pose import TrackingState
 from edge.calibration import read_calibration_file
 from edge.inference import default_threads
 from edge.loop import LoopEvent, run_loop
-from edge.runtime import STAGES, EdgeLocalizer, FrameOutcome, PnPSettings
+from edge.profile import ProfileOptions
+from edge.refine.session import RefineOptions
+from edge.runtime import STAGES, EdgeLocalizer, FrameOutcome, FrameTap, PnPSettings
 from edge.sources import SourceOptions, open_source
 
 console = Console(stderr=True)
@@ -98,10 +100,10 @@ def localize_command(
     int8: bool = typer.Option(False, "--int8", help="Run the bundle's INT8 model."),
     json_lines: Path | None = typer.Option(None, "--json-lines", help="Write one JSON object per frame here."),
     frames: int | None = typer.Option(None, help="Stop after this many frames."),
-    realtime: bool = typer.Option(False, help="Replay at the recorded timestamps (drops frames when slower)."),
+    realtime: bool = option(SourceOptions, "realtime"),
     threads: int | None = typer.Option(None, help="onnxruntime intra-op threads (default: all cores)."),
-    pnp: str | None = typer.Option(None, help="PnP method (default: the measured choice)."),
-    min_inliers: int | None = typer.Option(None, help="Inlier gate for TRACKING."),
+    pnp: str | None = option(PnPSettings, "method", "--pnp", default=None),
+    min_inliers: int | None = option(PnPSettings, "min_inliers", default=None),
     quiet: bool = typer.Option(False, help="No per-frame lines, only the summary."),
     serial: str | None = typer.Option(None, help="Send poses to this serial port (device path or pyserial URL)."),
     baud: int = typer.Option(115200, help="Serial baud rate."),
@@ -111,10 +113,8 @@ def localize_command(
     refine: bool = typer.Option(
         False, "--refine", help="Refine the bundle's Gaussians from keyframes on a second thread."
     ),
-    budget_ms: float = typer.Option(100.0, "--budget-ms", help="Per-frame time of localization + refinement."),
-    save_splat: Path | None = typer.Option(
-        None, "--save-splat", help="With --refine: write the refined Gaussians here (PLY)."
-    ),
+    budget_ms: float = option(RefineOptions, "budget_ms", "--budget-ms"),
+    save_splat: Path | None = option(RefineOptions, "save_path", "--save-splat"),
     align: bool = typer.Option(
         False,
         "--align",
@@ -129,41 +129,26 @@ def localize_command(
     loc = EdgeLocalizer(b, precision, threads, _pnp(pnp, min_inliers), align=align)
     src = open_source(source, SourceOptions(calibration=calib, input_size=b.input_size, realtime=realtime))
     refiner = refine_session(refine, loc, b, budget_ms, save_splat, _warn)
-    sink = None
+    log = None
+    if json_lines is not None:
+        from edge.outputs import JsonLinesTap
+
+        log = JsonLinesTap(json_lines)
+        loc.add_tap(log)
+    bridge = None
     if serial is not None:
         from firmware_bridge.sink import open_sink
 
-        sink = open_sink(serial, baud, protocol, rate)
-    writer = None
-    if json_lines is not None:
-        from edge.outputs import JsonLinesWriter
-
-        writer = JsonLinesWriter(json_lines)
-    paused = threading.Event()
+        bridge = BridgeTap(open_sink(serial, baud, protocol, rate))
+        loc.add_tap(bridge)
     out_stream = sys.stdout
 
     def on_outcome(out: FrameOutcome) -> None:
-        if writer is not None:
-            from edge.outputs import outcome_line
-
-            writer.write(outcome_line(out))
-        if sink is not None:
-            _bridge_step(sink, out, paused)
         if not quiet:
             out_stream.write(frame_text(out) + "\n")
             out_stream.flush()
 
     def on_event(e: LoopEvent) -> None:
-        if writer is not None:
-            from edge.outputs import event_line
-
-            writer.write(event_line(e))
-        if e.kind == "disconnected" and sink is not None:
-            from acesplat.core.pose import PoseRecord
-            from firmware_bridge.protocol import RuntimeState
-
-            sink.update_status(state=RuntimeState.LOST)
-            sink.submit(PoseRecord(int(e.wall_time * 1e6), np.full((4, 4), np.nan), 0, TrackingState.LOST, 0.0, 0))
         console.print(f"[yellow]{e.kind}[/yellow]: {e.detail}" + (f" (gap {e.gap_s:.1f} s)" if e.gap_s else ""))
 
     console.print(
@@ -173,12 +158,9 @@ def localize_command(
     try:
         stats = run_loop(src, loc, on_outcome, on_event, max_frames=frames)
     finally:
-        if writer is not None:
-            writer.close()
-        bridge_stats = None
-        if sink is not None:
-            sink.close()
-            bridge_stats = sink.stats().as_dict()
+        if log is not None:
+            log.close()
+        bridge_stats = bridge.close() if bridge is not None else None
         refine_stats = refiner.close() if refiner is not None else None
     summary = {"bundle": str(b.root), "source": src.description, "precision": precision, **stats.as_dict()}
     if refine_stats is not None:
@@ -188,29 +170,51 @@ def localize_command(
         summary["bridge"] = bridge_stats
     ended = "interrupted" if stats.interrupted else "done"
     console.print(
-        f"{ended}: {stats.frames} frames in {stats.seconds:.1f} s ({summary['fps']:.1f} fps), {stats.tracking} tracking, "
+        f"{ended}: {stats.frames} frames in {stats.seconds:.1f} s ({summary['fps']:.1f} fps), "
+        f"{stats.tracking} tracking, "
         f"{stats.lost} lost, {stats.dropped} dropped, {stats.skipped} unreadable skipped, "
         f"{stats.disconnects} disconnects ({stats.gap_s:.1f} s without frames)"
     )
     report_json(json_out, summary)
 
 
-def _bridge_step(sink, out: FrameOutcome, paused: threading.Event) -> None:
-    """Forward one pose; honour PAUSE/RESUME from the microcontroller (SET_RATE the sink applies itself)."""
-    from firmware_bridge.protocol import CommandCode, RuntimeState
+class BridgeTap(FrameTap):
+    """A localizer tap forwarding each pose to the firmware bridge's non-blocking sink; honours PAUSE/RESUME from the
+    microcontroller (SET_RATE the sink applies itself) and reports LOST when the source disconnects."""
 
-    for ev in sink.poll_commands():
-        if ev.command == CommandCode.PAUSE:
-            paused.set()
-        elif ev.command == CommandCode.RESUME:
-            paused.clear()
-    if paused.is_set():
-        sink.update_status(state=RuntimeState.PAUSED)
-        return
-    state = RuntimeState.TRACKING if out.record.state == TrackingState.TRACKING else RuntimeState.LOST
-    total = out.times_ms.get("total", 0.0)
-    sink.update_status(state=state, latency_ms=total, fps=1000.0 / total if total > 0 else 0.0)
-    sink.submit(out.record)
+    def __init__(self, sink) -> None:
+        self.sink = sink
+        self.paused = threading.Event()
+
+    def on_frame(self, out: FrameOutcome) -> None:
+        from firmware_bridge.protocol import CommandCode, RuntimeState
+
+        for ev in self.sink.poll_commands():
+            if ev.command == CommandCode.PAUSE:
+                self.paused.set()
+            elif ev.command == CommandCode.RESUME:
+                self.paused.clear()
+        if self.paused.is_set():
+            self.sink.update_status(state=RuntimeState.PAUSED)
+            return
+        state = RuntimeState.TRACKING if out.record.state == TrackingState.TRACKING else RuntimeState.LOST
+        total = out.times_ms.get("total", 0.0)
+        self.sink.update_status(state=state, latency_ms=total, fps=1000.0 / total if total > 0 else 0.0)
+        self.sink.submit(out.record)
+
+    def on_event(self, e: LoopEvent) -> None:
+        if e.kind != "disconnected":
+            return
+        from acesplat.core.pose import PoseRecord
+        from firmware_bridge.protocol import RuntimeState
+
+        self.sink.update_status(state=RuntimeState.LOST)
+        self.sink.submit(PoseRecord(int(e.wall_time * 1e6), np.full((4, 4), np.nan), 0, TrackingState.LOST, 0.0, 0))
+
+    def close(self) -> dict:
+        """Close the sink; its counters."""
+        self.sink.close()
+        return self.sink.stats().as_dict()
 
 
 @one_line_errors
@@ -220,15 +224,13 @@ def replay_command(
     split: str = typer.Option("test", help="Split to replay."),
     int8: bool = typer.Option(False, "--int8", help="Run the bundle's INT8 model."),
     threads: int | None = typer.Option(None, help="onnxruntime intra-op threads (default: all cores)."),
-    pnp: str | None = typer.Option(None, help="PnP method (default: the measured choice)."),
+    pnp: str | None = option(PnPSettings, "method", "--pnp", default=None),
     json_out: Path | None = typer.Option(None, "--json", help="Write the numbers here."),
     refine: bool = typer.Option(
         False, "--refine", help="Refine the bundle's Gaussians from keyframes; report PSNR before/after."
     ),
-    budget_ms: float = typer.Option(100.0, "--budget-ms", help="Per-frame time of localization + refinement."),
-    save_splat: Path | None = typer.Option(
-        None, "--save-splat", help="With --refine: write the refined Gaussians here (PLY)."
-    ),
+    budget_ms: float = option(RefineOptions, "budget_ms", "--budget-ms"),
+    save_splat: Path | None = option(RefineOptions, "save_path", "--save-splat"),
     align: bool = typer.Option(
         False,
         "--align",
@@ -286,17 +288,17 @@ def profile_command(
     bundle: Path = typer.Argument(..., help="Bundle directory."),
     source: str | None = typer.Option(None, help="Frames to profile on (default: the bundle's scene, test split)."),
     intrinsics: Path | None = typer.Option(None, help="Calibration file for sources without one."),
-    frames: int = typer.Option(50, help="Timed frames (after the warm-up)."),
-    warmup: int = typer.Option(5, help="Warm-up frames, excluded from the statistics."),
+    frames: int = option(ProfileOptions, "frames"),
+    warmup: int = option(ProfileOptions, "warmup"),
     compare: bool = typer.Option(False, "--compare", help="FP32 and INT8 side by side on the same frames."),
     int8: bool = typer.Option(False, "--int8", help="Profile INT8 (without --compare)."),
     threads: int | None = typer.Option(None, help="onnxruntime intra-op threads (default: all cores)."),
-    pnp: str | None = typer.Option(None, help="PnP method (default: the measured choice)."),
+    pnp: str | None = option(PnPSettings, "method", "--pnp", default=None),
     json_out: Path | None = typer.Option(None, "--json", help="Write the numbers here."),
     refine: bool = typer.Option(
         False, "--refine", help="Refine the bundle's Gaussians beside localization; time both."
     ),
-    budget_ms: float = typer.Option(100.0, "--budget-ms", help="Per-frame time of localization + refinement."),
+    budget_ms: float = option(RefineOptions, "budget_ms", "--budget-ms"),
 ) -> None:
     """Per-stage latency (mean/p50/p90/p95/p99/max) and FPS, warm-up excluded."""
     from edge.profile import run_profile

@@ -39,6 +39,7 @@ def refine_line(r: dict) -> str:
     return (
         f"refine: {psnr}{r['keyframes']} keyframes ({r['keyframes_committed']} committed, {r['keyframes_rolled_back']} "
         f"rolled back), {r['steps']} steps (p50 {t['step']['p50']:.1f} ms), {r['gaussians_initial']} -> "
-        f"{r['gaussians_final']} Gaussians (+{r['gaussians_added']}), {r['dropped']} dropped; refinement work per frame "
+        f"{r['gaussians_final']} Gaussians (+{r['gaussians_added']}), {r['dropped']} dropped; "
+        "refinement work per frame "
         f"window p50 {t['window']['p50']:.1f} p95 {t['window']['p95']:.1f} ms"
     )

@@ -20,6 +20,9 @@ from acesplat.core.geometry import rigidity_problem
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm", ".jp2", ".exr"}
 SPLITS = ("train", "test")
+TRAIN, TEST = SPLITS
+RGB, POSES, CALIBRATION, DEPTH = "rgb", "poses", "calibration", "depth"
+"""A split's folders: images, 4x4 camera-to-world poses, calibrations, depth maps (synthetic scenes)."""
 
 
 @dataclass
@@ -143,17 +146,17 @@ def read_split(scene: str | Path, split: str = "train") -> SceneSplit:
     if not base.is_dir():
         raise InputError(base, f"scene has no '{split}' split")
     folders = {}
-    for sub in ("rgb", "poses", "calibration"):
+    for sub in (RGB, POSES, CALIBRATION):
         if not (base / sub).is_dir():
             raise InputError(base / sub, "missing folder (ACE layout needs rgb/, poses/, calibration/)")
-        folders[sub] = _list(base / sub, IMAGE_SUFFIXES if sub == "rgb" else None)
-    rgbs, poses, calibs = folders["rgb"], folders["poses"], folders["calibration"]
+        folders[sub] = _list(base / sub, IMAGE_SUFFIXES if sub == RGB else None)
+    rgbs, poses, calibs = folders[RGB], folders[POSES], folders[CALIBRATION]
     if not rgbs:
-        raise InputError(base / "rgb", "split is empty (no images)")
-    for sub, files in (("poses", poses), ("calibration", calibs)):
+        raise InputError(base / RGB, "split is empty (no images)")
+    for sub, files in ((POSES, poses), (CALIBRATION, calibs)):
         if len(files) != len(rgbs):
-            raise InputError(base / sub, f"{len(files)} files but {len(rgbs)} images in {base / 'rgb'}")
-    depth_dir = base / "depth"
+            raise InputError(base / sub, f"{len(files)} files but {len(rgbs)} images in {base / RGB}")
+    depth_dir = base / DEPTH
     depths = _list(depth_dir, {".png"}) if depth_dir.is_dir() else []
     if depths and len(depths) != len(rgbs):
         raise InputError(depth_dir, f"{len(depths)} depth maps but {len(rgbs)} images")
@@ -172,6 +175,92 @@ def read_split(scene: str | Path, split: str = "train") -> SceneSplit:
     return SceneSplit(root=root, split=split, frames=frames)
 
 
+@dataclass
+class SplitFiles:
+    """The files of one split folder in sorted-name order, not opened: ``poses`` / ``calibrations`` None when the
+    folder has none (a recording, or a plain folder of images)."""
+
+    root: Path
+    images: list[Path]
+    poses: list[Path] | None = None
+    calibrations: list[Path] | None = None
+
+
+def find_split(path: str | Path, splits: tuple[str, ...] = (TEST, TRAIN)) -> Path:
+    """A split folder (has rgb/) as is; a scene: its first split of ``splits`` that has images; else ``path`` itself
+    (a plain folder of images)."""
+    path = Path(path)
+    if not path.is_dir():
+        raise InputError(path, "folder does not exist")
+    if (path / RGB).is_dir():
+        return path
+    for split in splits:
+        if (path / split / RGB).is_dir():
+            return path / split
+    return path
+
+
+def split_folder(scene: str | Path, split: str, need_poses: bool = False) -> Path:
+    """The folder of ``scene``'s ``split`` (InputError naming what is missing: the scene, the split's images, or,
+    with ``need_poses``, its poses)."""
+    root = Path(scene)
+    if not root.is_dir():
+        raise InputError(root, "scene folder does not exist")
+    base = root / split
+    if not (base / RGB).is_dir():
+        raise InputError(base, f"scene has no '{split}' split")
+    if need_poses and not (base / POSES).is_dir():
+        raise InputError(base / POSES, "ground-truth poses are needed")
+    return base
+
+
+def list_split(folder: str | Path) -> SplitFiles:
+    """The files of a split folder (``folder/rgb`` or, without it, the images in ``folder``), paired by sorted name;
+    InputError when there are no images or a folder's count differs from the images'."""
+    root = Path(folder)
+    img_dir = root / RGB if (root / RGB).is_dir() else root
+    images = _list(img_dir, IMAGE_SUFFIXES)
+    if not images:
+        raise InputError(img_dir, "no images to replay")
+
+    def paired(sub: str) -> list[Path] | None:
+        if not (root / sub).is_dir():
+            return None
+        files = _list(root / sub, None)
+        if len(files) != len(images):
+            raise InputError(root / sub, f"{len(files)} files but {len(images)} images")
+        return files
+
+    return SplitFiles(root, images, paired(POSES), paired(CALIBRATION))
+
+
+def write_capture(
+    base: str | Path, name: str, image: np.ndarray, K: np.ndarray | None = None, pose: np.ndarray | None = None
+) -> Path:
+    """Write one captured frame into a split folder: the image (RGB (H, W, 3) or gray (H, W) uint8) as
+    ``rgb/<name>.png``, and, when given, its 3x3 ``K`` and 4x4 camera-to-world ``pose``; returns the image path."""
+    base = Path(base)
+    if image.ndim not in (2, 3):
+        raise ValueError(f"image must be (H, W) or (H, W, 3), got {image.shape}")
+    (base / RGB).mkdir(parents=True, exist_ok=True)
+    path = base / RGB / f"{name}.png"
+    bgr = cv2.cvtColor(image, cv2.COLOR_RGB2BGR) if image.ndim == 3 else image
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), bgr):
+            raise InputError(path, "cannot write image")
+    if K is not None:
+        write_text(base / CALIBRATION / f"{name}.txt", format_matrix(K))
+    if pose is not None:
+        write_text(base / POSES / f"{name}.txt", format_matrix(pose))
+    return path
+
+
+def remove_calibrations(base: str | Path) -> None:
+    """Delete a split folder's calibration files (a recording whose frames are not all calibrated)."""
+    for p in (Path(base) / CALIBRATION).glob("*.txt"):
+        p.unlink()
+
+
 def format_matrix(M: np.ndarray) -> str:
     return "\n".join(" ".join(f"{v:.10g}" for v in row) for row in np.atleast_2d(M)) + "\n"
 
@@ -187,14 +276,14 @@ def write_frame(
 ) -> None:
     """Write one frame of a split in the ACE layout (image RGB uint8, pose 4x4 c2w, K 3x3, depth metres)."""
     base = Path(base)
-    for sub in ("rgb", "poses", "calibration") + (("depth",) if depth is not None else ()):
+    for sub in (RGB, POSES, CALIBRATION) + ((DEPTH,) if depth is not None else ()):
         (base / sub).mkdir(parents=True, exist_ok=True)
-    with atomic_path(base / "rgb" / f"{name}{ext}") as tmp:
+    with atomic_path(base / RGB / f"{name}{ext}") as tmp:
         if not cv2.imwrite(str(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
-            raise InputError(base / "rgb" / f"{name}{ext}", "cannot write image")
-    write_text(base / "poses" / f"{name}.txt", format_matrix(pose))
-    write_text(base / "calibration" / f"{name}.txt", format_matrix(K))
+            raise InputError(base / RGB / f"{name}{ext}", "cannot write image")
+    write_text(base / POSES / f"{name}.txt", format_matrix(pose))
+    write_text(base / CALIBRATION / f"{name}.txt", format_matrix(K))
     if depth is not None:
         mm = np.clip(np.round(depth * 1000.0), 0, 65535).astype(np.uint16)
-        with atomic_path(base / "depth" / f"{name}.png") as tmp:
+        with atomic_path(base / DEPTH / f"{name}.png") as tmp:
             cv2.imwrite(str(tmp), mm)

@@ -6,7 +6,7 @@ the map), ``coverage`` (where the map falls short), ``seeding`` (new Gaussians f
 gradients, photometric rollback), ``prune`` (transparency and the cap), ``store`` (the map's arrays with
 spare capacity), ``persist`` (atomic periodic PLY), ``refiner`` (one keyframe's batch, as a generator of
 timed work pieces), ``worker`` (the refinement thread, carrying a batch over frames' time windows),
-``session`` (attached to the edge localizer), ``bundle_models`` and ``onnx_seeder`` (what a bundle
+``session`` (a tap of the edge localizer), ``bundle_models`` and ``onnx_seeder`` (what a bundle
 carries for refinement).
 """
 

@@ -18,11 +18,7 @@ PARAMS = ("means", "log_scales", "quats", "opacity_logits", "sh")
 
 @dataclass(frozen=True)
 class LearningRates:
-    """Per-step learning rates: 3DGS's. Measured on the demo scene: with 30 test views as keyframes (30 steps on
-    80x60 full-resolution crops, ground-truth poses) three times these gained most (+0.52 dB on the other views vs
-    +0.45 dB), but in paced INT8 replays of the test split (200 ms budget, sparse keyframes) these gave +0.06..+0.14 dB
-    in 3 runs against -0.10..+0.13 dB at three times (which overfit each keyframe), and the same on the
-    half-trajectory replay (17.47 vs 17.42 dB). The earlier rates (2e-3 m, 2e-2 colour) gained +0.23 dB."""
+    """Per-step learning rates: 3DGS's (higher ones overfit each keyframe in paced replays: bench/refine.md)."""
 
     means: float = 1.6e-4
     """Metres per step (scaled by the scene extent in :meth:`scaled`)."""

@@ -1,12 +1,10 @@
 """The keyframe's pose, corrected against the map before the map is fitted to the keyframe.
 
-Stage 1 poses are a few centimetres off (the demo scene's INT8 replay: median 4.0 cm / 0.81 deg on the
-keyframes); fitting the Gaussians to an image seen from a pose that far off smears the map, and the
-photometric guard cannot tell (the keyframe itself does get better). So the map is rendered from the
+Stage 1 poses are a few centimetres off; fitting the Gaussians to an image seen from a pose that far off smears
+the map, and the photometric guard cannot tell (the keyframe itself does get better). So the map is rendered from the
 estimated pose (colour and depth), dense optical flow carries each rendered pixel to where the camera
 actually saw it, and PnP on (rendered 3D point, observed pixel) pairs gives the pose the image was taken
-from. Measured on the demo scene's 29 INT8 keyframes at 240x320 (ground truth known): median 3.98 ->
-0.53 cm, 0.81 -> 0.12 deg, none worse; 160x120: 1.07 cm, 0.22 deg.
+from (bench/refine.md has the measured corrections).
 
 A large correction means the estimated pose disagreed with the map: such a keyframe is not used
 (a flow field cannot bridge a gross error, so the corrected pose would not be trustworthy either).
@@ -23,24 +21,22 @@ from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import invert_pose, make_pose, pose_error
 
 MIN_ALPHA = 0.8
-"""Rendered pixels used: nearly opaque (a surface the map knows; a short Stage 2 leaves the demo scene's renders
-at alpha 0.93 median, so 0.95 would leave too few)..."""
+"""Rendered pixels used: nearly opaque (a surface the map knows; bench/refine.md)..."""
 MIN_GRADIENT = 20.0
 """...and textured (Sobel magnitude of the 8-bit render; flow is undetermined on flat colour)."""
 SAMPLE_STEP = 2
 MIN_POINTS = 400
-"""Fewer textured points than this (a small or plain image) do not pin the pose better than the localizer did (the
-demo scene's 240x320 keyframes give 1,000-2,500; the 48x64 test room 100-300, where flow moved true poses by 10-20 cm)."""
+"""Fewer textured points than this (a small or plain image) do not pin the pose better than the localizer did
+(bench/refine.md)."""
 MIN_INLIER_RATIO = 0.5
 REPROJ_PX = 1.0
 """RANSAC threshold at the render's resolution (flow errors are sub-pixel on textured pixels)."""
 MAX_MSE = 0.01
 """The flow between a render and a photograph is trusted only where the map already explains the photograph (MSE
-over the opaque rendered pixels; 20 dB PSNR). The demo scene's Stage 2 maps render test views at 26 dB; on the
-tiny test room's perturbed map (13 dB) flow 'corrected' true poses by 10-37 cm."""
+over the opaque rendered pixels; 20 dB PSNR; bench/refine.md)."""
 MIN_COVERAGE = 0.5
-"""...and only where the map covers most of the view (share of the render with alpha >= 0.5): on a partial view the points
-constrain the pose poorly (the tiny test room's perturbed map at 19-27% coverage moved true poses by 13-20 cm)."""
+"""...and only where the map covers most of the view (share of the render with alpha >= 0.5): on a partial view the
+points constrain the pose poorly (bench/refine.md)."""
 MAX_SHIFT_M = 0.15
 MAX_SHIFT_DEG = 3.0
 """A correction beyond these means the pose was wrong, not imprecise."""
@@ -50,8 +46,8 @@ MAX_SHIFT_DEG = 3.0
 class Alignment:
     """pose (4, 4) the corrected camera-to-world (the input pose unless ``status`` is 'aligned'); status:
     'aligned', 'few_points' (too little texture the map covers: pose kept), 'unlike' (the render does not resemble
-    the image well enough, or covers too little of it, to trust a flow between them: pose kept), 'no_fit' (PnP failed or too few
-    inliers: pose kept), 'too_far' (the correction exceeded the limits: do not use the keyframe)."""
+    the image well enough, or covers too little of it, to trust a flow between them: pose kept), 'no_fit' (PnP failed
+    or too few inliers: pose kept), 'too_far' (the correction exceeded the limits: do not use the keyframe)."""
 
     pose: np.ndarray
     status: str

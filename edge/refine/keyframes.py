@@ -12,25 +12,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from acesplat.core.config import knob
 from acesplat.core.geometry import pose_error
-
-MIN_INLIERS = 50
-"""The PnP gate's count (small inputs have few cells: 80 at 64x80)..."""
-MIN_INLIER_RATIO = 0.2
-"""...plus a fifth of all cells agreeing (real SCR maps give 20-60%; a wrong pose rarely reaches it)."""
-MIN_TRANSLATION_M = 0.10
-MIN_ROTATION_DEG = 8.0
-MIN_COVERAGE = 0.85
-"""A view whose cells the map covers less than this share of is a keyframe even without motion."""
 
 
 @dataclass(frozen=True)
 class KeyframePolicy:
-    min_inliers: int = MIN_INLIERS
-    min_inlier_ratio: float = MIN_INLIER_RATIO
-    min_translation_m: float = MIN_TRANSLATION_M
-    min_rotation_deg: float = MIN_ROTATION_DEG
-    min_coverage: float = MIN_COVERAGE
+    """Which localized frames become keyframes."""
+
+    min_inliers: int = knob(50, "The PnP gate's count (small inputs have few cells: 80 at 64x80)...")
+    min_inlier_ratio: float = knob(0.2, "...plus this share of all cells agreeing (real SCR maps give 20-60%).")
+    min_translation_m: float = knob(0.10, "Motion since the last keyframe that makes a new one (m)...")
+    min_rotation_deg: float = knob(8.0, "...or this rotation (deg).")
+    min_coverage: float = knob(0.85, "A view whose cells the map covers less than this share of is a keyframe.")
 
     def __post_init__(self) -> None:
         if self.min_inliers < 0 or self.min_translation_m < 0 or self.min_rotation_deg < 0:

@@ -14,11 +14,10 @@ from acesplat.core.gaussians import Gaussians
 from acesplat.core.ply import write_ply
 from edge.refine.deadline import Clock
 
-SAVE_EVERY_S = 30.0
-
 
 class SplatSaver:
-    def __init__(self, path: str | Path, every_s: float = SAVE_EVERY_S, clock: Clock = time.monotonic) -> None:
+    def __init__(self, path: str | Path, every_s: float, clock: Clock = time.monotonic) -> None:
+        """Save to ``path`` at most every ``every_s`` seconds (RefineOptions.save_every_s) and at exit."""
         if every_s <= 0:
             raise ValueError(f"save interval must be positive, got {every_s}")
         self.path = Path(path)

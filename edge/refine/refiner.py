@@ -27,6 +27,7 @@ import cv2
 import numpy as np
 
 from acesplat.core.camera import Intrinsics
+from acesplat.core.config import knob
 from acesplat.core.gaussians import Gaussians, concat_gaussians
 from acesplat.raster import rasterize, rasterize_backward
 from edge.refine.adam import LearningRates, RowAdam
@@ -35,7 +36,7 @@ from edge.refine.align import MAX_SHIFT_DEG as ALIGN_MAX_DEG
 from edge.refine.align import MAX_SHIFT_M as ALIGN_MAX_M
 from edge.refine.align import MIN_COVERAGE as ALIGN_MIN_COVERAGE
 from edge.refine.align import align_pose
-from edge.refine.coverage import ALPHA_MIN, analyse_render, frustum_mask
+from edge.refine.coverage import ALPHA_MIN, RenderAnalysis, analyse_render, frustum_mask
 from edge.refine.deadline import Clock, CostEstimate, Deadline
 from edge.refine.guard import HELD_TOLERANCE, HeldView, HeldViews, all_finite, downsample, held_verdict, view_mse
 from edge.refine.prune import PRUNE_OPACITY, transparent
@@ -46,14 +47,7 @@ DIVERGE = 1.5
 """A step whose measured error exceeds the batch's best by this factor ends the batch (keeping the best)."""
 POSE_CHECK_FACTOR = 2.5
 """A keyframe whose error on the pixels the map already covers exceeds this multiple of the median of recent
-committed keyframes' is taken for a wrong pose and not used. Measured on the synthetic room: correct poses
-spread 3x (0.0025..0.0071 MSE); poses 10 cm / 3 deg off raised it 1.8x..5x, 30 cm / 10 deg off 3.5x..8x."""
-CROP_SIDE = 80
-"""Optimisation steps fit random crops of this longer side (the refinement size's pixel count) cut from the keyframe
-at full resolution. Measured on the demo scene (60k Gaussians from Stage 2, 30 test views at 240x320 as keyframes,
-10 steps each, ground-truth poses): steps on the whole view downsampled to 80x60 lowered the PSNR of the other test
-views by 3.5 dB (the low-resolution loss cannot see the detail the steps wash out), steps on 80x60 crops at full
-resolution raised it by 0.2 dB (30 steps: +0.5 dB) for a third of the time (a crop touches a sixth of the Gaussians)."""
+committed keyframes' is taken for a wrong pose and not used (bench/refine.md)."""
 STEP_PER_RENDER = 2.5
 """A step (render + backward + Adam) costs about this many keyframe renders until measured."""
 POSE_CHECK_MIN_COVERAGE = 0.3
@@ -63,41 +57,30 @@ POSE_CHECK_MIN_HISTORY = 3
 
 @dataclass(frozen=True)
 class RefineConfig:
-    cap: int = 60_000
-    """Hard cap on the map's Gaussian count."""
-    max_new: int = 1500
-    """New Gaussians per keyframe at most."""
-    seed_spacing: int = 2
-    """Pixels between seeded Gaussians (refinement resolution)."""
-    max_steps: int = 30
-    """Optimisation steps per keyframe at most (the deadline usually stops it first)."""
-    crop_side: int = CROP_SIDE
-    """Longer side of the full-resolution crops the steps fit (when the keyframe carries a ``detail`` image)."""
-    held: int = 2
-    """Earlier keyframes the photometric guard checks."""
-    tiles: int = 2
-    align: bool = True
-    """Correct each keyframe's pose against the map before using it (edge.refine.align)."""
-    align_side: int = 160
-    """Longer side of the pose alignment's render. Measured on the demo scene's INT8 keyframes: 160x120 gives a median
-    1.07 cm / 0.22 deg (from 3.98 cm / 0.81 deg), 320x240 0.53 cm / 0.12 deg for 4x the pixels."""
-    align_tiles: int = 3
-    align_max_m: float = ALIGN_MAX_M
-    align_max_deg: float = ALIGN_MAX_DEG
-    """Keyframe renders (before and after) are split into tiles x tiles pieces, so each fits in one frame's window."""
-    guard_max_side: int = 48
-    held_tolerance: float = HELD_TOLERANCE
-    alpha_min: float = ALPHA_MIN
-    error_max: float = float("inf")
-    """Seed covered pixels whose error exceeds this too (coverage.ERROR_MAX = 0.15 was the default). Off: measured on
-    the demo scene with ground-truth keyframe poses, 44 such seeds (7-8 cm blobs at SCR depth over a covered map)
-    lowered the test views' PSNR by 0.41 dB on average and 2.1 dB on the worst view; optimisation fixes colour."""
-    prune_opacity: float = PRUNE_OPACITY
-    lr: LearningRates = field(default_factory=LearningRates)
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    step_prior_s: float = 0.05
-    render_prior_s: float = 0.03
-    seed: int = 0
+    """What one keyframe's batch may do, and the priors of its time estimates."""
+
+    cap: int = knob(60_000, "Hard cap on the map's Gaussian count.")
+    max_new: int = knob(1500, "New Gaussians per keyframe at most.")
+    seed_spacing: int = knob(2, "Pixels between seeded Gaussians (refinement resolution).")
+    max_steps: int = knob(30, "Optimisation steps per keyframe at most (the deadline usually stops it first).")
+    crop_side: int = knob(80, "Longer side of the full-resolution crops the steps fit (bench/refine.md).")
+    held: int = knob(2, "Earlier keyframes the photometric guard checks.")
+    tiles: int = knob(2, "Keyframe renders are split into tiles x tiles pieces, each fitting one frame's window.")
+    align: bool = knob(True, "Correct each keyframe's pose against the map before using it (edge.refine.align).")
+    align_side: int = knob(160, "Longer side of the pose alignment's render (bench/refine.md).")
+    align_tiles: int = knob(3, "The pose alignment's render is split into this many tiles a side.")
+    align_max_m: float = knob(ALIGN_MAX_M, "Largest pose correction the alignment may make (m).")
+    align_max_deg: float = knob(ALIGN_MAX_DEG, "Largest pose correction the alignment may make (deg).")
+    guard_max_side: int = knob(48, "Longer side of the held views the guard renders.")
+    held_tolerance: float = knob(HELD_TOLERANCE, "Relative error increase a held view may take.")
+    alpha_min: float = knob(ALPHA_MIN, "Alpha at which a pixel counts as covered by the map.")
+    error_max: float = knob(float("inf"), "Also seed covered pixels whose error exceeds this (off: bench/refine.md).")
+    prune_opacity: float = knob(PRUNE_OPACITY, "Gaussians below this opacity after a batch are removed.")
+    lr: LearningRates = knob(reason="Adam learning rates per parameter.", factory=LearningRates)
+    background: tuple[float, float, float] = knob((0.0, 0.0, 0.0), "Render background (RGB in [0, 1]).")
+    step_prior_s: float = knob(0.05, "A step's predicted seconds before one is measured.")
+    render_prior_s: float = knob(0.03, "A render tile's predicted seconds before one is measured.")
+    seed: int = knob(0, "Seed of the batch's random crops and seeding.")
 
     def __post_init__(self) -> None:
         if (
@@ -185,6 +168,38 @@ class BatchReport:
     @property
     def committed(self) -> bool:
         return self.outcome == "committed"
+
+
+@dataclass
+class _View:
+    """What a batch saw from its keyframe (pose aligned where the map covers the view)."""
+
+    kf: Keyframe
+    kf_px: int
+    in_view: np.ndarray
+    """(M,) rows of the map in the keyframe's view."""
+    seen: np.ndarray
+    """(M,) bool: which of them the keyframe's render drew."""
+    an: RenderAnalysis
+
+
+@dataclass
+class _Work:
+    """A batch's private copy of the Gaussians it optimises and what the steps made of it."""
+
+    active_idx: np.ndarray
+    """(A,) map rows the copy's first A rows came from (the rest are new)."""
+    best: Gaussians
+    active: Gaussians
+    opt: RowAdam
+    crops: bool
+    """Steps fit random crops of the full-resolution image (their errors are not comparable)."""
+    best_mse: float = float("inf")
+    measured: int = 0
+    """Steps that measured the keyframe whole."""
+    gone: np.ndarray | None = None
+    """(len(best),) bool: pruned as transparent."""
+    kept: Gaussians | None = None
 
 
 class Refiner:
@@ -346,48 +361,58 @@ class Refiner:
         Yields (kind, predicted seconds, seconds to keep after it) before each piece of work and receives
         whether to do it: kind 'must' (the batch cannot go on without it), 'step' (one optimisation step;
         False ends the optimisation), 'option' (the ONNX seeder; False seeds from SCR coordinates). Fills
-        ``rep``; the map changes only in the last piece, the commit.
+        ``rep``; the map changes only in the last piece, the commit. Steps: look at the map from the keyframe
+        (render, align the pose, check it), seed what is missing, set up the batch's copy, optimise it, guard,
+        commit.
         """
         _check_keyframe(kf)
-        clock, cfg = self.clock, self.cfg
         self.totals["keyframes"] += 1
-        t_start = clock()
+        t_start = self.clock()
+        view = yield from self._look(kf, rep)
+        if view is not None:
+            new = yield from self._seed(view, rep)
+            work = yield from self._set_up(view, new)
+            if work is None:
+                rep.outcome = "empty"
+            else:
+                yield from self._optimise(view, work, rep)
+                rollback = yield from self._guard(view, work, rep)
+                if rollback is None:
+                    yield from self._commit(view, work, rep)
+                else:
+                    rep.outcome = rollback
+                    self.totals["rolled_back"] += 1
+                    self._count(rep)
+        rep.ms["total"] = 1000.0 * (self.clock() - t_start)
+        return rep
+
+    def _look(self, kf: Keyframe, rep: BatchReport):
+        """What the map shows from the keyframe and where it falls short, from the pose aligned to the map where it
+        covers the view; None (``rep`` says why) when the keyframe's pose is taken for wrong."""
+        cfg, clock = self.cfg, self.clock
         kf_px = kf.k.width * kf.k.height
         yield ("must", self.cull_cost.predict(), self.guard_reserve(kf_px) + 2 * self.kf_check_reserve())
-
-        # 1. What the map shows from the keyframe, and where it falls short (rendered tile by tile: each tile is a
-        # piece of work small enough for one frame's window).
+        # Rendered tile by tile: each tile is a piece of work small enough for one frame's window.
         t0 = clock()
         reserve = self.guard_reserve(kf_px) + self.kf_check_reserve()
         in_view, color, alpha, seen, an = yield from self._analyse(kf, reserve)
         rep.ms["render"] = 1000.0 * (clock() - t0)
-
-        # 1b. Where the map covers the view, the keyframe's pose corrected against it (edge.refine.align) and the
-        # analysis redone from the corrected pose. New territory keeps the localizer's pose.
+        # Where the map covers the view, the pose is corrected against it and the analysis redone from the
+        # corrected pose. New territory keeps the localizer's pose.
         if cfg.align and an.coverage >= ALIGN_MIN_COVERAGE:
             t0 = clock()
-            yield ("must", self.cull_cost.predict(), 0.0)
-            k_al, img = _align_image(kf, cfg.align_side)
-            near = np.flatnonzero(frustum_mask(self.map.means, self.map.log_scales, kf.pose, k_al))
-            c_al, a_al, _, d_al = yield from self._render_tiles(
-                self.map, kf.pose, k_al, 0.0, near, cfg.align_tiles, self.align_render_cost
-            )
-            yield ("must", self.align_cost.predict(), 0.0)
-            t1 = clock()
-            al = align_pose(c_al, a_al, d_al, img, k_al, kf.pose, cfg.align_max_m, cfg.align_max_deg)
-            self.align_cost.record(clock() - t1)
+            al = yield from self._align(kf)
             rep.align, rep.align_shift_m, rep.align_shift_deg = al.status, al.shift_m, al.shift_deg
             if al.status == "too_far" or (al.status == "no_fit" and an.mse <= ALIGN_MAX_MSE):
                 # The map covers and explains the view, yet the frame's pose disagrees with it or no pose fits the
-                # flow: fitting the map to it would smear it (the demo scene's first frame: 24 cm off, no_fit at
-                # MSE 0.0026). A view the map explains poorly (new territory seen from afar) keeps the localizer's
-                # pose: there the map has more to gain than a few centimetres can spoil.
+                # flow: fitting the map to it would smear it. A view the map explains poorly (new territory seen
+                # from afar) keeps the localizer's pose: there the map has more to gain than a few centimetres can
+                # spoil (bench/refine.md).
                 rep.outcome = "rolled_back_pose"
                 rep.mse_before, rep.coverage = an.mse, an.coverage
                 self.totals["rolled_back"] += 1
                 rep.ms["align"] = 1000.0 * (clock() - t0)
-                rep.ms["total"] = 1000.0 * (clock() - t_start)
-                return rep
+                return None
             if al.status == "aligned":
                 kf = replace(kf, pose=al.pose)
                 yield ("must", self.cull_cost.predict(), 0.0)
@@ -397,37 +422,57 @@ class Refiner:
         if self.stepless_batches:
             # No step ran lately, so the step estimate is stale; what a tile's render cost implies stands in for a step.
             self.step_cost.record(self.step_per_render * self.render_cost.predict() / self.render_cost.safety)
-        covered = alpha >= cfg.alpha_min
-        if covered.mean() >= POSE_CHECK_MIN_COVERAGE:
-            d = np.asarray(color, np.float32)[covered] - kf.rgb[covered]
-            rep.covered_mse = float(np.mean(d * d))
-            # Unless the pose was aligned to the map, a keyframe whose error where the map covers it is far above
-            # recent keyframes' is taken for a wrong pose. (It also rejects some views of new territory the map
-            # covers only from afar: on the half-trajectory replay at 100 ms PSNR reached 17.94 dB with this test
-            # on every unaligned keyframe, 17.71 dB without it for 'unlike'/'no_fit' ones.)
-            if (
-                rep.align != "aligned"
-                and len(self.covered_history) >= POSE_CHECK_MIN_HISTORY
-                and rep.covered_mse > POSE_CHECK_FACTOR * float(np.median(self.covered_history))
-            ):
-                rep.outcome = "rolled_back_pose"
-                self.totals["rolled_back"] += 1
-                rep.ms["total"] = 1000.0 * (clock() - t_start)
-                return rep
+        if self._pose_disagrees(kf, color, alpha, rep):
+            rep.outcome = "rolled_back_pose"
+            self.totals["rolled_back"] += 1
+            return None
+        return _View(kf, kf_px, in_view, seen, an)
 
-        # 2. New Gaussians where the map is missing or wrong.
-        # The primary seeder (the ONNX initializer: adapter + head) only when it fits; else the SCR seeder.
+    def _align(self, kf: Keyframe):
+        """The keyframe's pose aligned to the map (edge.refine.align.Alignment), from a render at the alignment's
+        size."""
+        cfg, clock = self.cfg, self.clock
+        yield ("must", self.cull_cost.predict(), 0.0)
+        k_al, img = _align_image(kf, cfg.align_side)
+        near = np.flatnonzero(frustum_mask(self.map.means, self.map.log_scales, kf.pose, k_al))
+        c_al, a_al, _, d_al = yield from self._render_tiles(
+            self.map, kf.pose, k_al, 0.0, near, cfg.align_tiles, self.align_render_cost
+        )
+        yield ("must", self.align_cost.predict(), 0.0)
+        t1 = clock()
+        al = align_pose(c_al, a_al, d_al, img, k_al, kf.pose, cfg.align_max_m, cfg.align_max_deg)
+        self.align_cost.record(clock() - t1)
+        return al
+
+    def _pose_disagrees(self, kf: Keyframe, color: np.ndarray, alpha: np.ndarray, rep: BatchReport) -> bool:
+        """Unless the pose was aligned to the map, a keyframe whose error where the map covers it is far above recent
+        keyframes' is taken for a wrong pose (fills ``rep.covered_mse`` when the map covers enough of the view)."""
+        covered = alpha >= self.cfg.alpha_min
+        if covered.mean() < POSE_CHECK_MIN_COVERAGE:
+            return False
+        d = np.asarray(color, np.float32)[covered] - kf.rgb[covered]
+        rep.covered_mse = float(np.mean(d * d))
+        return (
+            rep.align != "aligned"
+            and len(self.covered_history) >= POSE_CHECK_MIN_HISTORY
+            and rep.covered_mse > POSE_CHECK_FACTOR * float(np.median(self.covered_history))
+        )
+
+    def _seed(self, view: _View, rep: BatchReport):
+        """New Gaussians where the map is missing or wrong: the primary seeder (the ONNX initializer: adapter + head)
+        only when it fits, else the SCR seeder."""
+        cfg, clock, kf = self.cfg, self.clock, view.kf
         room = max(0, min(cfg.max_new, cfg.cap))
         new = Gaussians.empty(self.map.sh_degree)
-        if room and an.need.any():  # nothing to seed: no piece (an empty run would also spoil the seeders' estimates)
+        if room and view.an.need.any():  # nothing to seed: no piece (an empty run would spoil the seeders' estimates)
             primary = self.seeder is not self.scr_seeder and (
-                yield ("option", self.seed_cost.predict(), self.guard_reserve(kf_px) + self.kf_check_reserve())
+                yield ("option", self.seed_cost.predict(), self.guard_reserve(view.kf_px) + self.kf_check_reserve())
             )
             if not primary:
                 yield ("must", self.scr_seed_cost.predict(), 0.0)
             t0 = clock()
             seeder, cost = (self.seeder, self.seed_cost) if primary else (self.scr_seeder, self.scr_seed_cost)
-            new = seeder(kf, an.need, room, self.map.sh_degree, self.rng)
+            new = seeder(kf, view.an.need, room, self.map.sh_degree, self.rng)
             new = (
                 new.with_sh_degree(self.map.sh_degree).astype(np.float32)
                 if len(new)
@@ -436,29 +481,33 @@ class Refiner:
             cost.record(clock() - t0)
             rep.seeded_by = "primary" if primary else "scr"
             rep.ms["seed"] = 1000.0 * (clock() - t0)
-        # The batch's private copy and its optimiser state: a piece of its own (copies of every row in view).
+        return new
+
+    def _set_up(self, view: _View, new: Gaussians):
+        """The batch's private copy (the map's rows the keyframe sees, then ``new``) and its optimiser state: a piece
+        of its own (copies of every row in view); None when there is nothing to optimise."""
         yield ("must", self.setup_cost.predict(), 0.0)
-        t0 = clock()
-        active_idx = in_view[seen]
-        n_old = active_idx.size
+        t0 = self.clock()
+        active_idx = view.in_view[view.seen]
         active = concat_gaussians([self.map.subset(active_idx), new])
         if len(active) == 0:
-            rep.outcome = "empty"
-            rep.ms["total"] = 1000.0 * (clock() - t_start)
-            return rep
+            return None
+        # With a full-resolution image each step fits a random crop of it (see RefineConfig.crop_side); the crops'
+        # errors are not comparable, so then the keyframe is checked once after the steps instead of keeping the
+        # best step.
+        crops = view.kf.detail is not None and view.kf.k_detail is not None
+        work = _Work(active_idx, active.copy() if not crops else active, active, RowAdam(active, self.cfg.lr), crops)
+        self.setup_cost.record(self.clock() - t0)
+        return work
 
-        # 3. Optimise the batch's copy while steps fit before the deadline (keeping the guard's reserve). With a
-        # full-resolution image each step fits a random crop of it (see CROP_SIDE); the crops' errors are not
-        # comparable, so then the keyframe is checked once after the steps instead of keeping the best step.
-        crops = kf.detail is not None and kf.k_detail is not None
-        best, best_mse = (active if crops else active.copy()), float("inf")
-        opt = RowAdam(active, cfg.lr)
-        self.setup_cost.record(clock() - t0)
+    def _optimise(self, view: _View, work: _Work, rep: BatchReport):
+        """Adam steps on the batch's copy while they fit before the deadline (keeping the guard's reserve), then
+        what became transparent pruned."""
+        cfg, clock, kf, active, crops = self.cfg, self.clock, view.kf, work.active, work.crops
         t0 = clock()
         target = np.ascontiguousarray(kf.detail if crops else kf.rgb, np.float32)
-        measured = 0
         while rep.steps + rep.nonfinite_skipped < cfg.max_steps:
-            reserve = self.guard_reserve(kf_px) + (0.0 if measured and not crops else self.kf_check_reserve())
+            reserve = self.guard_reserve(view.kf_px) + (0.0 if work.measured and not crops else self.kf_check_reserve())
             if not (yield ("step", self.step_cost.predict(), reserve)):
                 break
             ts = clock()
@@ -472,11 +521,11 @@ class Refiner:
             diff = r.color - tgt
             mse = float(np.mean(diff * diff))
             if not crops:
-                measured += 1
-                if mse < best_mse:
-                    best_mse = mse
-                    best = active.copy()
-                elif mse > DIVERGE * best_mse:
+                work.measured += 1
+                if mse < work.best_mse:
+                    work.best_mse = mse
+                    work.best = active.copy()
+                elif mse > DIVERGE * work.best_mse:
                     rep.diverged = True
                     self.step_cost.record(clock() - ts)
                     break
@@ -487,35 +536,38 @@ class Refiner:
                 continue
             if crops:
                 vis = r.visible
-                opt.step_rows(active, _Grads(**{p: getattr(grads, p)[vis] for p in _PARAMS}), np.flatnonzero(rows)[vis])
+                work.opt.step_rows(
+                    active, _Grads(**{p: getattr(grads, p)[vis] for p in _PARAMS}), np.flatnonzero(rows)[vis]
+                )
             else:
-                opt.step(active, grads, rows=r.visible)
+                work.opt.step(active, grads, rows=r.visible)
             dt = clock() - ts
             self.step_cost.record(dt)
             rep.step_ms.append(1000.0 * dt)
             rep.steps += 1
         if crops:
-            best = active
+            work.best = active
         rep.ms["optimise"] = 1000.0 * (clock() - t0)
         self.stepless_batches = 0 if rep.steps else self.stepless_batches + 1
+        work.gone = transparent(work.best, cfg.prune_opacity)
+        rep.pruned = int(work.gone.sum())
+        work.kept = work.best.subset(~work.gone)
 
-        # 4. Prune what became transparent in the batch.
-        gone = transparent(best, cfg.prune_opacity)
-        rep.pruned = int(gone.sum())
+    def _guard(self, view: _View, work: _Work, rep: BatchReport):
+        """None to commit, else the rollback's outcome: the keyframe must gain, the held keyframes must not lose. Each
+        check is its own piece of work, so a batch can spread them over several frames' windows. Fills
+        ``rep.mse_after`` and the held views' errors."""
+        cfg, clock, kf, kept = self.cfg, self.clock, view.kf, work.kept
         is_active = np.zeros(len(self.map), bool)
-        is_active[active_idx] = True
-        kept = best.subset(~gone)
-
-        # 5. Guard: the keyframe must gain, the held keyframes must not lose. Each check is its own piece of
-        # work, so a batch can spread them over several frames' windows.
+        is_active[work.active_idx] = True
         guard_s = 0.0
-        kf_before, kf_after = rep.mse_before, best_mse
-        if measured == 0:
+        kf_before, kf_after = rep.mse_before, work.best_mse
+        if work.measured == 0:
             # No step measured the keyframe whole (seeding only, or crop steps): render it once more, after (its
             # 'before' is the first render). Only the Gaussians in its view can change its image, so the render
             # needs just those.
             t0 = clock()
-            after_map = concat_gaussians([self.map.subset(in_view[~seen]), kept])
+            after_map = concat_gaussians([self.map.subset(view.in_view[~view.seen]), kept])
             c_after, _, _, _ = yield from self._render_tiles(after_map, kf.pose, kf.k, 0.0)
             kf_after = float(np.mean((c_after - kf.rgb) ** 2))
             guard_s += clock() - t0
@@ -546,16 +598,18 @@ class Refiner:
                     break  # this held view got too much worse: no need to look at the others
             ok_held = held_verdict(kf_before, kf_after, rep.held_before, rep.held_after, cfg.held_tolerance)
         rep.ms["guard"] = 1000.0 * guard_s
-        if not (ok_kf and ok_held):
-            rep.outcome = "rolled_back_keyframe" if not ok_kf else "rolled_back_held"
-            self.totals["rolled_back"] += 1
-            self._count(rep)
-            rep.ms["total"] = 1000.0 * (clock() - t_start)
-            return rep
+        if ok_kf and ok_held:
+            return None
+        return "rolled_back_keyframe" if not ok_kf else "rolled_back_held"
 
+    def _commit(self, view: _View, work: _Work, rep: BatchReport):
+        """The batch's rows replace theirs, new ones join, pruned ones leave, the cap holds; the keyframe becomes a
+        held view."""
+        cfg, clock, kf = self.cfg, self.clock, view.kf
         yield ("must", self.commit_cost.predict(), 0.0)
-        # 6. Commit: the batch's rows replace theirs, new ones join, pruned ones leave, the cap holds.
         t0 = clock()
+        best, gone, active_idx = work.best, work.gone, work.active_idx
+        n_old = active_idx.size
         self.store.write_rows(active_idx, best.subset(np.arange(n_old)))
         self.store.hide(active_idx[gone[:n_old]])
         added = best.subset(np.flatnonzero(~gone[n_old:]) + n_old)
@@ -578,8 +632,6 @@ class Refiner:
         self.totals["pruned"] += rep.pruned
         self.totals["capped"] += rep.capped
         self._count(rep)
-        rep.ms["total"] = 1000.0 * (clock() - t_start)
-        return rep
 
     @property
     def map(self) -> Gaussians:

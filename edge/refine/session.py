@@ -1,81 +1,61 @@
-"""Refinement attached to the edge localizer: frames in, keyframes to the worker, numbers out.
+"""Refinement beside the edge localizer, as one of its taps: frames in, keyframes to the worker, numbers out.
 
-The localizer's code is not modified: ``RefineSession`` wraps the instance's ``localize`` (preempt the
-worker, so a batch stops as soon as the next frame's localization begins; after the pose, hand the
-frame over) and taps its SCR session for the scene coordinates. Every command that localizes
-(localize, replay, profile) thus refines without changes to its loop. A confident frame goes to the
-worker with the frame's deadline: its capture start plus the budget.
-
-With ``pace`` (every command) the loop then waits until the worker is idle or the deadline has
-passed: refinement gets what localization left of the budget, and a live camera's frames that arrive
-meanwhile are dropped and counted by its source (the latest wins). Before the next localization the
-worker is preempted and its running piece (predicted to end by the deadline) is waited for, so no
-refinement code runs beside inference and PnP; a piece that overran shows as that frame's 'park'
-time, inside its localization latency. Without ``pace`` (bench_refine's 'unpaced' setting only) the
-worker runs beside back-to-back localizations at a lower priority: measured there, localization p95
-rose 1.33x, which is why the commands pace.
+Every command that localizes (localize, replay, profile) refines through the same tap. With ``pace`` (every
+command) the localizer holds each frame until the worker is idle or the frame's budget has passed, and the worker
+is parked before the next localization, so no refinement code runs beside inference and PnP; a piece that overran
+shows as that frame's 'park' time, inside its localization latency. Without ``pace`` (bench_refine's 'unpaced'
+setting only) the worker runs beside back-to-back localizations at a lower priority (bench/refine.md).
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Protocol
 
 import cv2
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from acesplat.core.bundle import Bundle
 from acesplat.core.camera import Intrinsics
+from acesplat.core.config import knob
 from acesplat.core.gaussians import Gaussians
 from acesplat.core.metrics import timing_stats
 from acesplat.core.pose import TrackingState
 from edge.frame_prep import crop_to_aspect
-from edge.refine.deadline import Clock
+from edge.refine.deadline import Clock, CostEstimate
 from edge.refine.guard import psnr, render_view, view_mse
 from edge.refine.keyframes import KeyframePolicy, KeyframeSelector
-from edge.refine.persist import SAVE_EVERY_S, SplatSaver
+from edge.refine.persist import SplatSaver
 from edge.refine.refiner import Keyframe, RefineConfig, Refiner
 from edge.refine.seeding import cell_trust
 from edge.refine.worker import NICE, Candidate, RefineWorker
-
-MAX_SIDE = 80
-"""Refinement renders at this longer side. Measured on 2 busy cores with a 45k-Gaussian map (SH degree 3):
-a render took 15-45 ms at 160x120 and 10-27 ms at 80x60, beside 45-60 ms of localization in a 100 ms budget."""
-
+from edge.runtime import EdgeLocalizer, FrameOutcome, FrameTap
+from edge.sources import SourceFrame
 
 PARK_TIMEOUT_S = 1.0
 """Longest a paced localization waits for the worker's running piece (pieces are predicted to end in their window;
 this bounds a misprediction)."""
 
 
-MARGIN = 0.0
-"""Share of the budget before the next frame is due at which refinement stops (pieces predicted from recent runs can
-take twice as long on a loaded machine). Measured at load ~3.3 with 0.1: demo test split at 200 ms, the wait of the
-next localization for a running piece fell from p95 8-11 ms to ~0 (2 runs each); half-trajectory replay at 100 ms
-(2 runs each), it was ~0 either way while commits fell 9-14 -> 6-9 and PSNR 17.09-17.45 -> 16.82-17.14 dB."""
-
-
 @dataclass
 class RefineOptions:
-    budget_ms: float = 100.0
-    max_side: int = MAX_SIDE
-    save_path: Path | None = None
-    save_every_s: float = SAVE_EVERY_S
-    margin: float = MARGIN
-    """Share of the budget left free at its end (see MARGIN)."""
-    pace: bool = True
-    """Wait for the worker (or the deadline) after each frame; False only for bench_refine's comparison."""
-    evaluate: bool = False
-    """Keep each frame with a ground-truth pose to report PSNR before/after (replay)."""
-    raster_threads: int | None = 1
-    """Rasterizer threads (None: all cores). One keeps all refinement work on the worker's low-priority thread."""
-    use_initializer: bool = True
-    """Seed through the bundle's ONNX initializer when it has one (else from SCR coordinates alone)."""
-    config: RefineConfig = field(default_factory=RefineConfig)
-    policy: KeyframePolicy = field(default_factory=KeyframePolicy)
+    """How refinement runs beside the localizer (the edge commands' --refine)."""
+
+    budget_ms: float = knob(100.0, "Per-frame time of localization + refinement (ms).")
+    max_side: int = knob(80, "Longer side refinement renders at (px); bench/refine.md has the render times.")
+    save_path: Path | None = knob(None, "Write the refined Gaussians here (PLY); None: keep them in memory.")
+    save_every_s: float = knob(30.0, "Seconds between periodic saves of the refined map.")
+    margin: float = knob(0.0, "Share of the budget left free at its end (bench/refine.md).")
+    pace: bool = knob(True, "Hold each frame for the worker up to its budget; False only for bench_refine.")
+    evaluate: bool = knob(False, "Keep each frame with a ground-truth pose to report PSNR before/after (replay).")
+    raster_threads: int | None = knob(1, "Rasterizer threads (None: all cores); one keeps refinement on its thread.")
+    use_initializer: bool = knob(True, "Seed through the bundle's ONNX initializer when it has one.")
+    config: RefineConfig = knob(reason="What one keyframe's batch may do.", factory=RefineConfig)
+    policy: KeyframePolicy = knob(reason="Which frames become keyframes.", factory=KeyframePolicy)
 
     def __post_init__(self) -> None:
         if not self.budget_ms > 0:
@@ -106,62 +86,63 @@ def colour_at(
     return rgb.astype(np.float32) / 255.0
 
 
-class _SessionTap:
-    """Stands in for the localizer's SCR session: keeps each frame's coordinates (and, for the ONNX initializer,
-    the encoder features the same run output) for the keyframe."""
+class InitializerSeeder(Protocol):
+    """A seeder beside the SCR one (edge.refine.onnx_seeder.OnnxSeeder): what a session needs of it."""
 
-    def __init__(self, inner: Any, session: RefineSession, features: bool) -> None:
-        self._inner = inner
-        self._session = session
-        self._features = features
+    needs_features: bool
+    """It reads the keyframe's encoder features (the localizer's graph must output them)."""
 
-    def run(self, gray: np.ndarray) -> np.ndarray:
-        if self._features:
-            coords, feats = self._inner.run_with_features(gray)
-        else:
-            coords, feats = self._inner.run(gray), None
-        self._session._last_coords = coords
-        self._session._last_features = feats
-        return coords
+    def time_once(self, estimate: CostEstimate | None = None) -> float:
+        """Seconds of one run, measured now (recorded into ``estimate``)."""
+        ...
 
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._inner, name)
+    def __call__(
+        self, kf: Keyframe, need: np.ndarray, max_new: int, sh_degree: int, rng: np.random.Generator
+    ) -> Gaussians: ...
 
 
-class RefineSession:
-    """Refinement beside an :class:`edge.runtime.EdgeLocalizer` (``attach`` installs the taps)."""
+class RefineSession(FrameTap):
+    """Refinement beside an :class:`edge.runtime.EdgeLocalizer`, as one of its taps (``localizer.add_tap``).
+
+    Before each localization the worker is preempted (with pacing: its running piece is waited for); after it, a
+    confident frame goes to the worker with the frame's deadline (its capture start plus the budget). With pacing
+    the localizer then holds the frame until the worker is idle or the budget has passed.
+    """
 
     def __init__(
         self,
-        localizer: Any,
+        input_size: tuple[int, int],
         gaussians: Gaussians,
         opts: RefineOptions,
-        seeder: Callable | None = None,
+        seeder: InitializerSeeder | None = None,
         clock: Clock = time.perf_counter,
     ) -> None:
+        """``input_size`` (H, W): the localizer's network input, the keyframes' full resolution."""
+        if len(input_size) != 2 or min(input_size) < 1:
+            raise ValueError(f"input size must be (H, W) positive, got {input_size}")
         self.opts = opts
         self.clock = clock
         self.initial = gaussians.astype(np.float32)
+        self.needs_features = seeder is not None and seeder.needs_features
+        self.pace_ms = opts.budget_ms if opts.pace else None
         self._raster_threads_before: int | None = None
         if opts.raster_threads is not None:
             from acesplat.raster import get_num_threads, set_num_threads
 
             self._raster_threads_before = get_num_threads()
             set_num_threads(opts.raster_threads)
-        # BLAS on one thread while refining: OpenBLAS's workers busy-wait after each call, so the worker's numpy
-        # work left them spinning on both cores into the next localization (demo workdir, 200 ms, two inference
-        # threads: localization p95 1.6-1.9x without refinement's; with BLAS on one thread 0.94-1.07x).
+        # BLAS on one thread while refining: OpenBLAS's workers busy-wait after each call and would keep both cores
+        # spinning into the next localization (bench/refine.md).
         self._blas_limits = [threadpool_limits(limits=1, user_api="blas")]
         try:
             self.refiner = Refiner(self.initial.copy(), opts.config, seeder=seeder, clock=clock)
-            h, w = getattr(localizer, "input_size", (3 * opts.max_side // 4, opts.max_side))
+            h, w = input_size
             k_in = Intrinsics.from_focal(float(w), int(w), int(h))
             self.calibration_ms = self.refiner.warm_up(refine_intrinsics(k_in, opts.max_side), k_in)
             # Compiling the kernels can load another BLAS (numba's, through scipy) after the first limit: hold it too.
             self._blas_limits.append(threadpool_limits(limits=1, user_api="blas"))
-            timing = getattr(seeder, "time_once", None)
-            if timing is not None:  # measure the ONNX initializer (adapter + head) before it competes for a deadline
-                self.calibration_ms["initializer_ms"] = 1000.0 * timing(self.refiner.seed_cost)
+            if seeder is not None:  # measure the ONNX initializer (adapter + head) before it competes for a deadline
+                self.calibration_ms["initializer_ms"] = 1000.0 * seeder.time_once(self.refiner.seed_cost)
         except BaseException:  # a session that never started must not leave the process on one BLAS thread
             self._restore_thread_limits()
             raise
@@ -175,40 +156,33 @@ class RefineSession:
         self.park_ms: list[float] = []
         """Per frame: how long its localization waited for the worker's running piece (paced sessions)."""
         self.counts_over_time: list[tuple[int, int]] = [(0, len(self.initial))]
-        self._eval: list[tuple[np.ndarray, Intrinsics, np.ndarray]] = []
-        self._last_coords: np.ndarray | None = None
-        self._last_features: np.ndarray | None = None
+        self.views: list[tuple[np.ndarray, Intrinsics, np.ndarray]] = []
+        """With ``evaluate``: (ground-truth pose (4, 4), intrinsics, RGB (H, W, 3) in [0, 1]) of each frame."""
         self._closed = False
         self.summary: dict | None = None
         self.seeder_name = "scr" if seeder is None else "custom"
-        wants_features = bool(getattr(seeder, "needs_features", False))
-        localizer.session = _SessionTap(localizer.session, self, wants_features)
-        inner = localizer.localize
 
-        def localize(frame, *args, **kwargs):
-            self.worker.preempt()
-            if opts.pace:  # let the worker finish its piece first: nothing of refinement runs beside localization
-                t0 = self.clock()
-                self.worker.wait_parked(PARK_TIMEOUT_S)
-                self.park_ms.append(1000.0 * (self.clock() - t0))
-            self._last_coords = self._last_features = None
-            out = inner(frame, *args, **kwargs)
-            if not self._closed:
-                self.on_outcome(frame, out)
-            return out
+    def before_frame(self, frame: SourceFrame) -> None:
+        """Preempt the worker, so a batch stops as soon as the next localization begins; with pacing, wait for its
+        running piece first: nothing of refinement runs beside localization."""
+        self.worker.preempt()
+        if self.opts.pace:
+            t0 = self.clock()
+            self.worker.wait_parked(PARK_TIMEOUT_S)
+            self.park_ms.append(1000.0 * (self.clock() - t0))
 
-        localizer.localize = localize
-
-    def on_outcome(self, frame: Any, out: Any) -> None:
-        """Offer a localized frame to the worker; with pacing, wait for the worker or the frame's deadline."""
+    def on_frame(self, out: FrameOutcome) -> None:
+        """Offer a localized frame to the worker with the frame's deadline."""
+        if self._closed or out.frame is None:
+            return
         self.frames += 1
-        coords, feats = self._last_coords, self._last_features
+        frame, coords, feats = out.frame, out.coords, out.features
         image, intr, dist, k_input = frame.image, frame.intrinsics, frame.distortion, out.intrinsics
         if k_input is None:
             return
         k_ref = refine_intrinsics(k_input, self.opts.max_side)
         if self.opts.evaluate and out.gt_pose is not None:  # scored at the network input size, not the refinement size
-            self._eval.append(
+            self.views.append(
                 (np.asarray(out.gt_pose, np.float64), k_input, colour_at(image, intr, dist, k_input, k_input))
             )
         total_ms = float(out.times_ms.get("total", 0.0))
@@ -233,10 +207,17 @@ class RefineSession:
             self.worker.submit(
                 Candidate(pose, rec.inliers, tracking, deadline_at, make_keyframe, cell_depth, name, float(rec.quality))
             )
-        if self.opts.pace:
-            t0 = self.clock()
-            self.worker.wait_idle(max(0.0, frame_end - self.clock()))
-            self.wait_ms.append(1000.0 * (self.clock() - t0))
+        if not self.opts.pace:
+            self.counts_over_time.append((self.frames, self.refiner.count()))
+
+    def hold(self, until: float) -> None:
+        """Paced: wait until the worker is idle or ``until`` (perf_counter seconds): refinement gets what
+        localization left of the budget (a live camera's frames arriving meanwhile are dropped by the loop)."""
+        if self._closed:
+            return
+        t0 = self.clock()
+        self.worker.wait_idle(max(0.0, until - self.clock()))
+        self.wait_ms.append(1000.0 * (self.clock() - t0))
         self.counts_over_time.append((self.frames, self.refiner.count()))
 
     def _restore_thread_limits(self) -> None:
@@ -308,15 +289,15 @@ class RefineSession:
         }
         if self.saver is not None:
             s["save"] = self.saver.as_dict()
-        if self._eval:
+        if self.views:
             bg = np.asarray(self.opts.config.background, np.float64)
-            before = [psnr(view_mse(self.initial, p, k, rgb, bg)) for p, k, rgb in self._eval]
+            before = [psnr(view_mse(self.initial, p, k, rgb, bg)) for p, k, rgb in self.views]
             final = self.refiner.snapshot()
-            after = [psnr(view_mse(final, p, k, rgb, bg)) for p, k, rgb in self._eval]
+            after = [psnr(view_mse(final, p, k, rgb, bg)) for p, k, rgb in self.views]
             s["psnr_before"] = float(np.mean(before))
             s["psnr_after"] = float(np.mean(after))
-            s["psnr_views"] = len(self._eval)
-            s["psnr_size"] = [self._eval[0][1].height, self._eval[0][1].width]
+            s["psnr_views"] = len(self.views)
+            s["psnr_size"] = [self.views[0][1].height, self.views[0][1].width]
         self.summary = s
         return s
 
@@ -326,18 +307,18 @@ def write_before_after(session: RefineSession, out_dir: Path, count: int = 3) ->
     evaluated views: the ``count`` views whose PSNR changed most, either way. Returns one record per file."""
     from acesplat.core.atomic import write_bytes
 
-    if not session._eval or count <= 0:
+    if not session.views or count <= 0:
         return []
     bg = np.asarray(session.opts.config.background, np.float64)
     final = session.refiner.snapshot()
     rows = []
-    for i, (pose, k, rgb) in enumerate(session._eval):
+    for i, (pose, k, rgb) in enumerate(session.views):
         before, after = psnr(view_mse(session.initial, pose, k, rgb, bg)), psnr(view_mse(final, pose, k, rgb, bg))
         rows.append((abs(after - before), i, before, after))
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
     for _, i, before, after in sorted(rows, reverse=True)[:count]:
-        pose, k, rgb = session._eval[i]
+        pose, k, rgb = session.views[i]
         panels = [rgb]
         for g in (session.initial, final):
             r = render_view(g, pose, k, bg)
@@ -353,9 +334,10 @@ def write_before_after(session: RefineSession, out_dir: Path, count: int = 3) ->
 
 
 def start_refinement(
-    localizer: Any, bundle: Any, opts: RefineOptions, warn: Callable[[str], None]
+    localizer: EdgeLocalizer, bundle: Bundle, opts: RefineOptions, warn: Callable[[str], None]
 ) -> RefineSession | None:
-    """A session on the bundle's Gaussians, or None (after one line through ``warn``) when the bundle has none."""
+    """A session on the bundle's Gaussians, registered as a tap of ``localizer``, or None (after one line through
+    ``warn``) when the bundle has none."""
     from edge.refine.bundle_models import bundle_gaussians, no_models_message
 
     g = bundle_gaussians(bundle)
@@ -369,10 +351,10 @@ def start_refinement(
         if opts.use_initializer
         else None
     )
-    session_out = getattr(localizer.session, "has_features", True)
-    if seeder is not None and not session_out:
+    if seeder is not None and not localizer.session.has_features:
         warn(f"{bundle.root}: the SCR model has no features output for the initializer; seeding from SCR coordinates")
         seeder = None
-    session = RefineSession(localizer, g, opts, seeder=seeder)
+    session = RefineSession(localizer.input_size, g, opts, seeder=seeder)
     session.seeder_name = "onnx_initializer" if seeder is not None else "scr"
+    localizer.add_tap(session)
     return session

@@ -70,11 +70,8 @@ class WorkerStats:
 
 
 NICE = 5
-"""Refinement's thread runs at this nice value (Linux) when it may overlap localization (live sources): the scheduler
-prefers localization when both want a core. Measured on the shared 2 cores (3 other busy processes): at nice 10
-refinement starved (1 of 15 keyframes committed), at 0 localization p95 rose up to 1.4x beside unpaced refinement.
-Paced sessions park the worker during localization and run it at nice 0: at nice 5 on the loaded machine (load 3.7)
-its pieces took 3-10x their predicted (warm-up) time and ran past their windows."""
+"""Refinement's thread runs at this nice value (Linux) when it may overlap localization (unpaced): the scheduler
+prefers localization when both want a core; paced sessions run it at nice 0 (bench/refine.md)."""
 
 
 def lower_priority(nice: int = NICE) -> bool:
