@@ -586,7 +586,12 @@ def test_unplugged_device_is_reconnected_and_the_capture_thread_goes_on(dai, los
     events: list = []
 
     class Localizer:
+        """What run_loop calls on a localizer (edge.runtime.EdgeLocalizer): localize and notify."""
+
         frames = 0
+
+        def notify(self, event):
+            pass
 
         def localize(self, frame, capture_ms, t_start):
             Localizer.frames += 1
