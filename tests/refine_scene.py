@@ -9,9 +9,9 @@ import numpy as np
 from acesplat.core.gaussians import Gaussians, concat_gaussians
 from acesplat.core.geometry import transform_points
 from acesplat.core.scene import Frame, read_split
+from acesplat.splatcore.seeding import gaussians_at
 from edge.refine.guard import psnr, view_mse
 from edge.refine.refiner import Keyframe
-from edge.refine.seeding import gaussians_at
 
 SIZE = (48, 64)
 _CACHE: dict[str, Path] = {}

@@ -7,8 +7,8 @@ import numpy as np
 from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import look_at, pose_error
 from acesplat.raster import rasterize
+from acesplat.splatcore.seeding import gaussians_at
 from edge.refine.align import align_pose
-from edge.refine.seeding import gaussians_at
 from tests.test_edge_scene import jitter
 
 K = Intrinsics.from_focal(150.0, 160, 120)

@@ -12,14 +12,15 @@ from acesplat.core.camera import Intrinsics
 from acesplat.core.gaussians import Gaussians, logit
 from acesplat.core.geometry import look_at, make_pose, rodrigues_to_matrix
 from acesplat.core.ply import read_ply, write_ply
+from acesplat.splatcore.lattice import seed_pixels
+from acesplat.splatcore.pixel_coords import pixel_depths
+from acesplat.splatcore.prune import cap_keep, transparent
 from edge.refine.adam import LearningRates, RowAdam
 from edge.refine.coverage import analyse_render, frustum_mask, projected_coverage
 from edge.refine.deadline import CostEstimate, Deadline
 from edge.refine.guard import held_verdict
 from edge.refine.keyframes import KeyframePolicy, KeyframeSelector, keyframe_decision
 from edge.refine.persist import SplatSaver
-from edge.refine.prune import cap_keep, transparent
-from edge.refine.seeding import pixel_depths, seed_pixels
 
 
 class FakeClock:

@@ -222,7 +222,8 @@ def splat_bundle(tiny, tmp_path_factory) -> Path:
 
 def test_export_splat_lists_models_checked_against_torch(splat_bundle) -> None:
     from acesplat.core.bundle import load_bundle
-    from edge.refine.bundle_models import ROLE_GAUSSIANS, ROLE_SPLAT_INIT, bundle_gaussians
+    from acesplat.splatcore.bundle_section import ROLE_GAUSSIANS, ROLE_SPLAT_INIT
+    from edge.refine.bundle_models import bundle_gaussians
     from export.splat_export import ROLE_GAUSSIANS as EXPORT_GAUSSIANS
     from export.splat_export import ROLE_SPLAT_INIT as EXPORT_INIT
 
@@ -245,10 +246,10 @@ def test_export_splat_lists_models_checked_against_torch(splat_bundle) -> None:
 def test_onnx_seeder_places_gaussians_on_scr_rays(splat_bundle, tiny) -> None:
     from acesplat.core.bundle import load_bundle
     from acesplat.core.preprocess import to_gray_input
+    from acesplat.splatcore.pixel_coords import pixel_depths
     from edge.inference import ScrSession
     from edge.refine.onnx_seeder import onnx_seeder_for
     from edge.refine.refiner import Keyframe
-    from edge.refine.seeding import pixel_depths
     from tests.refine_scene import true_cells
 
     b = load_bundle(splat_bundle)

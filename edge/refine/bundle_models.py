@@ -11,9 +11,7 @@ from acesplat.core.bundle import Bundle, verify_file
 from acesplat.core.errors import InputError
 from acesplat.core.gaussians import Gaussians
 from acesplat.core.ply import read_ply
-from acesplat.splatcore.bundle_section import ROLE_GAUSSIANS, ROLE_SPLAT_INIT
-
-__all__ = ["ROLE_GAUSSIANS", "ROLE_SPLAT_INIT", "bundle_gaussians", "no_models_message", "splat_section"]
+from acesplat.splatcore.bundle_section import ROLE_GAUSSIANS
 
 
 def bundle_gaussians(bundle: Bundle) -> Gaussians | None:

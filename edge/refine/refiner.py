@@ -30,6 +30,7 @@ from acesplat.core.camera import Intrinsics
 from acesplat.core.config import knob
 from acesplat.core.gaussians import Gaussians, concat_gaussians
 from acesplat.raster import rasterize, rasterize_backward
+from acesplat.splatcore.prune import PRUNE_OPACITY, transparent
 from edge.refine.adam import LearningRates, RowAdam
 from edge.refine.align import MAX_MSE as ALIGN_MAX_MSE
 from edge.refine.align import MAX_SHIFT_DEG as ALIGN_MAX_DEG
@@ -39,7 +40,6 @@ from edge.refine.align import align_pose
 from edge.refine.coverage import ALPHA_MIN, RenderAnalysis, analyse_render, frustum_mask
 from edge.refine.deadline import Clock, CostEstimate, Deadline
 from edge.refine.guard import HELD_TOLERANCE, HeldView, HeldViews, all_finite, downsample, held_verdict, view_mse
-from edge.refine.prune import PRUNE_OPACITY, transparent
 from edge.refine.seeding import seed_from_scr
 from edge.refine.store import GaussianStore
 

@@ -3,8 +3,7 @@
 The torch-free core shared with Stage 2 lives in acesplat/splatcore: which cells to trust
 (:func:`cell_trust`), their depths at the refinement resolution along each pixel's ray
 (:func:`pixel_depths`), the seeding lattice (:func:`seed_pixels`) and the analytic start
-(:func:`block_colours`, :func:`gaussians_at`). This module composes them for one keyframe and keeps
-the names the refiner and the session import.
+(:func:`block_colours`, :func:`gaussians_at`). This module composes them for one keyframe.
 """
 
 from __future__ import annotations
@@ -14,11 +13,8 @@ import numpy as np
 from acesplat.core.camera import Intrinsics
 from acesplat.core.gaussians import Gaussians
 from acesplat.splatcore.lattice import seed_pixels
-from acesplat.splatcore.pixel_coords import PixelDepths, pixel_depths
+from acesplat.splatcore.pixel_coords import pixel_depths
 from acesplat.splatcore.seeding import block_colours, gaussians_at
-from acesplat.splatcore.validity import cell_trust
-
-__all__ = ["PixelDepths", "block_colours", "cell_trust", "gaussians_at", "pixel_depths", "seed_from_scr", "seed_pixels"]
 
 
 def seed_from_scr(

@@ -25,13 +25,13 @@ from acesplat.core.config import knob
 from acesplat.core.gaussians import Gaussians
 from acesplat.core.metrics import timing_stats
 from acesplat.core.pose import TrackingState
+from acesplat.splatcore.validity import cell_trust
 from edge.frame_prep import crop_to_aspect
 from edge.refine.deadline import Clock, CostEstimate
 from edge.refine.guard import psnr, render_view, view_mse
 from edge.refine.keyframes import KeyframePolicy, KeyframeSelector
 from edge.refine.persist import SplatSaver
 from edge.refine.refiner import Keyframe, RefineConfig, Refiner
-from edge.refine.seeding import cell_trust
 from edge.refine.worker import NICE, Candidate, RefineWorker
 from edge.runtime import EdgeLocalizer, FrameOutcome, FrameTap
 from edge.sources import SourceFrame
