@@ -110,6 +110,8 @@ def write_bag(
     dist=(0.0, 0.0, 0.0, 0.0, 0.0),
     pose_shift_ns: int = 0,
     extra_images: int = 0,
+    image_topic: str = IMAGE_TOPIC,
+    p_matrix: np.ndarray | None = None,
 ) -> Path:
     """A bag with the room's images at 10 Hz, their camera info and poses (TF, PoseStamped or Odometry)."""
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
@@ -117,7 +119,7 @@ def write_bag(
     intr = frames[0].intrinsics
     with Writer(path, version=9, storage_plugin=plugin) as w:
         msgtype = "sensor_msgs/msg/CompressedImage" if image in ("png", "jpeg") else "sensor_msgs/msg/Image"
-        topic = IMAGE_TOPIC if msgtype.endswith("/Image") else IMAGE_TOPIC + "/compressed"
+        topic = image_topic if msgtype.endswith("/Image") else image_topic + "/compressed"
         img_c = w.add_connection(topic, msgtype, typestore=TS)
         info_c = w.add_connection(INFO_TOPIC, "sensor_msgs/msg/CameraInfo", typestore=TS)
         odo_c = w.add_connection("/odom", "nav_msgs/msg/Odometry", typestore=TS)
@@ -142,6 +144,8 @@ def write_bag(
             ns = T0 + i * DT
             if i < len(frames):
                 info = camera_info(intr.K, intr.width, intr.height, model, dist)
+                if p_matrix is not None:
+                    info.p = p_matrix.reshape(-1)
                 info.header = header(ns)
                 put(info_c, ns, info)
             put(img_c, ns, image_msg(rgbs[i % len(frames)], ns, image))
@@ -288,6 +292,19 @@ def test_plumb_bob_distortion_is_undone(tmp_path: Path, room: dict) -> None:
     np.testing.assert_allclose(frame.intrinsics.K, K_new, atol=1e-9)
     np.testing.assert_array_equal(frame.load_rgb(), expected)
     assert not np.allclose(K_new, K)
+
+
+def test_rectified_image_topic_takes_k_from_p(tmp_path: Path, room: dict) -> None:
+    """image_rect is already undistorted: K comes from P and the distortion (of the raw image) is not applied."""
+    K_rect = np.diag([1.1, 1.1, 1.0]) @ room["frames"][0].intrinsics.K  # differs from CameraInfo.k
+    topic = "/camera/image_rect"
+    bag = write_bag(tmp_path / "bag", room, dist=(-0.2, 0.0, 0.0, 0.0, 0.0), image_topic=topic,
+                    p_matrix=np.hstack([K_rect, np.zeros((3, 1))]))  # fmt: skip
+    summary = import_rosbag(bag, tmp_path / "scene", config(image_topic=topic), test_every=0)
+    assert summary.undistorted == 0 and any("rectified" in n for n in summary.notes)
+    frame = imported(tmp_path / "scene")[0]
+    np.testing.assert_allclose(frame.intrinsics.K, K_rect, atol=1e-9)
+    np.testing.assert_array_equal(frame.load_rgb(), room["rgb"][0])
 
 
 def test_cli_imports_a_bag(tmp_path: Path, room: dict) -> None:

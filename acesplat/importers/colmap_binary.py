@@ -74,9 +74,12 @@ class _Bytes:
         raw = self.data[self.pos : end]
         self.pos = end + 1
         try:
-            return raw.decode("utf-8")
+            text = raw.decode("utf-8")
         except UnicodeDecodeError:
             raise InputError(self.path, f"corrupt: {what} name is not UTF-8 ({raw[:40]!r})") from None
+        if not text or any(ord(ch) < 32 for ch in text):
+            raise InputError(self.path, f"corrupt: {what} name {text[:40]!r} is empty or has control characters")
+        return text
 
     def count(self, record_size: int, what: str) -> int:
         """A uint64 count, checked against the bytes left (each record at least ``record_size``)."""
