@@ -169,20 +169,26 @@ def read_images_txt(path: Path, cameras: dict[int, CameraSpec], images_dir: Path
     return frames
 
 
-def find_colmap_model(src: Path) -> Path:
-    """The folder holding ``cameras.txt`` + ``images.txt``: ``src``, ``src/sparse/0`` or ``src/sparse``."""
+def find_colmap_model(src: Path, binary: bool = False) -> Path:
+    """The folder holding ``cameras.txt`` + ``images.txt`` (or, with ``binary``, ``cameras.bin`` + ``images.bin``):
+    ``src``, ``src/sparse/0`` or ``src/sparse``."""
     candidates = [src, src / "sparse" / "0", src / "sparse"]
     for d in candidates:
         if (d / "cameras.txt").is_file() and (d / "images.txt").is_file():
             return d
+        if binary and (d / "cameras.bin").is_file() and (d / "images.bin").is_file():
+            return d
     for d in candidates:
         if (d / "cameras.bin").is_file():
+            if binary:
+                raise InputError(d, "binary COLMAP model with cameras.bin but no images.bin")
             raise InputError(
                 d,
-                "binary COLMAP model; convert it first: colmap model_converter "
-                f"--input_path {d} --output_path {d} --output_type TXT",
+                "binary COLMAP model; import it with `acesplat import` (import_colmap_binary) or convert it: "
+                f"colmap model_converter --input_path {d} --output_path {d} --output_type TXT",
             )
-    raise InputError(src, "no COLMAP text model (cameras.txt + images.txt) here or in sparse/0 or sparse/")
+    what = "model (cameras.txt + images.txt, or .bin)" if binary else "text model (cameras.txt + images.txt)"
+    raise InputError(src, f"no COLMAP {what} here or in sparse/0 or sparse/")
 
 
 def find_images_dir(model_dir: Path) -> Path:
