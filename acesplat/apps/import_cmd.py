@@ -7,8 +7,8 @@ from pathlib import Path
 
 import typer
 
-from acesplat.apps.support import CountProgress, one_line_errors, report_json
-from acesplat.importers.common import DEFAULT_TEST_EVERY
+from acesplat.apps.support import CountProgress, one_line_errors, option, report_json
+from acesplat.importers.common import ImportConfig
 from acesplat.importers.dispatch import import_scene
 
 
@@ -30,15 +30,8 @@ def import_command(
         "--images",
         help="Images folder (COLMAP: default images/ near the model; transforms: replaces the json's folder).",
     ),
-    test_every: int = typer.Option(
-        DEFAULT_TEST_EVERY,
-        "--test-every",
-        min=0,
-        help="Every N-th frame (natural name order, from the first) goes to test; 0 = none.",
-    ),
-    json_out: Path | None = typer.Option(
-        None, "--json", help="Write the summary (counts, split rule, notes) as JSON."
-    ),
+    test_every: int = option(ImportConfig, "test_every", "--test-every", min=0),
+    json_out: Path | None = typer.Option(None, "--json", help="Write the summary (counts, split rule, notes) as JSON."),
 ) -> None:
     """Import a scene into the ACE layout (OpenCV poses, undistorted images, train/test split)."""
     with CountProgress("importing") as progress:
