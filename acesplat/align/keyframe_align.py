@@ -1,8 +1,8 @@
 """A localized pose refined against the mapping images: warp, dense flow, PnP (torch-free).
 
 Why: the SCR head's coordinates for a view it never saw are off by a pixel or two coherently over whole
-regions (bench/herz_gap.md), which no pose solver averages out: on herzjesu25 the test frames land 4-8 cm
-off while the training frames land within 1 cm. The training views themselves are known exactly (their
+regions, which no pose solver averages out: test frames land centimetres off where training frames land within
+one (bench/herz_gap.md). The training views themselves are known exactly (their
 poses are the mapping input) and the head gives their depth to about a pixel, so each of the nearest
 training views is re-rendered at the estimated pose (acesplat.align.depth_warp), dense optical flow carries
 its pixels to where the query actually shows them, and PnP on (training pixel's 3D point, query pixel)
