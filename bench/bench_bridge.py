@@ -181,7 +181,8 @@ def main() -> None:
 
     m = report["machine"]
     print(
-        f"machine: {m['cpu']}, {m['cores']} cores, Python {m['python']}, load avg before {m['load_avg_1_5_15']} after {m['load_avg_after']}"
+        f"machine: {m['cpu']}, {m['cores']} cores, Python {m['python']}, load avg before {m['load_avg_1_5_15']} after "
+        f"{m['load_avg_after']}"
     )
     print(
         f"per pose, {args.n} poses, microseconds (wall median / p99 / max, thread CPU median; target {TARGET_US:g} us):"
@@ -189,18 +190,21 @@ def main() -> None:
     for name, r in {**report["per_pose"], "submit (caller side)": report["submit"]}.items():
         print(
             f"  {name:<32} {r['median_us']:8.2f} {r['p99_us']:8.2f} {r['max_us']:8.1f} {r['cpu_median_us']:8.2f}"
-            f"   wall median/target = {r['median_us'] / TARGET_US:.2f}, cpu median/target = {r['cpu_median_us'] / TARGET_US:.2f}"
+            f"   wall median/target = {r['median_us'] / TARGET_US:.2f}, cpu median/target = "
+            f"{r['cpu_median_us'] / TARGET_US:.2f}"
         )
     s = report["submit"]
     print(
-        f"  submit burst: {s['submitted']} submitted, {s['sent']} sent, {s['dropped']} replaced by a newer pose (link-limited)"
+        f"  submit burst: {s['submitted']} submitted, {s['sent']} sent, {s['dropped']} replaced by a newer pose "
+        "(link-limited)"
     )
     b = report["link_budget"]
     print(f"link budget at {BAUD} baud 8N1 ({BYTES_PER_S:g} bytes/s):")
     print(
         f"  POSE frame {b['pose_frame_bytes']} B -> 100 Hz uses {b['pose_100hz_utilisation']:.1%}; "
         f"STATUS {b['status_frame_bytes']} B at 1 Hz uses {b['status_1hz_utilisation']:.2%}; "
-        f"headroom {b['headroom_after_100hz_pose_and_status']:.1%}; max POSE rate with STATUS {b['max_pose_hz_with_status']} Hz"
+        f"headroom {b['headroom_after_100hz_pose_and_status']:.1%}; max POSE rate with STATUS "
+        f"{b['max_pose_hz_with_status']} Hz"
     )
     print(f"  MAVLink bytes {b['mavlink_bytes']} -> max Hz with 1 Hz HEARTBEAT {b['mavlink_max_hz_with_heartbeat']}")
     if args.json:

@@ -89,14 +89,18 @@ def main() -> int:
         f"machine: {m['cpu']}, {m['cores']} cores, load avg before {m['load_avg_1_5_15']} after {m['load_avg_after']}"
     )
     print(
-        f"{args.frames} frames (seed {args.seed}), {len(stream) / 1e6:.1f} MB stream, generated in {report['generate_s']} s"
+        f"{args.frames} frames (seed {args.seed}), {len(stream) / 1e6:.1f} MB stream, generated in "
+        f"{report['generate_s']} s"
     )
     print(
-        f"python: {report['python_decode_s']} s ({report['python_us_per_frame']} us/frame); accepted {len(got)} = intact frames {len(expected)}: "
-        f"{report['python_matches_oracle']}; corrupted accepted: {false_accepts}; rejected {dec.frames_rejected} {dict(dec.rejects)}"
+        f"python: {report['python_decode_s']} s ({report['python_us_per_frame']} us/frame); accepted {len(got)} = "
+        f"intact frames {len(expected)}: "
+        f"{report['python_matches_oracle']}; corrupted accepted: {false_accepts}; rejected {dec.frames_rejected} "
+        f"{dict(dec.rejects)}"
     )
     print(
-        f"C (ASan+UBSan): {report['c_asan_ubsan_decode_s']} s, identical to Python: {report['c_asan_ubsan_matches_python']}; "
+        f"C (ASan+UBSan): {report['c_asan_ubsan_decode_s']} s, identical to Python: "
+        f"{report['c_asan_ubsan_matches_python']}; "
         f"C (-O2): {report['c_O2_decode_s']} s, identical: {report['c_O2_matches_python']}"
     )
     print("PASS" if ok else "FAIL")

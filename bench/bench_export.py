@@ -69,7 +69,8 @@ def accuracy_part(map_path: Path | None, scene: Path | None, threads: int, work:
     print(
         f"export with INT8 + self-checks: {time.time() - t0:.0f} s; FP32 ONNX vs torch on the same input: max |diff| "
         f"fraction {par['max_abs_diff_fraction']:.2e}, poses of {par['pose_frames_compared']} frames differ by at most "
-        f"{1000 * par['pose_max_translation_diff_m']:.3f} mm / {par['pose_max_rotation_diff_deg']:.4f} deg (target 1 mm / 0.01 deg)"
+        f"{1000 * par['pose_max_translation_diff_m']:.3f} mm / {par['pose_max_rotation_diff_deg']:.4f} deg "
+        "(target 1 mm / 0.01 deg)"
     )
     m = load_map(map_path)
     torch.set_num_threads(threads)
@@ -122,7 +123,8 @@ def quant_variants(work: Path, scene: Path, size: tuple[int, int], threads: int)
         "MinMax, whole head float (10 convs)": dict(method=CalibrationMethod.MinMax, float_tail=True, float_convs=10),
     }
     print(
-        "\nINT8 variants on the same map (coordinate deviation from FP32 ONNX over test cells; replay of the test split)"
+        "\nINT8 variants on the same map (coordinate deviation from FP32 ONNX over test cells; replay of the test "
+        "split)"
     )
     for name, kw in variants.items():
         root = work / f"q_{abs(hash(name))}"
@@ -142,8 +144,11 @@ def quant_variants(work: Path, scene: Path, size: tuple[int, int], threads: int)
         dev = np.concatenate([np.linalg.norm(sess.run(f.gray) - r, axis=-1).ravel() for f, r in zip(test, refs)])
         s = replay_split(EdgeLocalizer(load_bundle(root), "int8", threads), scene, "test")
         print(
-            f"  {name:50s} deviation median {100 * np.median(dev):6.2f} cm, p90 {100 * np.percentile(dev, 90):6.2f} cm; "
-            f"localized {s['localized']}/{s['frames']}, 5cm/5deg {s['recall_5cm_5deg']:.1f}%, 10cm/5deg {s['recall_10cm_5deg']:.1f}%, median {_num(s['median_translation_m'])} m / {_num(s['median_rotation_deg'])} deg, "
+            f"  {name:50s} deviation median {100 * np.median(dev):6.2f} cm, p90 "
+            f"{100 * np.percentile(dev, 90):6.2f} cm; localized {s['localized']}/{s['frames']}, "
+            f"5cm/5deg {s['recall_5cm_5deg']:.1f}%, 10cm/5deg "
+            f"{s['recall_10cm_5deg']:.1f}%, median {_num(s['median_translation_m'])} m / "
+            f"{_num(s['median_rotation_deg'])} deg, "
             f"inference p50 {s['timing_ms']['inference']['p50']:.2f} ms; quantized in {qs:.0f} s"
         )
 
@@ -161,7 +166,7 @@ def synthetic_pnp_ms(n: int = 20) -> dict:
     rng = np.random.default_rng(0)
     intr = Intrinsics(430.0, 430.0, 239.5, 179.5, 480, 360)
     ms = []
-    for i in range(n):
+    for _ in range(n):
         T = look_at(np.array([0.3, -0.2, 1.5]) + rng.normal(0, 0.3, 3), np.array([0.5, 4.0, 1.2]))
         pix = cell_centers(45, 60)
         X = transform_points(
@@ -201,7 +206,8 @@ def latency_part(size: tuple[int, int], frames: int, threads: int, work: Path) -
 
     quantize_int8(root / "scr.onnx", root / "scr.int8.onnx", [cv2.cvtColor(v, cv2.COLOR_RGB2GRAY) for v in views[:8]])
     print(
-        f"\nlatency model: EDGE_ENCODER {EDGE_ENCODER.as_dict()}, head 256, random weights, exported + quantized in {time.time() - t0:.0f} s"
+        f"\nlatency model: EDGE_ENCODER {EDGE_ENCODER.as_dict()}, head 256, random weights, exported + quantized in "
+        f"{time.time() - t0:.0f} s"
     )
     write_manifest(
         root,
@@ -213,7 +219,7 @@ def latency_part(size: tuple[int, int], frames: int, threads: int, work: Path) -
     frames_dir.mkdir()
     for i, v in enumerate(views):
         cv2.imwrite(str(frames_dir / f"{i:04d}.png"), cv2.cvtColor(v, cv2.COLOR_RGB2BGR))
-    (frames_dir / "intrinsics.json").write_text('{"K": %s, "width": %d, "height": %d}' % (intr.K.tolist(), w, h))
+    (frames_dir / "intrinsics.json").write_text(f'{{"K": {intr.K.tolist()}, "width": {w}, "height": {h}}}')
     from edge.profile import read_frames
     from edge.sources import ReplaySource
 
@@ -225,22 +231,26 @@ def latency_part(size: tuple[int, int], frames: int, threads: int, work: Path) -
         print(
             f"  {p}: "
             + "; ".join(
-                f"{s} {r['stages'][s]['mean']:.1f}/{r['stages'][s]['p50']:.1f}/{r['stages'][s]['p95']:.1f}/{r['stages'][s]['max']:.1f}"
+                f"{s} {r['stages'][s]['mean']:.1f}/{r['stages'][s]['p50']:.1f}/"
+                f"{r['stages'][s]['p95']:.1f}/{r['stages'][s]['max']:.1f}"
                 for s in STAGES
             )
         )
     print(
-        f"  PnP on 2700 realistic correspondences (40% outliers): p50 {pnp['p50']:.1f} ms, p95 {pnp['p95']:.1f} ms, max {pnp['max']:.1f} ms"
+        f"  PnP on 2700 realistic correspondences (40% outliers): p50 {pnp['p50']:.1f} ms, p95 {pnp['p95']:.1f} ms, "
+        f"max {pnp['max']:.1f} ms"
     )
     for p, r in runs.items():
         st = r["stages"]
         e50 = st["capture"]["p50"] + st["preprocess"]["p50"] + st["inference"]["p50"] + pnp["p50"]
         e95 = st["capture"]["p95"] + st["preprocess"]["p95"] + st["inference"]["p95"] + pnp["p95"]
         print(
-            f"  {p} end-to-end estimate: p50 {e50:.1f} ms, p95 {e95:.1f} ms (targets INT8: p50 <= 60, p95 <= 90; PnP <= 15)"
+            f"  {p} end-to-end estimate: p50 {e50:.1f} ms, p95 {e95:.1f} ms (targets INT8: p50 <= 60, p95 <= 90; PnP "
+            "<= 15)"
         )
     print(
-        f"  INT8 inference speed-up (p50): {runs['fp32']['stages']['inference']['p50'] / runs['int8']['stages']['inference']['p50']:.2f}x"
+        "  INT8 inference speed-up (p50): "
+        f"{runs['fp32']['stages']['inference']['p50'] / runs['int8']['stages']['inference']['p50']:.2f}x"
     )
 
 

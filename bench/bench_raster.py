@@ -36,7 +36,7 @@ sys.path.insert(0, str(ROOT))
 
 from acesplat.core.camera import Intrinsics  # noqa: E402
 from acesplat.core.gaussians import Gaussians  # noqa: E402
-from acesplat.core.machine import cpu_model
+from acesplat.core.machine import cpu_model  # noqa: E402
 from acesplat.raster import get_num_threads, rasterize, rasterize_backward, set_num_threads  # noqa: E402
 from acesplat.raster import rasterizer as _rasterizer  # noqa: E402
 
@@ -140,13 +140,18 @@ void composite_forward(const float* rec, const int64_t* offs, const int64_t* ord
     for (int64_t oi = 0; oi < ntiles; ++oi) {
         int64_t tile = order[oi], ty = tile / tiles_x, tx = tile - ty * tiles_x;
         int64_t px0 = tx * T, py0 = ty * T, px1 = std::min(px0 + T, W) - 1, py1 = std::min(py0 + T, H) - 1;
-        for (int a = 0; a < 16; ++a) for (int b = 0; b < 16; ++b) { st[a][b][0] = 1; for (int c = 1; c < 6; ++c) st[a][b][c] = 0; }
+        for (int a = 0; a < 16; ++a) for (int b = 0; b < 16; ++b) {
+            st[a][b][0] = 1;
+            for (int c = 1; c < 6; ++c) st[a][b][c] = 0;
+        }
         int64_t active = (px1 - px0 + 1) * (py1 - py0 + 1);
         for (int64_t k = offs[tile]; k < offs[tile + 1]; ++k) {
             if (active == 0) break;
             const float* r = rec + 16 * k;
-            double mx = r[0], my = r[1], ca = r[2], cb = r[3], cc = r[4], op = r[5], cr = r[6], cg = r[7], cbl = r[8], z = r[9], pmin = r[10], maha2 = r[11], ey = r[13];
-            int64_t ya = (int64_t)std::max((double)py0, std::ceil(my - ey)), yb = (int64_t)std::min((double)py1, std::floor(my + ey));
+            double mx = r[0], my = r[1], ca = r[2], cb = r[3], cc = r[4], op = r[5];
+            double cr = r[6], cg = r[7], cbl = r[8], z = r[9], pmin = r[10], maha2 = r[11], ey = r[13];
+            int64_t ya = (int64_t)std::max((double)py0, std::ceil(my - ey));
+            int64_t yb = (int64_t)std::min((double)py1, std::floor(my + ey));
             double n_in = (double)(k - offs[tile] + 1);
             for (int64_t y = ya; y <= yb; ++y) {
                 double dy = my - y, q = cb * dy, disc = q * q - ca * (cc * dy * dy - maha2);
@@ -170,7 +175,8 @@ void composite_forward(const float* rec, const int64_t* offs, const int64_t* ord
         }
         for (int64_t y = py0; y <= py1; ++y) for (int64_t x = px0; x <= px1; ++x) {
             double* p = st[y - py0][x - px0]; double t = std::fabs(p[0]), a = 1 - t; int64_t i = y * W + x;
-            trans[i] = t; alpha[i] = a; color[3*i] = p[1] + t * bg[0]; color[3*i+1] = p[2] + t * bg[1]; color[3*i+2] = p[3] + t * bg[2];
+            trans[i] = t; alpha[i] = a;
+            color[3*i] = p[1] + t * bg[0]; color[3*i+1] = p[2] + t * bg[1]; color[3*i+2] = p[3] + t * bg[2];
             depth[i] = a > 0 ? p[4] / a : 0; last[i] = (int32_t)p[5];
         }
     }

@@ -219,8 +219,10 @@ def main() -> None:
     for i, e in enumerate(encoders):
         print(f"encoder {i}: {e}")
     hdr = (
-        f"{'scene':12s} {'enc':>3s} {'tri':>4s} {'augment':>11s} {'seed':>4s} {'map s':>6s} {'steps':>6s} {'split':>5s} "
-        f"{'loc':>6s} {'med cm':>8s} {'med deg':>8s} {'5cm5d':>6s} {'10cm5d':>7s} {'25cm2d':>7s} {'ms':>6s} {'cells':>6s}"
+        f"{'scene':12s} {'enc':>3s} {'tri':>4s} {'augment':>11s} {'seed':>4s} {'map s':>6s} {'steps':>6s} "
+        f"{'split':>5s} "
+        f"{'loc':>6s} {'med cm':>8s} {'med deg':>8s} {'5cm5d':>6s} {'10cm5d':>7s} {'25cm2d':>7s} {'ms':>6s} "
+        f"{'cells':>6s}"
     )
     print(hdr)
     for r in rows:
@@ -263,7 +265,8 @@ def main() -> None:
             cm = sorted(100 * m for m in meds if m is not None)
             spread = (", ".join(f"{c:.2f}" for c in cm) + f" cm (median {statistics.median(cm):.2f})") if cm else "none"
             print(
-                f"{name} {aug}{'' if tri else ' no-tri'} encoder {encoders.index(enc)}: {split} median translation over {len(rs)} seeds: {spread}"
+                f"{name} {aug}{'' if tri else ' no-tri'} encoder {encoders.index(enc)}: {split} median translation "
+                f"over {len(rs)} seeds: {spread}"
                 + (f", {len(rs) - len(cm)} with no median" if len(cm) < len(rs) else "")
             )
     write_json(args.out / "results.json", {"machine": machine_info(), "rows": rows})

@@ -1,4 +1,5 @@
-"""How well a map's scene coordinates hold on views it was not trained on: each cell's reprojection error under the true pose.
+"""How well a map's scene coordinates hold on views it was not trained on: each cell's reprojection error under
+the true pose.
 
 On a 7-frame test split the median pose error moves by centimetres between runs of one recipe
 (bench/herz_gap.md). The share of cells whose predicted coordinate projects within a few pixels of the

@@ -8,7 +8,8 @@ within 5 / 10 / 25 cm and the median distance, for each encoder given, plus the 
 ``--train-scales`` the training images are also encoded rescaled (as ACE's mapping augmentation does), which
 shows how far the features are from scale-invariant.
 
-    python bench/encoder_nn.py [--scene runs/bench_stage1/synth] [--encoder PATH ...] [--every 3] [--train-scales 1,0.667,1.5]
+    python bench/encoder_nn.py [--scene runs/bench_stage1/synth] [--encoder PATH ...] [--every 3] \
+        [--train-scales 1,0.667,1.5]
 """
 
 from __future__ import annotations
@@ -90,8 +91,10 @@ def main() -> None:
             tf, tx = cell_features(enc, train, round(args.short_side * scale), 1)
             d = nearest_distances(tf, tx, qf, qx)
             print(
-                f"{ident.name:24s} train x{scale:<5.3g} test cells {len(d):6d} vs {len(tf):6d}: within 5 cm {100 * np.mean(d < 0.05):5.1f}%  "
-                f"10 cm {100 * np.mean(d < 0.10):5.1f}%  25 cm {100 * np.mean(d < 0.25):5.1f}%  median {100 * np.median(d):5.1f} cm  "
+                f"{ident.name:24s} train x{scale:<5.3g} test cells {len(d):6d} vs {len(tf):6d}: within 5 cm "
+                f"{100 * np.mean(d < 0.05):5.1f}%  "
+                f"10 cm {100 * np.mean(d < 0.10):5.1f}%  25 cm {100 * np.mean(d < 0.25):5.1f}%  median "
+                f"{100 * np.median(d):5.1f} cm  "
                 f"({time.perf_counter() - t0:.0f} s)"
             )
 

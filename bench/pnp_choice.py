@@ -109,7 +109,7 @@ def synthetic_cases(n_frames: int = 10) -> list:
     rng = np.random.default_rng(0)
     intr = Intrinsics(430.0, 430.0, 239.5, 179.5, 480, 360)
     cases = []
-    for i in range(n_frames):
+    for _ in range(n_frames):
         T = look_at(np.array([0.3, -0.2, 1.5]) + rng.normal(0, 0.3, 3), np.array([0.5, 4.0, 1.2]))
         pix = cell_centers(45, 60)
         depth = 3.0 + rng.uniform(0, 2.0, len(pix))
@@ -170,7 +170,8 @@ def main() -> None:
     real = real_cases(size, args.steps)
     e = np.concatenate(real_cases.errors)
     print(
-        f"real predictions: {len(real)} frames x {len(real[0][0])} cells; coordinate error median {100 * np.median(e):.1f} cm, "
+        f"real predictions: {len(real)} frames x {len(real[0][0])} cells; coordinate error median "
+        f"{100 * np.median(e):.1f} cm, "
         f"{100 * np.mean(e > 0.25):.0f}% of cells off by > 25 cm"
     )
     table("real predictions (tiny room map)", {m: run_method(m, real, repeats=3) for m in PNP_METHODS})

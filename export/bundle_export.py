@@ -37,30 +37,16 @@ from acesplat.scr.mapfile import encoder_for_map, load_map
 from acesplat.scr.network import GRAY_MEAN, GRAY_STD
 from export.checks import CheckFrame, fp32_parity, localization_accuracy, prepare_frames
 from export.onnx_graph import FEATURES_NAME, INPUT_NAME, OPSET, OUTPUT_NAME, export_scr_onnx
+from export.options import ExportOptions
 from export.quantize import quantize_int8
 
 FP32_FILE = "scr.onnx"
 KEYFRAMES_FILE = "keyframes.npz"
 INT8_FILE = "scr.int8.onnx"
-CALIBRATION_FRAMES = 32
-"""Training images used to calibrate INT8 ranges (evenly spaced); more barely moves MinMax ranges."""
 PARITY_FRAMES = 8
+"""Frames the FP32 graph is compared with torch on."""
 
 ProgressFn = Callable[[str, float, dict], None]
-
-
-@dataclass
-class ExportOptions:
-    int8: bool = False
-    size_hw: tuple[int, int] | None = None
-    encoder_path: Path | None = None
-    scene_path: Path | None = None
-    calibration_frames: int = CALIBRATION_FRAMES
-    dense: bool = False
-    """Coordinates every 4th pixel (acesplat eval --dense): more accurate poses at about 3.5x the SCR time."""
-    keyframes: bool = False
-    """Carry the training images with their depth (acesplat.scr.keyframes), for pose refinement on the edge
-    (acesplat-edge --align)."""
 
 
 @dataclass

@@ -54,7 +54,8 @@ def onnx_session(path: str | Path) -> ort.InferenceSession:
 def onnx_outputs(
     sess: ort.InferenceSession, gray: np.ndarray, features: bool = False
 ) -> tuple[np.ndarray, np.ndarray | None]:
-    """(h, w, 3) coordinates and, if asked and the graph has them, the (C, h, w) features for a grayscale (H, W) image."""
+    """(h, w, 3) coordinates and, if asked and the graph has them, the (C, h, w) features for a grayscale (H, W)
+    image."""
     name = sess.get_inputs()[0].name
     outs = [o.name for o in sess.get_outputs()]
     want = [SCR_COORDS_OUTPUT if SCR_COORDS_OUTPUT in outs else outs[0]]
@@ -81,7 +82,8 @@ def torch_features(net: SCRNetwork, gray: np.ndarray, stride: int = OUTPUT_STRID
 
 
 def coordinate_extent(coords: Sequence[np.ndarray]) -> float:
-    """Diagonal of the 1st-99th percentile box of predicted coordinates: the scale the differences are judged against."""
+    """Diagonal of the 1st-99th percentile box of predicted coordinates: the scale the differences are judged
+    against."""
     pts = np.concatenate([c.reshape(-1, 3) for c in coords])
     pts = pts[np.isfinite(pts).all(axis=1)]
     if pts.size == 0:

@@ -1,7 +1,7 @@
 """Static INT8 quantization of the SCR graph with onnxruntime: QDQ, per-channel weights, U8S8.
 
 U8S8 (uint8 activations, int8 weights) in QDQ form is what onnxruntime's x86 kernels run fastest;
-S8S8 QOperator was measured slower. The head's residual block, fc1-fc3 and its tail (homogeneous
+S8S8 QOperator is slower (bench/export.md). The head's residual block, fc1-fc3 and its tail (homogeneous
 division, clamp, mean offset) stay in float: quantizing metric coordinates to 8 bits would cost
 centimetres by itself (FLOAT_HEAD_CONVS).
 """
@@ -41,16 +41,13 @@ class _Images(CalibrationDataReader):
 
 
 FLOAT_HEAD_CONVS = 6
-"""Trailing convolutions kept in float: the head's residual block and fc1-fc3. Measured with the robust pose
-refinement (bench/bench_export.py variant table, session 2's 4.5/10-minute maps): herzjesu25 INT8 test median
-0.194 m with fc1-fc3 float -> 0.120 m with these six (FP32 ONNX 0.100 m), 10cm/5deg 2/7 -> 3/7 (FP32 3/7),
-coordinate deviation from FP32 median 21.4 -> 8.3 cm, for +3.7 ms of INT8 inference at 360x544; built-in
-scene unchanged (73.3% at 5cm/5deg either way, FP32 75.0%). The whole head in float costs +7.7 ms at
-240x320 (+68%)."""
+"""Trailing convolutions kept in float: the head's residual block and fc1-fc3 (accuracy against latency in
+bench/export.md)."""
 
 
 def conv_nodes_to_quantize(model: onnx.ModelProto, float_convs: int = FLOAT_HEAD_CONVS) -> list[str]:
-    """Every Conv except the last ``float_convs`` (at least the head's output layer, whose result is divided into metres)."""
+    """Every Conv except the last ``float_convs`` (at least the head's output layer, whose result is divided into
+    metres)."""
     convs = [n.name for n in model.graph.node if n.op_type == "Conv"]
     return convs[: len(convs) - float_convs]
 
@@ -66,7 +63,7 @@ def quantize_int8(
     """Quantize the FP32 model at ``fp32_path`` using ``calibration`` grayscale images (H, W) uint8.
 
     ``float_tail=False`` quantizes the last convolution too; ``float_convs`` keeps that many trailing
-    convolutions (the head's) in float (both measured in bench/bench_export.py).
+    convolutions (the head's) in float (bench/export.md).
     """
     if not calibration:
         raise ValueError("INT8 calibration needs at least one image")

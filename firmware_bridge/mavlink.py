@@ -15,11 +15,12 @@ from __future__ import annotations
 import logging
 import math
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from acesplat.core.config import knob, knob_default
 from acesplat.core.errors import InputError
 from acesplat.core.geometry import matrix_to_quat
 from acesplat.core.pose import PoseRecord, TrackingState
@@ -49,31 +50,36 @@ class MavlinkConfig:
     autopilot's own noise parameters (EKF2_EVP_NOISE/EKF2_EVA_NOISE, VISO_POS_M_NSE/VISO_YAW_M_NSE) apply.
     """
 
-    message: str = "vision_position_estimate"
-    mount: CameraMount = field(default_factory=CameraMount)
-    world_frame: str | np.ndarray = "enu"
-    system_id: int = 1
-    component_id: int = MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY
-    pos_std_m: float | None = None
-    ang_std_rad: float | None = None
+    message: str = knob("vision_position_estimate", "MAVLink message: vision_position_estimate or odometry.")
+    mount: CameraMount = knob(reason="Where the camera sits on the vehicle (body FRD).", factory=CameraMount)
+    world_frame: str | np.ndarray = knob("enu", "Axes of the map's world frame: a name (enu, ...) or a 3x3 rotation.")
+    system_id: int = knob(1, "MAVLink system id of the sender (the vehicle's).")
+    component_id: int = knob(MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY, "MAVLink component id (visual-inertial odometry).")
+    pos_std_m: float | None = knob(None, "Position standard deviation (m) for the covariance; None: unknown.")
+    ang_std_rad: float | None = knob(None, "Angle standard deviation (rad) for the covariance; None: unknown.")
 
     @classmethod
     def from_flags(
         cls,
-        message: str = "vision_position_estimate",
+        message: str | None = None,
         mount: str = "forward",
         offset: str = "0,0,0",
         pitch_deg: float = 0.0,
-        world_frame: str = "enu",
+        world_frame: str | None = None,
     ) -> MavlinkConfig:
-        """From command-line text, e.g. ``--mount forward --mount-offset 0.1,0,-0.05 --world-frame enu``."""
+        """From command-line text, e.g. ``--mount forward --mount-offset 0.1,0,-0.05 --world-frame enu``; None
+        takes the field's default."""
         try:
             xyz = tuple(float(v) for v in offset.split(","))
         except ValueError:
             xyz = ()
         if len(xyz) != 3 or not all(math.isfinite(v) for v in xyz):
             raise InputError(None, f"camera offset must be three numbers x,y,z in metres (body FRD), got {offset!r}")
-        return cls(message, CameraMount.preset(mount, xyz, pitch_deg=pitch_deg), world_frame)  # type: ignore[arg-type]
+        return cls(
+            knob_default(cls, "message") if message is None else message,
+            CameraMount.preset(mount, xyz, pitch_deg=pitch_deg),
+            knob_default(cls, "world_frame") if world_frame is None else world_frame,
+        )
 
     def __post_init__(self) -> None:
         if self.message not in MESSAGES:

@@ -63,7 +63,8 @@ def euler_to_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
 
 
 def matrix_to_euler(R: np.ndarray) -> tuple[float, float, float]:
-    """(roll, pitch, yaw) in radians of a body -> NED rotation (3, 3); inverse of euler_to_matrix away from pitch = +-90 deg."""
+    """(roll, pitch, yaw) in radians of a body -> NED rotation (3, 3); inverse of euler_to_matrix away from
+    pitch = +-90 deg."""
     R = np.asarray(R, dtype=np.float64)
     roll = math.atan2(R[2, 1], R[2, 2])
     pitch = -math.asin(min(1.0, max(-1.0, R[2, 0])))
@@ -87,7 +88,8 @@ def _rotation(name_or_matrix: str | np.ndarray, presets: dict[str, np.ndarray], 
 
 @dataclass(frozen=True, eq=False)
 class CameraMount:
-    """Where the camera is on the vehicle: ``R_body_cam`` (3, 3) and the optical centre ``t_body_cam`` (3,) in body FRD, metres."""
+    """Where the camera is on the vehicle: ``R_body_cam`` (3, 3) and the optical centre ``t_body_cam`` (3,) in
+    body FRD, metres."""
 
     R_body_cam: np.ndarray = field(default_factory=lambda: MOUNTS["forward"].copy())
     t_body_cam: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -108,7 +110,8 @@ class CameraMount:
         pitch_deg: float = 0.0,
         yaw_deg: float = 0.0,
     ) -> CameraMount:
-        """A preset direction, tilted by body-frame Euler angles (pitch_deg=-20: a forward camera tilted 20 deg down)."""
+        """A preset direction, tilted by body-frame Euler angles (pitch_deg=-20: a forward camera tilted 20 deg
+        down)."""
         tilt = euler_to_matrix(math.radians(roll_deg), math.radians(pitch_deg), math.radians(yaw_deg))
         return cls(tilt @ _rotation(name, MOUNTS, "camera mount"), np.asarray(offset_m, dtype=np.float64))
 

@@ -20,7 +20,6 @@ import math
 import struct
 import zlib
 from dataclasses import dataclass
-from typing import Union
 
 import numpy as np
 
@@ -153,7 +152,7 @@ class Ack:
     result: AckResult
 
 
-Message = Union[Pose, Status, Command, Ack]
+Message = Pose | Status | Command | Ack
 
 
 @dataclass(frozen=True)

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 import serial
 
+from acesplat.core.config import knob, knob_default
 from acesplat.core.errors import InputError
 from acesplat.core.pose import PoseRecord
 from firmware_bridge.decoder import StreamDecoder
@@ -47,8 +48,26 @@ log = logging.getLogger(__name__)
 
 PROTOCOLS = ("frame", "mavlink")
 MAX_RATE_HZ = 1000.0
+"""The highest pose rate a sink accepts."""
 EVENT_QUEUE = 64
 """Undelivered command events kept; older ones are dropped (and counted) if nobody polls."""
+
+
+@dataclass(frozen=True)
+class SinkConfig:
+    """The sink's settings; PoseSink and open_sink take them as keyword arguments with these defaults."""
+
+    baud: int = knob(115200, "Serial baud rate.")
+    protocol: str = knob("frame", "frame (acesplat protocol v1) or mavlink.")
+    rate_hz: float | None = knob(None, "Cap on poses per second (None: every pose, as fast as the link takes them).")
+    heartbeat_hz: float = knob(1.0, "STATUS (frame protocol) or HEARTBEAT (MAVLink) messages per second.")
+    max_age_s: float = knob(0.5, "A pose waiting longer than this for the link is skipped, not sent late.")
+    backoff_s: tuple[float, float] = knob((0.05, 2.0), "Reopen backoff of a lost port: first and longest wait (s).")
+    wait_for_port: bool = knob(False, "Start without the port and open it when it appears (else: error at once).")
+
+
+def _default(name: str) -> Any:
+    return knob_default(SinkConfig, name)
 
 
 @dataclass(frozen=True)
@@ -130,15 +149,15 @@ class PoseSink:
     def __init__(
         self,
         opener: Opener,
-        protocol: str = "frame",
-        rate_hz: float | None = None,
+        protocol: str = _default("protocol"),
+        rate_hz: float | None = _default("rate_hz"),
         *,
         mavlink: MavlinkConfig | None = None,
         on_command: Callable[[CommandEvent], None] | None = None,
-        wait_for_port: bool = False,
-        heartbeat_hz: float = 1.0,
-        max_age_s: float = 0.5,
-        backoff_s: tuple[float, float] = (0.05, 2.0),
+        wait_for_port: bool = _default("wait_for_port"),
+        heartbeat_hz: float = _default("heartbeat_hz"),
+        max_age_s: float = _default("max_age_s"),
+        backoff_s: tuple[float, float] = _default("backoff_s"),
         name: str | None = None,
     ) -> None:
         if protocol not in PROTOCOLS:
@@ -417,13 +436,13 @@ class PoseSink:
 
 def open_sink(
     port: str,
-    baud: int = 115200,
-    protocol: str = "frame",
-    rate_hz: float | None = None,
+    baud: int = _default("baud"),
+    protocol: str = _default("protocol"),
+    rate_hz: float | None = _default("rate_hz"),
     *,
     mavlink: MavlinkConfig | None = None,
     on_command: Callable[[CommandEvent], None] | None = None,
-    wait_for_port: bool = False,
+    wait_for_port: bool = _default("wait_for_port"),
 ) -> PoseSink:
     """Open ``port`` (device path or pyserial URL) and start sending; see PoseSink.
 

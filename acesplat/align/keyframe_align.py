@@ -1,16 +1,15 @@
 """A localized pose refined against the mapping images: warp, dense flow, PnP (torch-free).
 
 Why: the SCR head's coordinates for a view it never saw are off by a pixel or two coherently over whole
-regions (bench/herz_gap.md), which no pose solver averages out: on herzjesu25 the test frames land 4-8 cm
-off while the training frames land within 1 cm. The training views themselves are known exactly (their
+regions, which no pose solver averages out: test frames land centimetres off where training frames land within
+one (bench/herz_gap.md). The training views themselves are known exactly (their
 poses are the mapping input) and the head gives their depth to about a pixel, so each of the nearest
 training views is re-rendered at the estimated pose (acesplat.align.depth_warp), dense optical flow carries
 its pixels to where the query actually shows them, and PnP on (training pixel's 3D point, query pixel)
 pairs gives the refined pose; repeated from the refined pose. The flow is sub-pixel on texture and the
 3D points depend on the head's depth only through the small parallax between the training view and the
 query, so the SCR pose's coherent error does not carry over; the keyframes' depth is re-measured between them
-first (acesplat.align.keyframe_depth). Measured (bench/herz_gap.md, session 11): herzjesu25 test medians 3.2-4.3 ->
-1.6-2.1 cm; the built-in room 98.3% -> 100% within 5 cm / 5 deg, median 1.35 -> 0.16 cm.
+first (acesplat.align.keyframe_depth). The gain on herzjesu25 and the built-in room is in bench/herz_gap.md.
 
 The query is first resampled to each training view's intrinsics (a homography, exact for pinhole
 cameras), so cameras with other calibrations align too.
@@ -26,14 +25,14 @@ import numpy as np
 
 from acesplat.align.depth_warp import forward_map, warp_to_camera
 from acesplat.core.camera import Intrinsics
+from acesplat.core.config import knob_default
 from acesplat.core.geometry import invert_pose, make_pose, pose_error
 from acesplat.core.grid import OUTPUT_STRIDE, grid_correspondences
-from acesplat.core.pnp import DEFAULT_THRESHOLD_PX
+from acesplat.core.pnp import PnPConfig
 from acesplat.core.pose_refine import reprojection
 
 KEYFRAMES = 4
-"""Training views used per query. Measured on three herzjesu25 maps: one view alone diverged on two of seven
-frames (too little overlap at the trajectory's ends); four gave every frame but one within 2.5 cm."""
+"""Training views used per query: one alone overlaps too little at a trajectory's ends (bench/herz_gap.md)."""
 MAX_VIEW_ANGLE_DEG = 30.0
 """A training view looking more than this away from the query shows too little of the same scene to warp."""
 ROTATION_WEIGHT = 0.25
@@ -58,8 +57,7 @@ MAX_SHIFT_DEG = 3.0
 """A correction beyond these means the SCR pose was wrong, not imprecise: the SCR pose is kept."""
 MIN_ANCHOR_KEPT = 0.8
 """The refined pose must keep this share of the SCR correspondences' inliers (at the solver's threshold) that the
-start pose had. On the built-in room (60 test frames) one alignment went from 1.5 cm to 11 cm / 4.6 deg through a
-flow that locked onto the wrong structure; the scene coordinates, which agree with the start pose, refuse it."""
+start pose had: a flow locked onto the wrong structure is refused by the scene coordinates (bench/herz_gap.md)."""
 
 
 @dataclass(frozen=True)
@@ -298,4 +296,4 @@ def anchor_inliers(anchor: tuple[np.ndarray, np.ndarray], intrinsics: Intrinsics
     finite = np.all(np.isfinite(points), axis=1)
     w2c = invert_pose(pose_c2w)
     _, _, err = reprojection(points[finite], pixels[finite], intrinsics.K, w2c[:3, :3], w2c[:3, 3])
-    return int(np.count_nonzero(err < DEFAULT_THRESHOLD_PX))
+    return int(np.count_nonzero(err < knob_default(PnPConfig, "threshold_px")))

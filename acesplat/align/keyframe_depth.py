@@ -1,10 +1,10 @@
 """A keyframe's depth re-measured from its neighbouring keyframes: flow, then triangulation with the known poses.
 
 Why: keyframe alignment (acesplat.align.keyframe_align) takes the 3D points from the keyframe's depth, and that
-depth comes from the SCR head: on the built-in room it is 5-10 cm off at 2 m, which moves a warp at a
-quarter-metre baseline by about a pixel, and aligned poses by centimetres (with the rendered depth instead:
-1 mm). The mapping poses are exact, so each keyframe pixel found in a neighbour by the same warp + flow is
-triangulated along its own ray; the flow's sub-pixel error then sets the depth error, not the head.
+depth comes from the SCR head, whose error of a few centimetres moves a warp by about a pixel and aligned poses
+by centimetres (bench/herz_gap.md). The mapping poses are exact, so each keyframe pixel found in a neighbour by
+the same warp + flow is triangulated along its own ray; the flow's sub-pixel error then sets the depth error,
+not the head.
 """
 
 from __future__ import annotations
@@ -21,9 +21,8 @@ from acesplat.core.grid import OUTPUT_STRIDE
 NEIGHBOURS = 2
 BASELINE_RATIO = 0.1
 """Neighbours are the keyframes whose baseline is nearest this fraction of the scene depth (and that look within
-MAX_VIEW_ANGLE_DEG): the adjacent frame of a dense sequence shows too little parallax to triangulate. On the
-built-in room the median depth error of five keyframes fell from 2.0-8.1 cm to 1.4-4.6 cm (the adjacent frames:
-hardly at all)."""
+MAX_VIEW_ANGLE_DEG): the adjacent frame of a dense sequence shows too little parallax to triangulate
+(bench/herz_gap.md)."""
 MIN_PARALLAX_PX_PER_DEPTH = 2.0
 """A pixel is triangulated only if a depth change of 100% moves it this far in the neighbour (a baseline that
 shows the depth at all); at 0.1 px of flow noise and 2 px that is 5% of the depth at worst."""

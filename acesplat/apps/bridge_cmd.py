@@ -11,13 +11,13 @@ from typing import Any
 import numpy as np
 import typer
 
-from acesplat.apps.support import PhaseProgress, one_line_errors, report_json
+from acesplat.apps.support import PhaseProgress, one_line_errors, option, report_json
 from acesplat.core.errors import InputError
 from acesplat.core.geometry import look_at
 from acesplat.core.pose import PoseRecord, TrackingState
 from firmware_bridge.decoder import StreamDecoder
 from firmware_bridge.protocol import Frame, Pose, RuntimeState
-from firmware_bridge.sink import MAX_RATE_HZ, PROTOCOLS, PoseSink, open_sink
+from firmware_bridge.sink import MAX_RATE_HZ, PROTOCOLS, PoseSink, SinkConfig, open_sink
 from firmware_bridge.transport import SerialLink, serial_opener
 
 app = typer.Typer(
@@ -53,9 +53,9 @@ def describe(frame: Frame) -> str:
 @one_line_errors
 def monitor(
     port: str = typer.Argument(..., help="Serial device or pyserial URL (e.g. /dev/ttyUSB0, loop://)."),
-    protocol: str = typer.Option("frame", help="frame (protocol v1) or mavlink."),
+    protocol: str = option(SinkConfig, "protocol"),
     seconds: float | None = typer.Option(None, help="Stop after this long (default: until Ctrl-C)."),
-    baud: int = typer.Option(115200, help="Baud rate."),
+    baud: int = option(SinkConfig, "baud"),
     quiet: bool = typer.Option(False, "--quiet", help="Only counts, no line per message."),
     json_out: Path | None = typer.Option(None, "--json", help="Write the counts here."),
 ) -> None:
@@ -108,7 +108,8 @@ def monitor(
     if isinstance(decoder, StreamDecoder):
         report["rejected_by_reason"] = dict(decoder.rejects)
     print(
-        f"frames ok {decoder.frames_ok}, rejected {decoder.frames_rejected}, bytes {decoder.bytes}, messages {dict(counts)}"
+        f"frames ok {decoder.frames_ok}, rejected {decoder.frames_rejected}, bytes {decoder.bytes}, "
+        f"messages {dict(counts)}"
     )
     report_json(json_out, report)
 
@@ -135,8 +136,8 @@ def send_test(
     port: str = typer.Argument(..., help="Serial device or pyserial URL."),
     rate: float = typer.Option(30.0, help="Poses per second."),
     seconds: float = typer.Option(10.0, help="How long to send."),
-    protocol: str = typer.Option("frame", help="frame (protocol v1) or mavlink."),
-    baud: int = typer.Option(115200, help="Baud rate."),
+    protocol: str = option(SinkConfig, "protocol"),
+    baud: int = option(SinkConfig, "baud"),
     json_out: Path | None = typer.Option(None, "--json", help="Write the link statistics here."),
 ) -> None:
     """Send synthetic poses so the microcontroller side can be brought up without a camera.

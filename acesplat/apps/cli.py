@@ -1,4 +1,4 @@
-"""`acesplat`: the desktop program (synth, map, eval, splat, render, export, demo)."""
+"""`acesplat`: the desktop program (synth, import, map, demo, eval, pretrain-encoder, splat, render, export)."""
 
 from __future__ import annotations
 

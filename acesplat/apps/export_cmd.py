@@ -8,7 +8,9 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from acesplat.apps.support import PhaseProgress, one_line_errors, parse_size, report_json
+from acesplat.apps.support import PhaseProgress, one_line_errors, option, parse_size, report_json
+from acesplat.core.config import knob_help
+from export.options import ExportOptions
 
 console = Console()
 
@@ -75,32 +77,22 @@ def checks_table(manifest: dict) -> Table:
 def export_command(
     map_path: Path = typer.Argument(..., metavar="MAP", help="Map file from `acesplat map`."),
     out: Path = typer.Option(..., "-o", "--out", help="Bundle directory to write (replaced if it is a bundle)."),
-    int8: bool = typer.Option(False, "--int8", help="Also write a statically quantized INT8 model."),
-    size: str | None = typer.Option(
-        None, help="Input size HxW (default: the map's short side, training aspect ratio)."
-    ),
-    encoder: Path | None = typer.Option(None, help="Encoder weights if not where the map says."),
-    scene: Path | None = typer.Option(None, help="Scene folder if not where the map says (calibration and checks)."),
+    int8: bool = option(ExportOptions, "int8", "--int8"),
+    size: str | None = typer.Option(None, help=knob_help(ExportOptions, "size_hw")),
+    encoder: Path | None = option(ExportOptions, "encoder_path", "--encoder"),
+    scene: Path | None = option(ExportOptions, "scene_path", "--scene"),
     json_out: Path | None = typer.Option(None, "--json", help="Write the manifest and timings here."),
     splat: Path | None = typer.Option(
         None, "--splat", help="Splat folder from `acesplat splat`: add its Gaussians and initializer (edge refinement)."
     ),
-    dense: bool = typer.Option(
-        False,
-        help="Coordinates every 4th pixel instead of every 8th (as `acesplat eval --dense`): "
-        "more accurate poses at about 3.5x the SCR time; no --splat.",
-    ),
-    keyframes: bool = typer.Option(
-        False,
-        help="Carry the training images with their depth, so the edge can "
-        "refine poses against them (acesplat-edge replay/localize --align).",
-    ),
+    dense: bool = option(ExportOptions, "dense"),
+    keyframes: bool = option(ExportOptions, "keyframes"),
 ) -> None:
     """Export a map to an ONNX bundle (FP32, optionally INT8) that checks itself."""
     import torch
 
     from acesplat.core.errors import InputError
-    from export.bundle_export import ExportOptions, export_bundle
+    from export.bundle_export import export_bundle
 
     if dense and splat is not None:
         raise InputError(splat, "--splat needs the stride-8 SCR graph its initializer was trained on; drop --dense")

@@ -8,7 +8,7 @@ from pathlib import Path
 import typer
 
 from acesplat.apps.support import CountProgress, one_line_errors, option, report_json
-from acesplat.importers.common import DEFAULT_TEST_EVERY
+from acesplat.importers.common import ImportConfig
 from acesplat.importers.dispatch import import_scene
 from acesplat.importers.rosbag import RosbagImportConfig
 
@@ -34,8 +34,9 @@ def import_command(
         "--images",
         help="Images folder (COLMAP: default images/ near the model; transforms: replaces the json's folder).",
     ),
-    test_every: int = typer.Option(
-        DEFAULT_TEST_EVERY,
+    test_every: int = option(
+        ImportConfig,
+        "test_every",
         "--test-every",
         min=0,
         help="Every N-th frame (natural name order, from the first) goes to test; 0 = none. "

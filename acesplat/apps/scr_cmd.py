@@ -1,4 +1,4 @@
-"""`acesplat map`, `acesplat eval` and `acesplat pretrain-encoder`. Torch is imported inside the commands."""
+"""`acesplat map`, `acesplat eval` and `acesplat pretrain-encoder`."""
 
 from __future__ import annotations
 
@@ -9,11 +9,13 @@ from rich.console import Console
 from rich.table import Table
 
 from acesplat.apps.support import PhaseProgress, one_line_errors, option, parse_size, report_json
-from acesplat.core.config import knob_default
+from acesplat.core.config import knob_default, knob_help
 from acesplat.core.errors import InputError
 from acesplat.scr.device import resolve_device
+from acesplat.scr.localize import Localizer
 from acesplat.scr.mapping import MappingConfig
 from acesplat.scr.network import HeadConfig
+from acesplat.scr.pretrain import PretrainConfig
 
 console = Console()
 
@@ -169,11 +171,7 @@ def eval_command(
     encoder: Path | None = typer.Option(None, help="Encoder weights if not where the map says."),
     json_out: Path | None = typer.Option(None, "--json", help="Write the numbers here."),
     plot: Path | None = typer.Option(None, help="Plot estimated against true camera positions (PNG)."),
-    dense: bool = typer.Option(
-        False,
-        help="Predict every 4th pixel instead of every 8th: 4x the correspondences at about 3.5x the time "
-        "(bench/herz_gap.md).",
-    ),
+    dense: bool = typer.Option(False, help=knob_help(Localizer, "output_stride")),
     align: bool = typer.Option(
         False,
         help="Refine each localized pose against the nearest training images of SCENE (warped with "
@@ -216,28 +214,32 @@ def eval_command(
 @one_line_errors
 def pretrain_command(
     out: Path = typer.Argument(..., help="Folder for the scene cache, checkpoint and the final encoder.pt."),
-    minutes: float = typer.Option(60.0, help="Stop (and checkpoint) after this long; run again to resume."),
-    steps: int = typer.Option(6000, help="Total optimisation steps (the schedule spans these)."),
-    scenes: int = typer.Option(48, help="Procedural scenes, one head each."),
-    frames: int = typer.Option(60, help="Frames per scene."),
-    size: str = typer.Option("240x320", help="Rendered frame size HxW."),
-    seed: int = typer.Option(0),
+    minutes: float = option(PretrainConfig, "minutes"),
+    steps: int = option(PretrainConfig, "steps"),
+    scenes: int = option(PretrainConfig, "scenes"),
+    frames: int = option(PretrainConfig, "frames_per_scene", "--frames"),
+    size: str = typer.Option(
+        "x".join(map(str, knob_default(PretrainConfig, "image_hw"))), help=knob_help(PretrainConfig, "image_hw")
+    ),
+    seed: int = option(PretrainConfig, "seed"),
     threads: int = typer.Option(0, help="CPU threads (0 = all cores); 1 is faster when other jobs share the cores."),
     install: bool = typer.Option(False, help="Install the resulting encoder as the shipped default (with provenance)."),
 ) -> None:
     """Pretrain the project's own encoder on procedural scenes (resumable)."""
     import torch
 
-    from acesplat.scr.pretrain import PretrainConfig, pretrain
+    from acesplat.scr.pretrain import pretrain
 
     if threads > 0:
         torch.set_num_threads(threads)
     import sys
 
-    cfg = PretrainConfig(scenes=scenes, frames_per_scene=frames, image_hw=parse_size(size), steps=steps, seed=seed)
+    cfg = PretrainConfig(
+        minutes=minutes, scenes=scenes, frames_per_scene=frames, image_hw=parse_size(size), steps=steps, seed=seed
+    )
     command = "acesplat " + " ".join(sys.argv[1:])
     with PhaseProgress("pretrain ") as bar:
-        summary = pretrain(out, cfg, minutes, bar, command)
+        summary = pretrain(out, cfg, progress=bar, command=command)
     console.print(summary)
     if install:
         from acesplat.scr.pretrain import install_default

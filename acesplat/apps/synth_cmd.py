@@ -6,27 +6,22 @@ from pathlib import Path
 
 import typer
 
-from acesplat.apps.support import CountProgress, one_line_errors, parse_size, report_json
+from acesplat.apps.support import CountProgress, one_line_errors, option, parse_size, report_json
+from acesplat.core.config import knob_default, knob_help
 from acesplat.core.errors import InputError
-from acesplat.synth.dataset import DEFAULT_SUPERSAMPLE, DEFAULT_TEST_FRAMES, DEFAULT_TRAIN_FRAMES, synthesize
+from acesplat.synth.dataset import SynthConfig, synthesize
 
 
 @one_line_errors
 def synth_command(
     out: Path = typer.Argument(..., help="Scene folder to create (must be new or empty unless --overwrite)."),
-    seed: int = typer.Option(0, "--seed", help="Room, textures and camera path all follow from this seed."),
-    frames: int = typer.Option(DEFAULT_TRAIN_FRAMES, "--frames", help="Training frames (one pass around the room)."),
-    test_frames: int = typer.Option(
-        DEFAULT_TEST_FRAMES, "--test-frames", help="Test frames (a separate, offset pass)."
+    seed: int = option(SynthConfig, "seed", "--seed"),
+    frames: int = option(SynthConfig, "train_frames", "--frames"),
+    test_frames: int = option(SynthConfig, "test_frames", "--test-frames"),
+    size: str = typer.Option(
+        "x".join(map(str, knob_default(SynthConfig, "size"))), "--size", help=knob_help(SynthConfig, "size")
     ),
-    size: str = typer.Option("240x320", "--size", help="Image size HxW."),
-    supersample: int = typer.Option(
-        DEFAULT_SUPERSAMPLE,
-        "--supersample",
-        min=1,
-        max=4,
-        help="Rays per pixel side on surface boundaries (antialiasing).",
-    ),
+    supersample: int = option(SynthConfig, "supersample", "--supersample", min=1, max=4),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing non-empty OUT."),
     json_out: Path | None = typer.Option(None, "--json", help="Write the summary (counts, timings, room) as JSON."),
 ) -> None:

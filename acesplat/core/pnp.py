@@ -5,12 +5,14 @@ Shared by desktop evaluation and the edge runtime so both compute poses the same
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Any
 
 import cv2
 import numpy as np
 
 from acesplat.core.camera import Intrinsics
+from acesplat.core.config import knob
 from acesplat.core.geometry import invert_pose, make_pose, rodrigues_to_matrix
 from acesplat.core.grid import OUTPUT_STRIDE, grid_correspondences
 from acesplat.core.pose_refine import ROBUST_SCALES, refine_pose_robust, reprojection
@@ -24,18 +26,33 @@ PNP_METHODS = (
     "ransac_sqpnp",
     "ransac_epnp",
 )
-DEFAULT_METHOD = "ransac_ap3p"
-FALLBACK_METHOD = "usac_magsac"
-"""Tried when the default's pose fails the inlier gate: on the built-in scene's test frame 0 AP3P returned the
-mirror pose (scene behind the camera) where MAGSAC found one in front."""
-DEFAULT_THRESHOLD_PX = 10.0
-"""Inlier threshold in pixels of the network input image (ACE uses 10 px)."""
 DEFAULT_MIN_INLIERS = 50
-DEFAULT_ITERATIONS = 1000
-DEFAULT_CONFIDENCE = 0.9999
+"""Kept importable for edge/runtime.py; the knob is PnPConfig.min_inliers."""
 RANSAC_SEED = 0
 """RANSAC's random samples are seeded per call: the same predictions always give the same pose, so
 torch-vs-ONNX parity, replays and tests compare solutions, not random draws."""
+
+
+@dataclass(frozen=True)
+class PnPConfig:
+    """The PnP solver's settings, shared by desktop evaluation, the edge runtime and the benchmarks."""
+
+    method: str = knob("ransac_ap3p", "PnP-RANSAC solver (one of PNP_METHODS; bench/pnp_choice.md).")
+    threshold_px: float = knob(10.0, "Inlier threshold in pixels of the network input image (ACE's 10 px).")
+    min_inliers: int = knob(50, "Inliers a pose needs to count as localized (TRACKING rather than LOST).")
+    iterations: int = knob(1000, "RANSAC iterations at most.")
+    confidence: float = knob(0.9999, "RANSAC confidence: it stops early once this sure of the best sample.")
+    robust_scales: tuple[float, ...] = knob(
+        ROBUST_SCALES, "Cauchy scales (px) of the robust refinement; () refines RANSAC's inliers with LM instead."
+    )
+    fallback: str | None = knob(
+        "usac_magsac", "Solver retried when the pose fails the inlier gate (AP3P can return the mirror pose); None."
+    )
+
+    def __post_init__(self) -> None:
+        for m in (self.method, self.fallback):
+            if m is not None and m not in PNP_METHODS:
+                raise ValueError(f"unknown PnP method {m!r}; choose from {PNP_METHODS}")
 
 
 @dataclass
@@ -69,48 +86,40 @@ def solve_pnp(
     pixels: np.ndarray,
     points: np.ndarray,
     intrinsics: Intrinsics,
-    method: str = DEFAULT_METHOD,
-    threshold_px: float = DEFAULT_THRESHOLD_PX,
-    min_inliers: int = DEFAULT_MIN_INLIERS,
-    iterations: int = DEFAULT_ITERATIONS,
-    confidence: float = DEFAULT_CONFIDENCE,
-    robust_scales: tuple[float, ...] = ROBUST_SCALES,
-    fallback: str | None = FALLBACK_METHOD,
+    config: PnPConfig | None = None,
+    **overrides: Any,
 ) -> PnPResult:
     """Camera-to-world pose from pixels (N, 2) and scene points (N, 3) of an undistorted pinhole image.
 
     RANSAC finds the pose, then a Cauchy-weighted refinement over all correspondences with the scale
     annealed through ``robust_scales`` (pixels) lets the precise ones decide (acesplat.core.pose_refine);
-    with ``robust_scales=()`` Levenberg-Marquardt on RANSAC's inliers refines instead. The frame counts as localized only with
-    at least ``min_inliers`` inliers (the gate that turns a guess into TRACKING or LOST); a pose that fails it
-    is retried once with ``fallback`` (None: no retry, for comparing solvers on their own).
+    with ``robust_scales=()`` Levenberg-Marquardt on RANSAC's inliers refines instead. The frame counts as
+    localized only with at least ``min_inliers`` inliers (the gate that turns a guess into TRACKING or LOST); a
+    pose that fails it is retried once with ``fallback`` (None: no retry, for comparing solvers on their own).
+
+    ``config`` (default PnPConfig()) holds the settings; ``overrides`` replace some of its fields by name
+    (e.g. ``method="usac_magsac"``, ``min_inliers=20``).
     """
+    cfg = replace(config or PnPConfig(), **overrides) if overrides else (config or PnPConfig())
     pixels = np.ascontiguousarray(pixels, dtype=np.float64).reshape(-1, 2)
     points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
     if pixels.shape[0] != points.shape[0]:
         raise ValueError(f"pixels {pixels.shape} and points {points.shape} differ in count")
-    for m in (method, fallback):
-        if m is not None and m not in PNP_METHODS:
-            raise ValueError(f"unknown PnP method {m!r}; choose from {PNP_METHODS}")
     finite = np.isfinite(points).all(axis=1)
     pixels, points = pixels[finite], points[finite]
     n = pixels.shape[0]
     if n < 6:
         return PnPResult(None, 0, n, False)
-    first = _ransac_and_refine(
-        pixels, points, intrinsics.K, method, threshold_px, iterations, confidence, robust_scales
-    )
-    if first[1] >= min_inliers or fallback is None or fallback == method:
+    first = _ransac_and_refine(pixels, points, intrinsics.K, cfg.method, cfg)
+    if first[1] >= cfg.min_inliers or cfg.fallback is None or cfg.fallback == cfg.method:
         best = first
     else:
         # P3P-family RANSAC scores hypotheses without a cheirality check and can return the mirror pose with the
         # scene behind the camera; the final recount then finds no inliers. Retry once with another solver.
-        second = _ransac_and_refine(
-            pixels, points, intrinsics.K, fallback, threshold_px, iterations, confidence, robust_scales
-        )
+        second = _ransac_and_refine(pixels, points, intrinsics.K, cfg.fallback, cfg)
         best = second if second[1] > first[1] else first
     T_c2w, inliers = best
-    return PnPResult(T_c2w, inliers, n, T_c2w is not None and inliers >= min_inliers)
+    return PnPResult(T_c2w, inliers, n, T_c2w is not None and inliers >= cfg.min_inliers)
 
 
 def _ransac_and_refine(
@@ -118,12 +127,10 @@ def _ransac_and_refine(
     points: np.ndarray,
     K: np.ndarray,
     method: str,
-    threshold_px: float,
-    iterations: int,
-    confidence: float,
-    robust_scales: tuple[float, ...],
+    cfg: PnPConfig,
 ) -> tuple[np.ndarray | None, int]:
     """Camera-to-world pose and its inlier count under the final pose, or (None, 0) when the solver fails."""
+    threshold_px, iterations, confidence = cfg.threshold_px, cfg.iterations, cfg.confidence
     dist = np.zeros(5)
     cv2.setRNGSeed(RANSAC_SEED)
     try:
@@ -152,10 +159,10 @@ def _ransac_and_refine(
         return None, 0
     if not ok or inl is None or len(inl) < 4:
         return None, 0
-    if robust_scales:
+    if cfg.robust_scales:
         # The robust refinement starts from RANSAC's pose directly: an LM polish first changed no
         # pose measurably (bench/pnp_choice.md) and cost 1.5 ms at 2700 correspondences.
-        r, t = refine_pose_robust(pixels, points, K, rvec, tvec, tuple(robust_scales))
+        r, t = refine_pose_robust(pixels, points, K, rvec, tvec, tuple(cfg.robust_scales))
     else:
         idx = inl.reshape(-1)
         rvec, tvec = cv2.solvePnPRefineLM(points[idx], pixels[idx], K, dist, rvec, tvec)
@@ -166,7 +173,14 @@ def _ransac_and_refine(
     return invert_pose(make_pose(R, t)), int(np.count_nonzero(err < threshold_px))
 
 
-def solve_from_grid(coords: np.ndarray, intrinsics: Intrinsics, stride: int = OUTPUT_STRIDE, **kwargs) -> PnPResult:
-    """Pose from a scene-coordinate grid (3, h, w) or (h, w, 3) predicted for an image with ``intrinsics``."""
+def solve_from_grid(
+    coords: np.ndarray,
+    intrinsics: Intrinsics,
+    stride: int = OUTPUT_STRIDE,
+    config: PnPConfig | None = None,
+    **overrides: Any,
+) -> PnPResult:
+    """Pose from a scene-coordinate grid (3, h, w) or (h, w, 3) predicted for an image with ``intrinsics``;
+    ``config`` and ``overrides`` as for solve_pnp."""
     points, pixels = grid_correspondences(coords, stride)
-    return solve_pnp(pixels, points, intrinsics, **kwargs)
+    return solve_pnp(pixels, points, intrinsics, config, **overrides)

@@ -9,12 +9,12 @@ every 8th frame to test unless the source ships a split.
 """
 
 from acesplat.importers.colmap_text import import_colmap_text
-from acesplat.importers.common import DEFAULT_TEST_EVERY, ImportSummary
+from acesplat.importers.common import ImportConfig, ImportSummary
 from acesplat.importers.dispatch import detect_format, import_scene
 from acesplat.importers.transforms_json import import_transforms_json
 
 __all__ = [
-    "DEFAULT_TEST_EVERY",
+    "ImportConfig",
     "ImportSummary",
     "detect_format",
     "import_colmap_text",

@@ -28,13 +28,13 @@ from acesplat.importers.colmap_text import (
     import_colmap_text,
 )
 from acesplat.importers.common import (
-    DEFAULT_TEST_EVERY,
     CameraSpec,
     ImportSummary,
     Progress,
     SourceFrame,
     check_output,
     check_test_every,
+    default_test_every,
     write_scene,
 )
 
@@ -168,7 +168,7 @@ def import_colmap_binary(
     model_dir: str | Path,
     images_dir: str | Path | None,
     out_scene: str | Path,
-    test_every: int = DEFAULT_TEST_EVERY,
+    test_every: int = default_test_every(),
     image_ext: str = ".png",
     progress: Progress | None = None,
 ) -> ImportSummary:
@@ -192,7 +192,7 @@ def import_colmap(
     model_dir: str | Path,
     images_dir: str | Path | None,
     out_scene: str | Path,
-    test_every: int = DEFAULT_TEST_EVERY,
+    test_every: int = default_test_every(),
     image_ext: str = ".png",
     progress: Progress | None = None,
 ) -> ImportSummary:

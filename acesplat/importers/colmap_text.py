@@ -23,13 +23,13 @@ import numpy as np
 from acesplat.core.errors import InputError
 from acesplat.core.geometry import invert_pose, make_pose, quat_to_matrix, rigidity_problem
 from acesplat.importers.common import (
-    DEFAULT_TEST_EVERY,
     CameraSpec,
     ImportSummary,
     Progress,
     SourceFrame,
     check_output,
     check_test_every,
+    default_test_every,
     write_scene,
 )
 
@@ -203,7 +203,7 @@ def import_colmap_text(
     model_dir: str | Path,
     images_dir: str | Path | None,
     out_scene: str | Path,
-    test_every: int = DEFAULT_TEST_EVERY,
+    test_every: int = default_test_every(),
     image_ext: str = ".png",
     progress: Progress | None = None,
 ) -> ImportSummary:

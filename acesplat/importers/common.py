@@ -24,13 +24,26 @@ import cv2
 import numpy as np
 
 from acesplat.core.camera import Intrinsics
+from acesplat.core.config import knob, knob_default
 from acesplat.core.errors import InputError
 from acesplat.core.scene import read_rgb, write_frame
 
-DEFAULT_TEST_EVERY = 8
 SIZE_RATIO_TOL = 0.01
 """An image whose size differs from its camera's by the same factor in x and y (within 1%) is a
 downscaled copy (nerfstudio's ``images_2``, ``images_4``): its intrinsics are rescaled, not refused."""
+
+
+@dataclass(frozen=True)
+class ImportConfig:
+    """The importers' settings; the import functions take them as keyword arguments with these defaults."""
+
+    test_every: int = knob(8, "Every N-th frame (natural name order, from the first) goes to test; 0 = none.")
+
+
+def default_test_every() -> int:
+    """ImportConfig.test_every's default (the signatures' default)."""
+    return knob_default(ImportConfig, "test_every")
+
 
 Progress = Callable[[int, int], None]
 """Called as ``progress(done, total)`` after each written frame."""
@@ -182,7 +195,7 @@ def write_scene(
     frames: list[SourceFrame],
     out_scene: str | Path,
     summary: ImportSummary,
-    test_every: int = DEFAULT_TEST_EVERY,
+    test_every: int = default_test_every(),
     image_ext: str = ".png",
     progress: Progress | None = None,
 ) -> ImportSummary:

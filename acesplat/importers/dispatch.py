@@ -8,7 +8,7 @@ from pathlib import Path
 from acesplat.core.errors import InputError
 from acesplat.importers.colmap_binary import import_colmap
 from acesplat.importers.colmap_text import find_colmap_model
-from acesplat.importers.common import DEFAULT_TEST_EVERY, ImportSummary, Progress
+from acesplat.importers.common import ImportSummary, Progress, default_test_every
 from acesplat.importers.rosbag import BAG_SUFFIXES, RosbagImportConfig, import_rosbag
 from acesplat.importers.transforms_json import SPLIT_FILES, import_transforms_json
 
@@ -41,7 +41,7 @@ def import_scene(
     out_scene: str | Path,
     fmt: str = "auto",
     images_dir: str | Path | None = None,
-    test_every: int = DEFAULT_TEST_EVERY,
+    test_every: int = default_test_every(),
     progress: Progress | None = None,
     rosbag: RosbagImportConfig | None = None,
 ) -> ImportSummary:

@@ -46,13 +46,13 @@ from acesplat.core.config import knob
 from acesplat.core.errors import InputError
 from acesplat.core.geometry import interpolate_pose, invert_pose, make_pose, quat_to_matrix
 from acesplat.importers.common import (
-    DEFAULT_TEST_EVERY,
     CameraSpec,
     ImportSummary,
     Progress,
     SourceFrame,
     check_output,
     check_test_every,
+    default_test_every,
     write_scene,
 )
 
@@ -386,7 +386,7 @@ def import_rosbag(
     src: str | Path,
     out_scene: str | Path,
     config: RosbagImportConfig | None = None,
-    test_every: int = DEFAULT_TEST_EVERY,
+    test_every: int = default_test_every(),
     image_ext: str = ".png",
     progress: Progress | None = None,
 ) -> RosbagSummary:

@@ -23,13 +23,13 @@ import numpy as np
 from acesplat.core.errors import InputError
 from acesplat.core.geometry import OPENGL_TO_OPENCV, rigidity_problem
 from acesplat.importers.common import (
-    DEFAULT_TEST_EVERY,
     CameraSpec,
     ImportSummary,
     Progress,
     SourceFrame,
     check_output,
     check_test_every,
+    default_test_every,
     find_image,
     write_scene,
 )
@@ -166,7 +166,7 @@ def read_transforms_frames(
 def import_transforms_json(
     transforms_path: str | Path,
     out_scene: str | Path,
-    test_every: int = DEFAULT_TEST_EVERY,
+    test_every: int = default_test_every(),
     images_dir: str | Path | None = None,
     image_ext: str = ".png",
     progress: Progress | None = None,

@@ -13,10 +13,11 @@ import torch
 
 from acesplat.align.keyframe_align import KeyframeAlignment, align_scr_pose
 from acesplat.core.camera import Intrinsics
+from acesplat.core.config import knob
 from acesplat.core.geometry import pose_error
 from acesplat.core.grid import OUTPUT_STRIDE
 from acesplat.core.metrics import FrameResult, accuracy_summary
-from acesplat.core.pnp import PnPResult, solve_from_grid
+from acesplat.core.pnp import PnPConfig, PnPResult, solve_from_grid
 from acesplat.core.preprocess import size_for_short_side, to_gray_input
 from acesplat.core.scene import SceneSplit
 from acesplat.scr.network import SCRNetwork
@@ -31,12 +32,18 @@ class Localizer:
 
     network: SCRNetwork
     short_side: int
-    pnp: dict
+    pnp: PnPConfig | dict = knob(
+        reason="PnP settings: a PnPConfig, or a dict of overrides of its defaults ({} for none).", factory=PnPConfig
+    )
     input_size: tuple[int, int] | None = None
     """Exact (H, W) to run at instead of the short side's (a bundle's stride-aligned size, for parity)."""
-    output_stride: int = OUTPUT_STRIDE
-    """DENSE_OUTPUT_STRIDE predicts four times the cells (half-cell shifts) at about four times the network's
-    cost; the errors of shifted cells are partly independent, so PnP averages more of them out."""
+    output_stride: int = knob(
+        OUTPUT_STRIDE,
+        "Pixels between predicted cells: 8, or 4 (--dense) for 4x the correspondences at about 3.5x the time "
+        "(bench/herz_gap.md).",
+    )
+    """DENSE_OUTPUT_STRIDE predicts four times the cells (half-cell shifts); the errors of shifted cells are
+    partly independent, so PnP averages more of them out."""
     keyframes: MapKeyframes | None = None
     """The mapping images: a localized pose is then refined against its nearest ones (acesplat.align.keyframe_align)."""
 
@@ -63,7 +70,10 @@ class Localizer:
         alignment's record (None when none was tried)."""
         gray, intr = self.network_input(rgb, intrinsics)
         coords = self.coordinates(gray)
-        res = solve_from_grid(coords, intr, stride=self.output_stride, **self.pnp)
+        if isinstance(self.pnp, PnPConfig):
+            res = solve_from_grid(coords, intr, stride=self.output_stride, config=self.pnp)
+        else:
+            res = solve_from_grid(coords, intr, stride=self.output_stride, **self.pnp)
         if self.keyframes is None or not res.localized or res.T_c2w is None:
             return res, None
         al = align_scr_pose(gray, intr, coords, self.output_stride, res.T_c2w, self.keyframes.near)

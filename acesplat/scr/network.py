@@ -15,6 +15,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from acesplat.core.config import knob
 from acesplat.core.grid import DENSE_OUTPUT_STRIDE, OUTPUT_STRIDE
 
 GRAY_MEAN = 0.4
@@ -59,9 +60,9 @@ ACE_ENCODER = EncoderConfig()
 class HeadConfig:
     """Scene-specific head: width of its 1x1 layers and the number of extra residual blocks."""
 
-    width: int = 512
-    blocks: int = 1
-    homogeneous: bool = True
+    width: int = knob(512, "Width of the head's 1x1 layers (ACE's 512).")
+    blocks: int = knob(1, "Extra residual blocks of the head (ACE's 1).")
+    homogeneous: bool = knob(True, "Predict homogeneous coordinates (ACE's clamped fourth channel) instead of xyz.")
 
     def as_dict(self) -> dict:
         return asdict(self)

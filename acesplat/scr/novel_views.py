@@ -8,14 +8,8 @@ the depth of every training pixel, so each training image can be warped to a cam
 neighbour (acesplat.align.depth_warp) and its features, with that camera's pose, join the buffer. Nothing
 but the training images and their poses is used.
 
-Measured on herzjesu25 (bench/herz_gap.md, session 9). Continuing two saved maps for 1,500 head steps at a
-low learning rate: test cells within 4 px 0.362 with the real buffer alone vs 0.399-0.400 with 300 warped
-views added; dense-evaluation medians 5.49 / 4.65 cm vs 3.16 / 3.50 cm. Inside mapping, fixed work (4,000
-head steps), paired seeds with and without: added halfway, test cells within 4 px 0.356-0.373 vs 0.317-0.351
-and stride-8 poses better on every seed, but dense poses worse (mean 5.18 vs 4.84 cm, three seeds) and the
-training cells fit much worse; added at 80%, at the schedule's low learning rates, dense poses better on both
-seeds tried (mean 4.50 vs 4.99 cm) with less harm to the fit. Two seeds are not enough to change the default:
-``acesplat map --novel-views 300`` asks for it.
+Whether and when they help is measured in bench/herz_gap.md ("Novel views"); too few seeds to make them the
+default, so ``acesplat map --novel-views 300`` asks for them.
 """
 
 from __future__ import annotations
@@ -41,9 +35,8 @@ if TYPE_CHECKING:
 NOVEL_VIEWS = 300
 """Warped views to add when asked for (about 2,000 cells each at 360 px); mapping's default is none."""
 NOVEL_VIEWS_AT = 0.8
-"""Share of the head's schedule after which they are made. At 0.5 the schedule's high learning rates spent
-the head on them at the real views' expense (dense poses worse); at 0.8 the low rates add them to a fitted
-head, as continuing a finished map did (dense poses better)."""
+"""Share of the head's schedule after which they are made: the low learning rates then add them to a fitted head
+instead of spending it on them at the real views' expense (bench/herz_gap.md)."""
 NOVEL_VIEWS_TIME_FRACTION = 0.12
 """At most this share of the mapping budget goes to warping and encoding them."""
 NEIGHBOURS = 3

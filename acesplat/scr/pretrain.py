@@ -6,10 +6,9 @@ within a scene and stable across viewpoints. Each procedural scene has exact wor
 every pixel (from its depth maps), so two nearby views give exact dense correspondences: a cell of one
 view must find its corresponding cell of the other among all cells of the batch (InfoNCE).
 
-Measured on this machine (bench/encoder_choice.md): ACE's own recipe, one coordinate-regression head per
-scene sharing the encoder, collapsed the features and sat at the predict-the-mean loss for 600 steps;
-the contrastive objective finds correct matches far above chance within 100 steps. Runs resume from a
-checkpoint, because pretraining spans several sessions.
+ACE's own recipe (one coordinate-regression head per scene sharing the encoder) collapsed the features where
+the contrastive objective did not (bench/encoder_choice.md). Runs resume from a checkpoint, so a long
+pretraining can be spread over several runs.
 """
 
 from __future__ import annotations
@@ -27,6 +26,7 @@ import torch.nn.functional as F
 
 from acesplat.core.atomic import atomic_path, write_json
 from acesplat.core.camera import Intrinsics
+from acesplat.core.config import knob
 from acesplat.core.grid import OUTPUT_STRIDE
 from acesplat.scr.augment import rotation_z
 from acesplat.scr.network import Encoder, EncoderConfig, normalize_gray
@@ -34,8 +34,7 @@ from acesplat.scr.network import Encoder, EncoderConfig, normalize_gray
 EDGE_ENCODER = EncoderConfig(c1=16, c2=32, c3=64, c4=128, res2=256, out=512)
 """The project's default encoder: a fifth of ACE's multiply-accumulates (bench/encoder_choice.md)."""
 CROP_HW = (128, 160)
-PAIRS_PER_STEP = 4
-"""Two views each; every cell competes against all cells of all second views (1280 candidates)."""
+"""Training crop (h, w) of each view."""
 PAIR_MAX_GAP = 6
 """Second view within this many frames along the trajectory (overlapping, different viewpoint)."""
 MATCH_TOLERANCE_M = 0.05
@@ -49,13 +48,16 @@ CHECKPOINT_EVERY_S = 120.0
 
 @dataclass
 class PretrainConfig:
-    scenes: int = 48
-    frames_per_scene: int = 60
-    image_hw: tuple[int, int] = (240, 320)
-    steps: int = 20000
-    pairs: int = PAIRS_PER_STEP
-    seed: int = 0
-    encoder: EncoderConfig = EDGE_ENCODER
+    minutes: float = knob(60.0, "Stop (and checkpoint) after this long; run again to resume.")
+    scenes: int = knob(48, "Procedural scenes, one head each.")
+    frames_per_scene: int = knob(60, "Frames per scene.")
+    image_hw: tuple[int, int] = knob((240, 320), "Rendered frame size HxW.")
+    steps: int = knob(6000, "Total optimisation steps (the schedule spans these).")
+    pairs: int = knob(4, "View pairs per step; each cell competes against all cells of all second views.")
+    seed: int = knob(0, "Seed of the scenes, crops and initialisation.")
+    encoder: EncoderConfig = knob(
+        EDGE_ENCODER, "Encoder widths to train (EDGE_ENCODER: a fifth of ACE's MACs; bench/encoder_choice.md)."
+    )
 
 
 @dataclass
@@ -188,20 +190,21 @@ def contrastive_loss(
 def pretrain(
     out_dir: str | Path,
     cfg: PretrainConfig,
-    minutes: float,
+    minutes: float | None = None,
     progress: Callable[[str, float, dict], None] | None = None,
     command: str | None = None,
 ) -> dict:
-    """Run (or resume) pretraining for at most ``minutes``; returns a summary. Writes encoder.pt when done.
+    """Run (or resume) pretraining for at most ``minutes`` (default ``cfg.minutes``); returns a summary. Writes
+    encoder.pt when done.
 
     Each call that trains appends its ``command``, steps and seconds to the checkpoint's ``sessions``: a run that spans
-    several sessions keeps its whole provenance (the schedule follows the ``steps`` of each call).
+    several calls keeps its whole provenance (the schedule follows the ``steps`` of each call).
     """
     out = Path(out_dir)
     cache = out / "scenes"
     cache.mkdir(parents=True, exist_ok=True)
     t0 = time.monotonic()
-    deadline = t0 + minutes * 60.0
+    deadline = t0 + (cfg.minutes if minutes is None else minutes) * 60.0
     scenes = []
     for i in range(cfg.scenes):
         scenes.append(load_or_make_scene(cache, cfg.seed * 100003 + i, cfg))
@@ -331,5 +334,6 @@ def install_default(out_dir: str | Path, command: str) -> Path:
 
 def _cfg_dict(cfg: PretrainConfig) -> dict:
     d = asdict(cfg)
+    del d["minutes"]  # a budget of this call, not of the run (a resumed run has several)
     d["encoder"] = cfg.encoder.as_dict()
     return json.loads(json.dumps(d))

@@ -2,7 +2,7 @@
 
 Still RGB + poses only. The reprojection loss leaves depth along each ray free except through
 agreement between views; a few thousand triangulated points pin it down early, so a CPU budget of
-minutes goes into refining instead of searching (see ../shared/notes/stage1-feasibility.md).
+minutes goes into refining instead of searching.
 """
 
 from __future__ import annotations

@@ -6,9 +6,7 @@ layout, ``random_scene_frames`` yields varied in-memory scenes for encoder pretr
 """
 
 from acesplat.synth.dataset import (
-    DEFAULT_IMAGE_SIZE,
-    DEFAULT_TEST_FRAMES,
-    DEFAULT_TRAIN_FRAMES,
+    SynthConfig,
     SynthFrame,
     default_intrinsics,
     random_scene,
@@ -21,13 +19,11 @@ from acesplat.synth.room import RoomScene, make_room
 from acesplat.synth.trajectory import TEST_PASS, TRAIN_PASS, CameraPath, make_trajectory
 
 __all__ = [
-    "DEFAULT_IMAGE_SIZE",
-    "DEFAULT_TEST_FRAMES",
-    "DEFAULT_TRAIN_FRAMES",
     "TEST_PASS",
     "TRAIN_PASS",
     "CameraPath",
     "RoomScene",
+    "SynthConfig",
     "SynthFrame",
     "default_intrinsics",
     "make_room",

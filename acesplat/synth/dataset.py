@@ -11,29 +11,42 @@ import os
 import shutil
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from acesplat.core.atomic import write_json
 from acesplat.core.camera import Intrinsics
+from acesplat.core.config import knob, knob_default
 from acesplat.core.errors import InputError
 from acesplat.core.scene import write_frame
 from acesplat.synth.render import render_view
 from acesplat.synth.room import RoomScene, make_room
 from acesplat.synth.trajectory import TEST_PASS, TRAIN_PASS, make_trajectory
 
-DEFAULT_IMAGE_SIZE = (240, 320)
-"""(H, W) of the built-in scene's images."""
 DEFAULT_HFOV_DEG = 62.0
-DEFAULT_TRAIN_FRAMES = 200
-DEFAULT_TEST_FRAMES = 60
-DEFAULT_SUPERSAMPLE = 2
+"""Horizontal field of view of the built-in scene's camera."""
 PIXELS_PER_TEXEL = 1.6
 """Texture density is the focal length / this: about one texel per pixel at 1.6 m."""
 MIN_IMAGE_SIDE = 8
 SUMMARY_FILE = "synth.json"
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    """The built-in scene's settings; ``synthesize`` takes them as keyword arguments with these defaults."""
+
+    seed: int = knob(0, "Room, textures and camera path all follow from this seed.")
+    train_frames: int = knob(200, "Training frames (one pass around the room).")
+    test_frames: int = knob(60, "Test frames (a separate, offset pass).")
+    size: tuple[int, int] = knob((240, 320), "Image size HxW.")
+    supersample: int = knob(2, "Rays per pixel side on surface boundaries (antialiasing).")
+
+
+def _default(name: str) -> Any:
+    return knob_default(SynthConfig, name)
 
 
 class SynthFrame(NamedTuple):
@@ -45,7 +58,7 @@ class SynthFrame(NamedTuple):
     K: np.ndarray
 
 
-def default_intrinsics(size: tuple[int, int] = DEFAULT_IMAGE_SIZE, hfov_deg: float = DEFAULT_HFOV_DEG) -> Intrinsics:
+def default_intrinsics(size: tuple[int, int] = _default("size"), hfov_deg: float = DEFAULT_HFOV_DEG) -> Intrinsics:
     """Square pixels, principal point at the image centre, horizontal field of view ``hfov_deg``."""
     h, w = size
     return Intrinsics.from_focal((w / 2.0) / np.tan(np.radians(hfov_deg) / 2.0), w, h)
@@ -80,11 +93,11 @@ def _nearest_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def synthesize(
     out_dir: str | Path,
-    seed: int = 0,
-    train_frames: int = DEFAULT_TRAIN_FRAMES,
-    test_frames: int = DEFAULT_TEST_FRAMES,
-    size: tuple[int, int] = DEFAULT_IMAGE_SIZE,
-    supersample: int = DEFAULT_SUPERSAMPLE,
+    seed: int = _default("seed"),
+    train_frames: int = _default("train_frames"),
+    test_frames: int = _default("test_frames"),
+    size: tuple[int, int] = _default("size"),
+    supersample: int = _default("supersample"),
     overwrite: bool = False,
     progress: Callable[[int, int], None] | None = None,
 ) -> dict:
@@ -185,7 +198,7 @@ def render_frames(
     return frames
 
 
-def random_scene(seed: int, size: tuple[int, int] = DEFAULT_IMAGE_SIZE) -> tuple[RoomScene, Intrinsics, dict]:
+def random_scene(seed: int, size: tuple[int, int] = _default("size")) -> tuple[RoomScene, Intrinsics, dict]:
     """A random room (3-8 m by 3-8 m by 2.5-3.5 m, random furniture count) and camera for ``seed``.
 
     Returns the scene, intrinsics with a random field of view (55-75 degrees), and the parameters of
@@ -208,7 +221,7 @@ def random_scene(seed: int, size: tuple[int, int] = DEFAULT_IMAGE_SIZE) -> tuple
 
 
 def random_scene_frames(
-    seed: int, n_frames: int, size: tuple[int, int] = DEFAULT_IMAGE_SIZE, supersample: int = 1
+    seed: int, n_frames: int, size: tuple[int, int] = _default("size"), supersample: int = 1
 ) -> list[SynthFrame]:
     """``n_frames`` views along one random pass through a new random room for ``seed`` (encoder pretraining)."""
     _check_counts(size, {"n_frames": n_frames}, None)
