@@ -31,9 +31,9 @@ PROVIDERS = {
 PROVIDER_PACKAGES = {
     "cpu": "onnxruntime",
     "cuda": "onnxruntime-gpu",
-    "tensorrt": "onnxruntime-gpu (with TensorRT installed)",
+    "tensorrt": "onnxruntime-gpu and TensorRT",
     "openvino": "onnxruntime-openvino",
-    "coreml": "onnxruntime (the macOS wheel)",
+    "coreml": "onnxruntime on macOS",
 }
 """The pip package that brings each provider."""
 
