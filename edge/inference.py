@@ -1,16 +1,95 @@
 """The SCR model in an onnxruntime session: grayscale uint8 (H, W) in, scene coordinates (h, w, 3) out,
-and (bundle format 2) the encoder's features (C, h, w) for the splat initializer on request."""
+and (bundle format 2) the encoder's features (C, h, w) for the splat initializer on request.
+
+Every edge session is created by ``create_session`` on one execution provider (``SessionSettings.provider``):
+an accelerator that is not installed, or a session that silently fell back to the CPU, is refused in one line.
+"""
 
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
 
 from acesplat.core.bundle import SCR_COORDS_OUTPUT, SCR_FEATURES_OUTPUT
+from acesplat.core.config import knob, knob_default
 from acesplat.core.errors import InputError
+from acesplat.core.machine import cpu_isa
+
+PROVIDERS = {
+    "cpu": "CPUExecutionProvider",
+    "cuda": "CUDAExecutionProvider",
+    "tensorrt": "TensorrtExecutionProvider",
+    "openvino": "OpenVINOExecutionProvider",
+    "coreml": "CoreMLExecutionProvider",
+}
+"""--provider name -> onnxruntime execution provider."""
+
+PROVIDER_PACKAGES = {
+    "cpu": "onnxruntime",
+    "cuda": "onnxruntime-gpu",
+    "tensorrt": "onnxruntime-gpu and TensorRT",
+    "openvino": "onnxruntime-openvino",
+    "coreml": "onnxruntime on macOS",
+}
+"""The pip package that brings each provider."""
+
+
+@dataclass
+class SessionSettings:
+    """Where the edge's onnxruntime sessions run."""
+
+    provider: str = knob("cpu", "Execution provider: cpu, cuda, tensorrt, openvino or coreml (nodes it lacks: CPU).")
+
+
+def provider_list(name: str) -> list[str]:
+    """onnxruntime's provider list for a --provider name: [that provider, CPUExecutionProvider] (the CPU takes
+    the nodes an accelerator does not support), or just the CPU; InputError naming the choices for an unknown name."""
+    if name not in PROVIDERS:
+        raise InputError(None, f"--provider must be one of {', '.join(PROVIDERS)}, got {name!r}")
+    return [PROVIDERS[name]] if name == "cpu" else [PROVIDERS[name], PROVIDERS["cpu"]]
+
+
+def check_provider(name: str) -> None:
+    """InputError in one line when ``name`` is unknown or its provider is not in this onnxruntime build."""
+    wanted = provider_list(name)[0]
+    available = ort.get_available_providers()
+    if wanted not in available:
+        raise InputError(
+            None,
+            f"--provider {name}: onnxruntime {ort.__version__} here has no {wanted} "
+            f"(available: {', '.join(available)}); install {PROVIDER_PACKAGES[name]} to use it",
+        )
+
+
+def create_session(
+    path: str | Path, sess_options: ort.SessionOptions, provider: str, what: str = "the model"
+) -> ort.InferenceSession:
+    """An onnxruntime session of the model at ``path`` on ``provider`` (a --provider name); InputError when the
+    provider is missing, the model does not load, or the session did not get the provider it was asked for."""
+    path = Path(path)
+    check_provider(provider)
+    providers = provider_list(provider)
+    try:
+        sess = ort.InferenceSession(str(path), sess_options=sess_options, providers=providers)
+    except Exception as e:  # onnxruntime raises its own Fail/InvalidGraph types
+        raise InputError(path, f"onnxruntime cannot load {what} ({str(e).splitlines()[0][:200]})") from None
+    got = sess.get_providers()
+    if not got or got[0] != providers[0]:
+        raise InputError(
+            path,
+            f"--provider {provider}: the session fell back to {', '.join(got) or 'nothing'} instead of "
+            f"{providers[0]} (its libraries did not load?); refusing to run {what} there",
+        )
+    return sess
+
+
+def runtime_info(provider: str) -> dict:
+    """What a run's numbers were measured on: provider (the --provider name), onnxruntime version, CPU ISA flags."""
+    return {"provider": provider, "onnxruntime": ort.__version__, "cpu_isa": cpu_isa()}
 
 
 def default_threads() -> int:
@@ -39,15 +118,18 @@ class ScrSession:
     Outputs are found by name (a format 1 graph has only its coordinates, whatever their name: the first output).
     """
 
-    def __init__(self, model_path: str | Path, input_size: tuple[int, int], threads: int | None = None) -> None:
+    def __init__(
+        self,
+        model_path: str | Path,
+        input_size: tuple[int, int],
+        threads: int | None = None,
+        provider: str = knob_default(SessionSettings, "provider"),
+    ) -> None:
         self.path = Path(model_path)
         self.threads = threads or default_threads()
-        try:
-            self._sess = ort.InferenceSession(
-                str(self.path), sess_options=session_options(self.threads), providers=["CPUExecutionProvider"]
-            )
-        except Exception as e:  # onnxruntime raises its own Fail/InvalidGraph types
-            raise InputError(self.path, f"onnxruntime cannot load the model ({str(e).splitlines()[0][:200]})") from None
+        self.provider = provider
+        """The --provider name the session runs on."""
+        self._sess = create_session(self.path, session_options(self.threads), provider)
         inp = self._sess.get_inputs()[0]
         self._input = inp.name
         outputs = [o.name for o in self._sess.get_outputs()]

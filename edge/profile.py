@@ -11,15 +11,15 @@ import platform
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
 import cv2
 import numpy as np
-import onnxruntime as ort
 
 from acesplat.core.bundle import Bundle
 from acesplat.core.config import knob, knob_default
 from acesplat.core.errors import InputError
+from acesplat.core.machine import cpu_model
+from edge.inference import SessionSettings, runtime_info
 from edge.replay import timing_summary
 from edge.runtime import EdgeLocalizer, FrameOutcome, PnPSettings
 from edge.sources import FrameSource, SourceFrame, UnreadableFrame
@@ -33,17 +33,10 @@ class ProfileOptions:
     warmup: int = knob(5, "Warm-up frames, excluded from the statistics.")
 
 
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.lower().startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def machine_header(bundle: Bundle, precisions: Sequence[str], threads: int) -> dict:
+def machine_header(
+    bundle: Bundle, precisions: Sequence[str], threads: int, provider: str = knob_default(SessionSettings, "provider")
+) -> dict:
+    """The machine, libraries, execution provider, CPU ISA and models a profile was measured with."""
     files = {f.role: f.sha256 for f in bundle.files.values()}
     try:
         load = os.getloadavg()
@@ -54,7 +47,7 @@ def machine_header(bundle: Bundle, precisions: Sequence[str], threads: int) -> d
         "cores": os.cpu_count(),
         "threads": threads,
         "load_average": [round(v, 2) for v in load],
-        "onnxruntime": ort.__version__,
+        **runtime_info(provider),
         "numpy": np.__version__,
         "opencv": cv2.__version__,
         "python": platform.python_version(),
@@ -120,6 +113,7 @@ def run_profile(
     pnp: PnPSettings | None = None,
     progress: Callable[[str, float, dict], None] | None = None,
     attach: Callable[[EdgeLocalizer], Callable[[], dict] | None] | None = None,
+    provider: str = knob_default(SessionSettings, "provider"),
 ) -> dict:
     """Profile each precision on the same frames; one run's JSON (keys stages, fps, precision, input_size).
 
@@ -127,12 +121,12 @@ def run_profile(
     data = read_frames(source, frames + warmup)
     runs = []
     for p in precisions:
-        loc = EdgeLocalizer(bundle, p, threads, pnp)
+        loc = EdgeLocalizer(bundle, p, threads, pnp, provider=provider)
         finish = attach(loc) if attach is not None else None
         runs.append(profile_precision(loc, data, warmup, progress))
         if finish is not None:
             runs[-1]["refine"] = finish()
-    header = machine_header(bundle, precisions, threads)
+    header = machine_header(bundle, precisions, threads, provider)
     if len(runs) == 1:
         return {**runs[0], "header": header}
     if any("refine" in r for r in runs):

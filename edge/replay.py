@@ -9,6 +9,7 @@ from pathlib import Path
 from acesplat.core.geometry import pose_error
 from acesplat.core.metrics import FrameResult, accuracy_summary, timing_stats
 from acesplat.core.scene import TEST, split_folder
+from edge.inference import runtime_info
 from edge.loop import RunStats, run_loop
 from edge.runtime import STAGES, EdgeLocalizer, FrameOutcome
 from edge.sources import ReplaySource
@@ -47,7 +48,8 @@ def summarize(outcomes: Sequence[FrameOutcome], stats: RunStats | None = None) -
 def replay_split(
     localizer: EdgeLocalizer, scene: str | Path, split: str = TEST, progress: Callable[[int, int], None] | None = None
 ) -> dict:
-    """Localize every frame of ``scene``/``split`` as fast as possible and compare with its poses."""
+    """Localize every frame of ``scene``/``split`` as fast as possible and compare with its poses (the summary
+    also names precision, input size, provider, onnxruntime version and CPU ISA: edge.inference.runtime_info)."""
     source = ReplaySource(split_folder(scene, split, need_poses=True))
     n = len(source)
     outcomes: list[FrameOutcome] = []
@@ -61,4 +63,5 @@ def replay_split(
     out = summarize(outcomes, stats)
     out["precision"] = localizer.precision
     out["input_size"] = list(localizer.input_size)
+    out.update(runtime_info(localizer.session.provider))
     return out

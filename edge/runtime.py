@@ -18,12 +18,12 @@ from acesplat.align.keyframe_align import align_scr_pose
 from acesplat.align.keyframe_set import bundle_keyframes
 from acesplat.core.bundle import Bundle
 from acesplat.core.camera import Intrinsics
-from acesplat.core.config import knob
+from acesplat.core.config import knob, knob_default
 from acesplat.core.errors import InputError
 from acesplat.core.pnp import DEFAULT_MIN_INLIERS, PnPResult, solve_from_grid
 from acesplat.core.pose import PoseRecord, TrackingState
 from edge.frame_prep import FramePrep
-from edge.inference import ScrSession
+from edge.inference import ScrSession, SessionSettings
 from edge.sources import SourceFrame
 
 STAGES = ("capture", "preprocess", "inference", "pnp", "align", "total")
@@ -111,6 +111,7 @@ class EdgeLocalizer:
         pnp: PnPSettings | None = None,
         align: bool = False,
         pace_ms: float | None = None,
+        provider: str = knob_default(SessionSettings, "provider"),
     ) -> None:
         if pace_ms is not None and not pace_ms > 0:
             raise ValueError(f"pace must be positive, got {pace_ms} ms")
@@ -118,7 +119,7 @@ class EdgeLocalizer:
         self.precision = precision
         self.input_size = bundle.input_size
         self.stride = bundle.output_stride
-        self.session = ScrSession(bundle.scr_model(precision), self.input_size, threads)
+        self.session = ScrSession(bundle.scr_model(precision), self.input_size, threads, provider)
         self.prep = FramePrep(self.input_size)
         self.pnp = pnp or PnPSettings()
         self.keyframes = bundle_keyframes(bundle) if align else None

@@ -18,7 +18,7 @@ from acesplat.core.errors import InputError
 from acesplat.core.geometry import matrix_to_quat
 from acesplat.core.pose import TrackingState
 from edge.calibration import read_calibration_file
-from edge.inference import default_threads
+from edge.inference import SessionSettings, check_provider, default_threads, runtime_info
 from edge.loop import LoopEvent, run_loop
 from edge.profile import ProfileOptions
 from edge.refine.session import RefineOptions
@@ -102,6 +102,7 @@ def localize_command(
     frames: int | None = typer.Option(None, help="Stop after this many frames."),
     realtime: bool = option(SourceOptions, "realtime"),
     threads: int | None = typer.Option(None, help="onnxruntime intra-op threads (default: all cores)."),
+    provider: str = option(SessionSettings, "provider"),
     pnp: str | None = option(PnPSettings, "method", "--pnp", default=None),
     min_inliers: int | None = option(PnPSettings, "min_inliers", default=None),
     quiet: bool = typer.Option(False, help="No per-frame lines, only the summary."),
@@ -123,10 +124,11 @@ def localize_command(
     ),
 ) -> None:
     """Localize frames from a live or recorded source; Ctrl-C ends with a summary."""
+    check_provider(provider)
     precision = "int8" if int8 else "fp32"
     b = open_bundle(bundle, [precision], align)
     calib = read_calibration_file(intrinsics) if intrinsics else None
-    loc = EdgeLocalizer(b, precision, threads, _pnp(pnp, min_inliers), align=align)
+    loc = EdgeLocalizer(b, precision, threads, _pnp(pnp, min_inliers), align=align, provider=provider)
     src = open_source(source, SourceOptions(calibration=calib, input_size=b.input_size, realtime=realtime))
     refiner = refine_session(refine, loc, b, budget_ms, save_splat, _warn)
     log = None
@@ -151,9 +153,11 @@ def localize_command(
     def on_event(e: LoopEvent) -> None:
         console.print(f"[yellow]{e.kind}[/yellow]: {e.detail}" + (f" (gap {e.gap_s:.1f} s)" if e.gap_s else ""))
 
+    rt = runtime_info(provider)
     console.print(
         f"localizing {src.description} with {b.root} ({precision}, {b.input_size[0]}x{b.input_size[1]}, "
-        f"{loc.session.threads} threads, PnP {loc.pnp.method}); Ctrl-C to stop"
+        f"{loc.session.threads} threads, PnP {loc.pnp.method}; provider {provider}, onnxruntime {rt['onnxruntime']}, "
+        f"ISA {' '.join(rt['cpu_isa']) or '-'}); Ctrl-C to stop"
     )
     try:
         stats = run_loop(src, loc, on_outcome, on_event, max_frames=frames)
@@ -162,7 +166,7 @@ def localize_command(
             log.close()
         bridge_stats = bridge.close() if bridge is not None else None
         refine_stats = refiner.close() if refiner is not None else None
-    summary = {"bundle": str(b.root), "source": src.description, "precision": precision, **stats.as_dict()}
+    summary = {"bundle": str(b.root), "source": src.description, "precision": precision, **rt, **stats.as_dict()}
     if refine_stats is not None:
         summary["refine"] = refine_stats
         console.print(refine_line(refine_stats))
@@ -224,6 +228,7 @@ def replay_command(
     split: str = typer.Option("test", help="Split to replay."),
     int8: bool = typer.Option(False, "--int8", help="Run the bundle's INT8 model."),
     threads: int | None = typer.Option(None, help="onnxruntime intra-op threads (default: all cores)."),
+    provider: str = option(SessionSettings, "provider"),
     pnp: str | None = option(PnPSettings, "method", "--pnp", default=None),
     json_out: Path | None = typer.Option(None, "--json", help="Write the numbers here."),
     refine: bool = typer.Option(
@@ -241,9 +246,10 @@ def replay_command(
     """Replay a posed split: `acesplat eval`'s accuracy plus per-stage timing statistics."""
     from edge.replay import replay_split
 
+    check_provider(provider)
     precision = "int8" if int8 else "fp32"
     b = open_bundle(bundle, [precision], align)
-    loc = EdgeLocalizer(b, precision, threads, _pnp(pnp, None), align=align)
+    loc = EdgeLocalizer(b, precision, threads, _pnp(pnp, None), align=align, provider=provider)
     refiner = refine_session(refine, loc, b, budget_ms, save_splat, _warn, evaluate=True)
     with PhaseProgress("replay ") as bar:
         try:
@@ -254,7 +260,9 @@ def replay_command(
     if refiner is not None:
         s["refine"] = refiner.summary
         s["timing_ms"]["refine"] = refiner.summary["timing_ms"]["window"]
-    t = Table(title=f"{Path(scene).name} / {split} ({precision}, {b.input_size[0]}x{b.input_size[1]})")
+    t = Table(
+        title=f"{Path(scene).name} / {split} ({precision}, {b.input_size[0]}x{b.input_size[1]}, provider {provider})"
+    )
     keys = (
         "frames",
         "localized",
@@ -293,6 +301,7 @@ def profile_command(
     compare: bool = typer.Option(False, "--compare", help="FP32 and INT8 side by side on the same frames."),
     int8: bool = typer.Option(False, "--int8", help="Profile INT8 (without --compare)."),
     threads: int | None = typer.Option(None, help="onnxruntime intra-op threads (default: all cores)."),
+    provider: str = option(SessionSettings, "provider"),
     pnp: str | None = option(PnPSettings, "method", "--pnp", default=None),
     json_out: Path | None = typer.Option(None, "--json", help="Write the numbers here."),
     refine: bool = typer.Option(
@@ -305,6 +314,7 @@ def profile_command(
 
     if frames <= 0 or warmup < 0:
         raise InputError(None, f"--frames must be positive and --warmup non-negative, got {frames} and {warmup}")
+    check_provider(provider)
     precisions = ["fp32", "int8"] if compare else (["int8"] if int8 else ["fp32"])
     b = open_bundle(bundle, precisions)
     if source is None:
@@ -322,13 +332,14 @@ def profile_command(
 
     with PhaseProgress() as bar:
         res = run_profile(
-            b, src, precisions, frames, nthreads, warmup, _pnp(pnp, None), bar, attach if refine else None
+            b, src, precisions, frames, nthreads, warmup, _pnp(pnp, None), bar, attach if refine else None, provider
         )
     h = res["header"]
     console.print(
         f"cpu: {h['cpu']} ({h['cores']} cores, load {h['load_average']}), threads {h['threads']}; "
         f"onnxruntime {h['onnxruntime']}, numpy {h['numpy']}, opencv {h['opencv']}"
     )
+    console.print(f"provider: {h['provider']}; CPU ISA: {' '.join(h['cpu_isa']) or '-'}")
     for p in precisions:
         console.print(
             f"model {p}: sha256 {str(h['model_sha256'][p])[:16]}...  input {h['input_size'][0]}x{h['input_size'][1]}"

@@ -18,6 +18,29 @@ def cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
+ISA_FLAGS = ("avx2", "avx512f", "avx512_bf16", "avx512_vnni", "amx_bf16")
+"""x86 /proc/cpuinfo flags that change onnxruntime's kernels (FP32 and INT8 speed)."""
+
+
+def cpu_isa() -> list[str]:
+    """The ISA extensions of ISA_FLAGS this CPU has, plus 'neon' on ARM (AArch64 always has it); [] if unknown."""
+    found: set[str] = set()
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                key, _, value = line.partition(":")
+                key = key.strip().lower()
+                if key == "flags":  # x86
+                    found |= set(ISA_FLAGS) & set(value.split())
+                elif key == "features" and {"neon", "asimd"} & set(value.split()):  # ARM 32 / 64 bit
+                    found.add("neon")
+    except OSError:
+        pass
+    if platform.machine().lower() in ("aarch64", "arm64"):
+        found.add("neon")
+    return [f for f in (*ISA_FLAGS, "neon") if f in found]
+
+
 def library_versions(
     names: tuple[str, ...] = ("numpy", "opencv-python-headless", "onnxruntime", "torch", "numba"),
 ) -> dict[str, str]:
@@ -36,6 +59,7 @@ def machine_info() -> dict:
     load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
     return {
         "cpu": cpu_model(),
+        "cpu_isa": cpu_isa(),
         "cores": os.cpu_count(),
         "python": platform.python_version(),
         "platform": platform.platform(),

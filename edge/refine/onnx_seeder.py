@@ -21,6 +21,7 @@ import numpy as np
 import onnxruntime as ort
 
 from acesplat.core.bundle import Bundle, verify_file
+from acesplat.core.config import knob_default
 from acesplat.core.errors import InputError
 from acesplat.core.gaussians import Gaussians
 from acesplat.splatcore.bundle_section import INIT_INPUTS, ROLE_SPLAT_INIT
@@ -34,6 +35,7 @@ from acesplat.splatcore.head_io import (
 from acesplat.splatcore.lattice import seed_pixels
 from acesplat.splatcore.pixel_coords import pixel_depths
 from acesplat.splatcore.seeding import block_colours
+from edge.inference import SessionSettings, create_session
 from edge.refine.bundle_models import splat_section
 
 CALIBRATION_RUNS = 3
@@ -45,7 +47,14 @@ class OnnxSeeder:
     needs_features = True
     """The refinement session asks the SCR graph for its features output when its seeder says this."""
 
-    def __init__(self, model_path: str | Path, splat: dict, threads: int = 1, spacing: int = 2) -> None:
+    def __init__(
+        self,
+        model_path: str | Path,
+        splat: dict,
+        threads: int = 1,
+        spacing: int = 2,
+        provider: str = knob_default(SessionSettings, "provider"),
+    ) -> None:
         self.path = Path(model_path)
         try:
             init = splat["init"]
@@ -62,12 +71,9 @@ class OnnxSeeder:
         so.intra_op_num_threads = threads
         so.inter_op_num_threads = 1
         so.log_severity_level = 3
-        try:
-            self.sess = ort.InferenceSession(str(self.path), sess_options=so, providers=["CPUExecutionProvider"])
-        except Exception as e:  # onnxruntime raises its own types
-            raise InputError(
-                self.path, f"onnxruntime cannot load the initializer ({str(e).splitlines()[0][:200]})"
-            ) from None
+        self.provider = provider
+        """The --provider name the initializer runs on."""
+        self.sess = create_session(self.path, so, provider, "the initializer")
         names = [i.name for i in self.sess.get_inputs()]
         if tuple(names) != INIT_INPUTS:
             raise InputError(
@@ -158,7 +164,11 @@ class OnnxSeeder:
 
 
 def onnx_seeder_for(
-    bundle: Bundle, threads: int = 1, spacing: int = 2, warn: Callable[[str], None] | None = None
+    bundle: Bundle,
+    threads: int = 1,
+    spacing: int = 2,
+    warn: Callable[[str], None] | None = None,
+    provider: str = knob_default(SessionSettings, "provider"),
 ) -> OnnxSeeder | None:
     """The bundle's initializer as a seeder, or None when the bundle has none or only a format 1 one (which runs
     its own encoder; ``warn`` gets one line): the SCR seeder is used then."""
@@ -173,4 +183,4 @@ def onnx_seeder_for(
         return None
     f = bundle.files[ROLE_SPLAT_INIT]
     verify_file(bundle.root, f)
-    return OnnxSeeder(bundle.root / f.path, splat_section(bundle), threads, spacing)
+    return OnnxSeeder(bundle.root / f.path, splat_section(bundle), threads, spacing, provider)

@@ -347,7 +347,9 @@ def start_refinement(
     from edge.refine.onnx_seeder import onnx_seeder_for
 
     seeder = (
-        onnx_seeder_for(bundle, threads=1, spacing=opts.config.seed_spacing, warn=warn)
+        onnx_seeder_for(
+            bundle, threads=1, spacing=opts.config.seed_spacing, warn=warn, provider=localizer.session.provider
+        )
         if opts.use_initializer
         else None
     )
