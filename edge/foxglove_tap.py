@@ -483,18 +483,22 @@ def iter_mcap(path: str | Path, topics: list[str] | None = None, stream: bool = 
     ``stream`` reads without the summary (a ``.partial`` file left by a crash, up to its last whole chunk).
     """
     require_foxglove()
+    from mcap.exceptions import EndOfFile
     from mcap.reader import NonSeekingReader, make_reader
 
     with open(path, "rb") as f:
         factory = [_protobuf_decoder_factory()]
         if stream:
             reader = NonSeekingReader(f, decoder_factories=factory, record_size_limit=None)
-            it = reader.iter_decoded_messages(topics=topics)
         else:
             reader = make_reader(f, decoder_factories=factory)
-            it = reader.iter_decoded_messages(topics=topics, log_time_order=False)
-        for _schema, channel, _message, decoded in it:
-            yield channel.topic, decoded
+        it = reader.iter_decoded_messages(topics=topics, log_time_order=False)
+        try:
+            for _schema, channel, _message, decoded in it:
+                yield channel.topic, decoded
+        except EndOfFile:
+            if not stream:
+                raise  # a finalized file does not end early; a crashed one ends at its last whole record
 
 
 class McapReplaySource:
