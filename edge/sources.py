@@ -3,7 +3,8 @@
 A frame carries the image, a timestamp, the intrinsics of that image (when known), distortion, and
 a ground-truth pose when the source has one. Sources raise ``UnreadableFrame`` for one bad frame
 (the runtime skips and counts it) and ``SourceDisconnected`` when a device vanished (the runtime
-calls ``reconnect()`` with backoff). Specs: ``replay:DIR``, ``video:FILE``, ``camera:N``, ``oak``.
+calls ``reconnect()`` with backoff). Specs: ``replay:DIR``, ``replay:FILE.mcap`` (edge.foxglove_tap),
+``video:FILE``, ``camera:N``, ``oak``.
 """
 
 from __future__ import annotations
@@ -299,12 +300,17 @@ class SourceOptions:
 
 
 def open_source(spec: str, opts: SourceOptions) -> FrameSource:
-    """Parse ``replay:DIR``, ``video:FILE``, ``camera:N`` or ``oak[:crop|stretch|letterbox]`` and open it."""
+    """Parse ``replay:DIR``, ``replay:FILE.mcap``, ``video:FILE``, ``camera:N`` or ``oak[:crop|stretch|letterbox]``
+    and open it."""
     kind, _, arg = spec.partition(":")
     kind = kind.lower()
     if kind == "replay":
         if not arg:
             raise InputError(None, "replay source needs a folder: replay:DIR")
+        if arg.lower().endswith(".mcap"):
+            from edge.foxglove_tap import McapReplaySource
+
+            return McapReplaySource(arg, opts.calibration, realtime=opts.realtime)
         return ReplaySource(arg, opts.calibration, realtime=opts.realtime)
     if kind == "video":
         if not arg:
@@ -324,4 +330,4 @@ def open_source(spec: str, opts: SourceOptions) -> FrameSource:
         if opts.input_size is None:
             raise InputError(None, "oak source needs the bundle's input size")
         return OakSource(opts.input_size, resize_mode=arg or "crop", calibration=opts.calibration)
-    raise InputError(None, f"unknown source {spec!r}: use replay:DIR, video:FILE, camera:N or oak")
+    raise InputError(None, f"unknown source {spec!r}: use replay:DIR, replay:FILE.mcap, video:FILE, camera:N or oak")

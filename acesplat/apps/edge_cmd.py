@@ -18,6 +18,7 @@ from acesplat.core.errors import InputError
 from acesplat.core.geometry import matrix_to_quat
 from acesplat.core.pose import TrackingState
 from edge.calibration import read_calibration_file
+from edge.foxglove_tap import FoxgloveSettings
 from edge.inference import SessionSettings, check_provider, default_threads, runtime_info
 from edge.loop import LoopEvent, run_loop
 from edge.profile import ProfileOptions
@@ -59,6 +60,23 @@ def _pnp(method: str | None, min_inliers: int | None) -> PnPSettings:
 
 def _warn(msg: str) -> None:
     console.print(f"[yellow]{msg}[/yellow]")
+
+
+FOXGLOVE_HELP = "Serve a live Foxglove WebSocket on this port (Foxglove's usual: 8765; 0 picks a free one)."
+MCAP_HELP = "Log the same channels to this MCAP file (written as PATH.partial, renamed into place at the end)."
+
+
+def _foxglove_tap(loc: EdgeLocalizer, port: int | None, mcap: Path | None, host: str):
+    """The Foxglove tap (live server and/or MCAP log) on ``loc``, or None without --foxglove/--mcap."""
+    if port is None and mcap is None:
+        return None
+    from edge.foxglove_tap import FoxgloveTap
+
+    tap = FoxgloveTap(port, mcap, FoxgloveSettings(host=host))
+    loc.add_tap(tap)
+    if tap.port is not None:
+        console.print(f"Foxglove live view: ws://{host}:{tap.port} (Foxglove: Open connection > Foxglove WebSocket)")
+    return tap
 
 
 def stage_table(title: str, stages_by_run: dict[str, dict], fps: dict[str, float]) -> Table:
@@ -122,6 +140,9 @@ def localize_command(
         help="Refine each pose against the bundle's keyframes (export --keyframes): "
         "centimetre poses where SCR alone is a few cm off, at a few hundred ms per frame.",
     ),
+    foxglove: int | None = typer.Option(None, "--foxglove", metavar="PORT", help=FOXGLOVE_HELP),
+    foxglove_host: str = option(FoxgloveSettings, "host", "--foxglove-host"),
+    mcap: Path | None = typer.Option(None, "--mcap", metavar="PATH", help=MCAP_HELP),
 ) -> None:
     """Localize frames from a live or recorded source; Ctrl-C ends with a summary."""
     check_provider(provider)
@@ -130,6 +151,7 @@ def localize_command(
     calib = read_calibration_file(intrinsics) if intrinsics else None
     loc = EdgeLocalizer(b, precision, threads, _pnp(pnp, min_inliers), align=align, provider=provider)
     src = open_source(source, SourceOptions(calibration=calib, input_size=b.input_size, realtime=realtime))
+    fox = _foxglove_tap(loc, foxglove, mcap, foxglove_host)
     refiner = refine_session(refine, loc, b, budget_ms, save_splat, _warn)
     log = None
     if json_lines is not None:
@@ -166,7 +188,10 @@ def localize_command(
             log.close()
         bridge_stats = bridge.close() if bridge is not None else None
         refine_stats = refiner.close() if refiner is not None else None
+        fox_stats = fox.close() if fox is not None else None
     summary = {"bundle": str(b.root), "source": src.description, "precision": precision, **rt, **stats.as_dict()}
+    if fox_stats is not None:
+        summary["foxglove"] = fox_stats
     if refine_stats is not None:
         summary["refine"] = refine_stats
         console.print(refine_line(refine_stats))
@@ -242,6 +267,9 @@ def replay_command(
         help="Refine each pose against the bundle's keyframes (export --keyframes): "
         "centimetre poses where SCR alone is a few cm off, at a few hundred ms per frame.",
     ),
+    foxglove: int | None = typer.Option(None, "--foxglove", metavar="PORT", help=FOXGLOVE_HELP),
+    foxglove_host: str = option(FoxgloveSettings, "host", "--foxglove-host"),
+    mcap: Path | None = typer.Option(None, "--mcap", metavar="PATH", help=MCAP_HELP),
 ) -> None:
     """Replay a posed split: `acesplat eval`'s accuracy plus per-stage timing statistics."""
     from edge.replay import replay_split
@@ -250,6 +278,7 @@ def replay_command(
     precision = "int8" if int8 else "fp32"
     b = open_bundle(bundle, [precision], align)
     loc = EdgeLocalizer(b, precision, threads, _pnp(pnp, None), align=align, provider=provider)
+    fox = _foxglove_tap(loc, foxglove, mcap, foxglove_host)
     refiner = refine_session(refine, loc, b, budget_ms, save_splat, _warn, evaluate=True)
     with PhaseProgress("replay ") as bar:
         try:
@@ -257,6 +286,9 @@ def replay_command(
         finally:
             if refiner is not None:
                 refiner.close()
+            fox_stats = fox.close() if fox is not None else None
+    if fox_stats is not None:
+        s["foxglove"] = fox_stats
     if refiner is not None:
         s["refine"] = refiner.summary
         s["timing_ms"]["refine"] = refiner.summary["timing_ms"]["window"]
@@ -368,20 +400,33 @@ def profile_command(
 
 @one_line_errors
 def record_command(
-    out: Path = typer.Argument(..., help="Folder to write (must not exist or be empty)."),
+    out: Path | None = typer.Argument(None, help="Folder to write (must not exist or be empty); or use --mcap."),
     source: str = typer.Option(..., help="replay:DIR, video:FILE, camera:N or oak."),
     intrinsics: Path | None = typer.Option(None, help="Calibration to store with the frames."),
     frames: int | None = typer.Option(None, help="Stop after this many frames."),
     size: str | None = typer.Option(None, help="Frame size HxW for sources that resize on the device (oak)."),
     json_out: Path | None = typer.Option(None, "--json", help="Write the counts here."),
+    mcap: Path | None = typer.Option(
+        None, "--mcap", metavar="PATH", help="Record into one MCAP file instead of a folder (replay:PATH.mcap)."
+    ),
 ) -> None:
     """Record frames, timestamps and intrinsics in a layout `--source replay:OUT` reads back."""
     from acesplat.apps.support import parse_size
-    from edge.record import record
+    from edge.record import record, record_mcap
 
+    if (out is None) == (mcap is None):
+        raise InputError(None, "record needs an output folder or --mcap PATH (one of them)")
     calib = read_calibration_file(intrinsics) if intrinsics else None
+    if mcap is not None:
+        from edge.foxglove_tap import require_foxglove
+
+        require_foxglove()
     src = open_source(source, SourceOptions(calibration=calib, input_size=parse_size(size) if size else (480, 640)))
-    stats = record(src, out, frames, lambda n: None)
+    if mcap is not None:
+        out = mcap
+        stats = record_mcap(src, mcap, frames, lambda n: None)
+    else:
+        stats = record(src, out, frames, lambda n: None)
     console.print(
         f"recorded {stats.frames} frames to {out}"
         + (" (interrupted)" if stats.interrupted else "")
