@@ -6,7 +6,7 @@
 #   python bench/parity_compare.py OUT TAG_A TAG_B
 set -euo pipefail
 SRC=$(cd "$1" && pwd); ENT=$2; EDGE=$3; OUT=$4; TAG=$5
-HERZ=${HERZ:-$(cd "$(dirname "$0")/../../shared/data/herzjesu25" && pwd)}
+HERZ=${HERZ:-$(cd ../shared/data/herzjesu25 && pwd)}  # run from the repository root
 mkdir -p "$OUT"
 run() { local mod=$1; shift; PYTHONPATH=$SRC python -P -c "import sys; from $mod import main; sys.argv[0]='x'; main()" "$@"; }
 [ -d "$OUT/room" ] || run "$ENT" synth "$OUT/room"
