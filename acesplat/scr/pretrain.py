@@ -343,7 +343,8 @@ def pretrain(
 
     Inside a process group (``distributed_from_env``; ``device`` is then this rank's) the ranks train one encoder with
     DistributedDataParallel: rank r holds scenes r, r + world, ..., draws its own pairs, and all ranks resume from the
-    same checkpoint; only rank 0 writes files and reports ``progress``. Every rank returns the summary.
+    same checkpoint; only rank 0 writes files and reports ``progress``. Every rank returns the summary. The scenes
+    weigh equally when the world size divides ``cfg.scenes`` (a scene weighs 1 / (world size x its shard's size)).
     """
     if max_steps is not None and max_steps < 0:
         raise ValueError(f"max_steps must be >= 0 or None, got {max_steps}")
