@@ -2,19 +2,25 @@
 
 from __future__ import annotations
 
+import json
+
+import pytest
 import torch
 
+from acesplat.core.errors import InputError
+from acesplat.scr import encoders
 from acesplat.scr.network import EncoderConfig
-from acesplat.scr.pretrain import PretrainConfig, pretrain
+from acesplat.scr.pretrain import Distributed, PretrainConfig, distributed_from_env, install_default, pretrain
 
 TINY = EncoderConfig(c1=4, c2=8, c3=8, c4=16, res2=16, out=16)
 
 
-def test_pretraining_resumes_and_records_each_session(tmp_path) -> None:
+def test_pretraining_resumes_and_records_each_session(tmp_path, monkeypatch) -> None:
     torch.manual_seed(0)
     cfg = PretrainConfig(scenes=1, frames_per_scene=8, image_hw=(136, 168), steps=3, encoder=TINY)
     first = pretrain(tmp_path, cfg, minutes=2.0, command="first")
     assert first["finished"] and first["step"] == 3
+    assert first["world_size"] == 1 and first["backend"] is None and first["sessions"][0]["world_size"] == 1
     cfg.steps = 5  # a later session extends the schedule
     second = pretrain(tmp_path, cfg, minutes=2.0, command="second")
     assert second["finished"] and second["step"] == 5
@@ -30,3 +36,21 @@ def test_pretraining_resumes_and_records_each_session(tmp_path) -> None:
     ck = torch.load(tmp_path / "checkpoint.pt", map_location="cpu", weights_only=True)
     assert len(ck["sessions"]) == 2
     assert (tmp_path / "encoder.pt").is_file()
+    monkeypatch.setattr(encoders, "DEFAULT_ENCODER", tmp_path / "weights" / "encoder_default.pt")
+    provenance = json.loads(install_default(tmp_path, "install").with_suffix(".json").read_text())
+    assert provenance["world_size"] == 1 and provenance["backend"] is None and provenance["steps"] == 5
+
+
+def test_without_torchrun_variables_there_is_no_process_group(monkeypatch) -> None:
+    for k in ("RANK", "WORLD_SIZE", "LOCAL_RANK"):
+        monkeypatch.delenv(k, raising=False)
+    with distributed_from_env("cpu") as (ddp, device):
+        assert ddp == Distributed() and device == "cpu" and not torch.distributed.is_initialized()
+    monkeypatch.setenv("WORLD_SIZE", "1")  # torchrun --nproc_per_node 1: a plain run too
+    monkeypatch.setenv("RANK", "0")
+    with distributed_from_env("cpu") as (ddp, _):
+        assert ddp.world_size == 1 and not torch.distributed.is_initialized()
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    monkeypatch.setenv("RANK", "2")
+    with pytest.raises(InputError, match="RANK"), distributed_from_env("cpu"):
+        pass

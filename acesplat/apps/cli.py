@@ -34,3 +34,7 @@ app.command("export")(export_command)
 
 def main() -> None:
     app()
+
+
+if __name__ == "__main__":  # python -m acesplat.apps.cli, and torchrun -m acesplat.apps.cli
+    main()

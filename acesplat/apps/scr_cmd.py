@@ -221,27 +221,43 @@ def pretrain_command(
     size: str = typer.Option(
         "x".join(map(str, knob_default(PretrainConfig, "image_hw"))), help=knob_help(PretrainConfig, "image_hw")
     ),
+    pairs: int = option(PretrainConfig, "pairs"),
     seed: int = option(PretrainConfig, "seed"),
+    device: str = typer.Option("auto", help="auto, cpu or cuda (under torchrun: each rank's GPU is LOCAL_RANK)."),
     threads: int = typer.Option(0, help="CPU threads (0 = all cores); 1 is faster when other jobs share the cores."),
     install: bool = typer.Option(False, help="Install the resulting encoder as the shipped default (with provenance)."),
 ) -> None:
-    """Pretrain the project's own encoder on procedural scenes (resumable)."""
+    """Pretrain the project's own encoder on procedural scenes (resumable).
+
+    Several processes or GPUs: torchrun --nproc_per_node N -m acesplat.apps.cli pretrain-encoder OUT ... (NCCL on
+    GPUs, gloo on the CPU; the global batch is --pairs times N, --steps counts global steps; rank 0 writes the files).
+    """
+    import sys
+
     import torch
 
-    from acesplat.scr.pretrain import pretrain
+    from acesplat.scr.pretrain import distributed_from_env, pretrain
 
     if threads > 0:
         torch.set_num_threads(threads)
-    import sys
-
     cfg = PretrainConfig(
-        minutes=minutes, scenes=scenes, frames_per_scene=frames, image_hw=parse_size(size), steps=steps, seed=seed
+        minutes=minutes,
+        scenes=scenes,
+        frames_per_scene=frames,
+        image_hw=parse_size(size),
+        steps=steps,
+        pairs=pairs,
+        seed=seed,
     )
     command = "acesplat " + " ".join(sys.argv[1:])
-    with PhaseProgress("pretrain ") as bar:
-        summary = pretrain(out, cfg, progress=bar, command=command)
-    console.print(summary)
-    if install:
+    with distributed_from_env(resolve_device(device)) as (ddp, rank_device):
+        if ddp.rank == 0:
+            with PhaseProgress("pretrain ") as bar:
+                summary = pretrain(out, cfg, progress=bar, command=command, device=rank_device)
+            console.print(summary)
+        else:
+            pretrain(out, cfg, command=command, device=rank_device)
+    if install and ddp.rank == 0:
         from acesplat.scr.pretrain import install_default
 
         path = install_default(out, command)

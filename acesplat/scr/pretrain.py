@@ -9,13 +9,21 @@ view must find its corresponding cell of the other among all cells of the batch 
 ACE's own recipe (one coordinate-regression head per scene sharing the encoder) collapsed the features where
 the contrastive objective did not (bench/encoder_choice.md). Runs resume from a checkpoint, so a long
 pretraining can be spread over several runs.
+
+Under ``torchrun`` (RANK/WORLD_SIZE in the environment, see ``distributed_from_env``) the ranks train one encoder with
+DistributedDataParallel: each rank holds its own shard of the scenes and draws its own pairs, DDP averages the
+gradients, so a step's global batch is ``pairs`` times the world size and ``steps`` counts global steps. Rank 0 alone
+writes the checkpoint, the encoder and the summary.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
+import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -27,6 +35,7 @@ import torch.nn.functional as F
 from acesplat.core.atomic import atomic_path, write_json
 from acesplat.core.camera import Intrinsics
 from acesplat.core.config import knob
+from acesplat.core.errors import InputError
 from acesplat.core.grid import OUTPUT_STRIDE
 from acesplat.scr.augment import rotation_z
 from acesplat.scr.network import Encoder, EncoderConfig, normalize_gray
@@ -49,11 +58,13 @@ CHECKPOINT_EVERY_S = 120.0
 @dataclass
 class PretrainConfig:
     minutes: float = knob(60.0, "Stop (and checkpoint) after this long; run again to resume.")
-    scenes: int = knob(48, "Procedural scenes, one head each.")
+    scenes: int = knob(48, "Procedural scenes (shared out among the ranks under torchrun).")
     frames_per_scene: int = knob(60, "Frames per scene.")
     image_hw: tuple[int, int] = knob((240, 320), "Rendered frame size HxW.")
-    steps: int = knob(6000, "Total optimisation steps (the schedule spans these).")
-    pairs: int = knob(4, "View pairs per step; each cell competes against all cells of all second views.")
+    steps: int = knob(6000, "Total optimisation steps (the schedule spans these; global steps under torchrun).")
+    pairs: int = knob(
+        4, "View pairs per step and rank (global batch: pairs x world size); a cell competes with its rank's cells."
+    )
     seed: int = knob(0, "Seed of the scenes, crops and initialisation.")
     encoder: EncoderConfig = knob(
         EDGE_ENCODER, "Encoder widths to train (EDGE_ENCODER: a fifth of ACE's MACs; bench/encoder_choice.md)."
@@ -154,10 +165,14 @@ def correspondences(ca: np.ndarray, cb: np.ndarray, tol: float = MATCH_TOLERANCE
     return np.flatnonzero(ok), j[ok]
 
 
-def contrastive_loss(
-    scenes: list[PretrainScene], encoder: Encoder, rng: np.random.Generator, pairs: int
-) -> tuple[torch.Tensor, float] | None:
-    """InfoNCE over the cells of ``pairs`` view pairs; returns (loss, top-1 match rate)."""
+PairBatch = tuple[np.ndarray, list[tuple[int, np.ndarray, np.ndarray]]]
+"""Crops (2P, h, w) uint8 (view A of pair k at 2k, view B at 2k+1) and (k, A cells, their B cells) per usable pair."""
+
+
+def sample_pairs(scenes: list[PretrainScene], rng: np.random.Generator, pairs: int) -> PairBatch | None:
+    """``pairs`` augmented view pairs with their cell correspondences; None if no pair has 4 correspondences."""
+    if not scenes or pairs < 1:
+        raise ValueError(f"need scenes and pairs >= 1, got {len(scenes)} scenes and {pairs} pairs")
     crops = []
     for _ in range(pairs):
         s = scenes[int(rng.integers(len(scenes)))]
@@ -165,26 +180,150 @@ def contrastive_loss(
         f = int(rng.integers(n))
         g = int(np.clip(f + rng.integers(-PAIR_MAX_GAP, PAIR_MAX_GAP + 1), 0, n - 1))
         crops += [sample_crop(s, rng, CROP_HW, f), sample_crop(s, rng, CROP_HW, g)]
-    x = torch.from_numpy(np.stack([c[0] for c in crops]))[:, None]
+    matches = []
+    for k in range(pairs):
+        ia, jb = correspondences(crops[2 * k][1].reshape(3, -1).T, crops[2 * k + 1][1].reshape(3, -1).T)
+        if len(ia) >= 4:
+            matches.append((k, ia, jb))
+    if not matches:
+        return None
+    return np.stack([c[0] for c in crops]), matches
+
+
+def pair_loss(encoder: torch.nn.Module, batch: PairBatch) -> tuple[torch.Tensor, float]:
+    """InfoNCE of a ``sample_pairs`` batch: each A cell against all cells of all B views; (loss, top-1 match rate).
+
+    ``encoder`` may be wrapped (DistributedDataParallel); the batch goes to the device of its parameters.
+    """
+    images, matches = batch
+    device = next(encoder.parameters()).device
+    pairs = images.shape[0] // 2
+    x = torch.from_numpy(images)[:, None].to(device)
     feats = F.normalize(encoder(normalize_gray(x)), dim=1)
     _, c, h, w = feats.shape
     fa = feats[0::2].permute(0, 2, 3, 1).reshape(pairs, h * w, c)
     fb = feats[1::2].permute(0, 2, 3, 1).reshape(pairs * h * w, c)
     losses, hits, total = [], 0, 0
-    for k in range(pairs):
-        ca = crops[2 * k][1].reshape(3, -1).T
-        cb = crops[2 * k + 1][1].reshape(3, -1).T
-        ia, jb = correspondences(ca, cb)
-        if len(ia) < 4:
-            continue
-        logits = fa[k][torch.from_numpy(ia)] @ fb.T / TEMPERATURE
-        target = torch.from_numpy(k * h * w + jb)
+    for k, ia, jb in matches:
+        logits = fa[k][torch.from_numpy(ia).to(device)] @ fb.T / TEMPERATURE
+        target = torch.from_numpy(k * h * w + jb).to(device)
         losses.append(F.cross_entropy(logits, target, reduction="sum"))
         hits += int((logits.argmax(1) == target).sum())
         total += len(ia)
-    if not losses:
-        return None
     return torch.stack(losses).sum() / total, hits / total
+
+
+def contrastive_loss(
+    scenes: list[PretrainScene], encoder: torch.nn.Module, rng: np.random.Generator, pairs: int
+) -> tuple[torch.Tensor, float] | None:
+    """InfoNCE over the cells of ``pairs`` view pairs; returns (loss, top-1 match rate), None if no pair matched."""
+    batch = sample_pairs(scenes, rng, pairs)
+    return None if batch is None else pair_loss(encoder, batch)
+
+
+@dataclass(frozen=True)
+class Distributed:
+    """This process's place in a torchrun job; the defaults are a plain single-process run (no process group)."""
+
+    rank: int = 0
+    world_size: int = 1
+    backend: str | None = None
+
+
+def current_distributed() -> Distributed:
+    """The process group this process belongs to (``torch.distributed``'s default group), if any."""
+    import torch.distributed as dist
+
+    if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
+        return Distributed()
+    return Distributed(dist.get_rank(), dist.get_world_size(), str(dist.get_backend()))
+
+
+@contextmanager
+def distributed_from_env(device: str) -> Iterator[tuple[Distributed, str]]:
+    """Join torchrun's job if RANK and WORLD_SIZE (> 1) are set: NCCL on CUDA, gloo on the CPU.
+
+    ``device`` is 'cpu' or 'cuda'. Yields (this process's ``Distributed``, its device: cuda:LOCAL_RANK on GPUs).
+    Without the variables, or with WORLD_SIZE 1, no process group is made and the run is single-process.
+    """
+    import torch.distributed as dist
+
+    if device not in ("cpu", "cuda"):
+        raise InputError(None, f"device must be cpu or cuda, got {device!r}")
+    env = {k: os.environ.get(k) for k in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT")}
+    try:
+        world = int(env["WORLD_SIZE"] or 1)
+        rank = int(env["RANK"] or 0)
+        local = int(env["LOCAL_RANK"] or rank)
+    except ValueError:
+        raise InputError(None, f"RANK, WORLD_SIZE and LOCAL_RANK must be integers, got {env}") from None
+    if world <= 1:
+        yield Distributed(), device
+        return
+    if not 0 <= rank < world:
+        raise InputError(None, f"RANK must be in [0, WORLD_SIZE={world}), got {rank}")
+    if not (env["MASTER_ADDR"] and env["MASTER_PORT"]):
+        raise InputError(None, "WORLD_SIZE > 1 needs MASTER_ADDR and MASTER_PORT (torchrun sets them)")
+    if device == "cuda":
+        if not 0 <= local < torch.cuda.device_count():
+            raise InputError(None, f"LOCAL_RANK {local} but only {torch.cuda.device_count()} CUDA devices")
+        torch.cuda.set_device(local)
+        device = f"cuda:{local}"
+    backend = "nccl" if device.startswith("cuda") else "gloo"
+    dist.init_process_group(backend, rank=rank, world_size=world)
+    try:
+        yield Distributed(rank, world, backend), device
+    finally:
+        dist.destroy_process_group()
+
+
+def _any_rank(flags: list[bool], ddp: Distributed, device: str) -> list[bool]:
+    """Each flag true if it is true on any rank (the ranks must take the same branches to stay in step)."""
+    if ddp.world_size == 1:
+        return flags
+    import torch.distributed as dist
+
+    t = torch.tensor([float(f) for f in flags], device=device)
+    dist.all_reduce(t, op=dist.ReduceOp.MAX)
+    return [bool(v) for v in t.tolist()]
+
+
+def _rank_sum(values: list[float], ddp: Distributed, device: str) -> list[float]:
+    if ddp.world_size == 1:
+        return values
+    import torch.distributed as dist
+
+    t = torch.tensor(values, dtype=torch.float64, device=device)
+    dist.all_reduce(t)
+    return t.tolist()
+
+
+def _rank_mean(values: list[float], ddp: Distributed, device: str) -> list[float]:
+    if ddp.world_size == 1:
+        return values
+    return [v / ddp.world_size for v in _rank_sum(values, ddp, device)]
+
+
+def weights_sha256(module: torch.nn.Module) -> str:
+    """SHA-256 of a module's state dict (names, dtypes, shapes and values, in order)."""
+    h = hashlib.sha256()
+    for k, v in module.state_dict().items():
+        v = v.detach().cpu().contiguous()
+        h.update(f"{k}:{v.dtype}:{tuple(v.shape)}".encode())
+        h.update(v.numpy().tobytes())
+    return h.hexdigest()
+
+
+def _same_on_every_rank(value: object, what: str, ddp: Distributed) -> None:
+    """RuntimeError on every rank if ``value`` differs between ranks."""
+    if ddp.world_size == 1:
+        return
+    import torch.distributed as dist
+
+    values: list[object] = [None] * ddp.world_size
+    dist.all_gather_object(values, value)
+    if any(v != values[0] for v in values):
+        raise RuntimeError(f"the ranks disagree on {what}: {values}")
 
 
 def pretrain(
@@ -193,27 +332,46 @@ def pretrain(
     minutes: float | None = None,
     progress: Callable[[str, float, dict], None] | None = None,
     command: str | None = None,
+    device: str = "cpu",
+    max_steps: int | None = None,
 ) -> dict:
-    """Run (or resume) pretraining for at most ``minutes`` (default ``cfg.minutes``); returns a summary. Writes
-    encoder.pt when done.
+    """Run (or resume) pretraining for at most ``minutes`` (default ``cfg.minutes``) and at most ``max_steps`` steps
+    in this call (None: no limit); returns a summary. Writes encoder.pt when done.
 
     Each call that trains appends its ``command``, steps and seconds to the checkpoint's ``sessions``: a run that spans
     several calls keeps its whole provenance (the schedule follows the ``steps`` of each call).
+
+    Inside a process group (``distributed_from_env``; ``device`` is then this rank's) the ranks train one encoder with
+    DistributedDataParallel: rank r holds scenes r, r + world, ..., draws its own pairs, and all ranks resume from the
+    same checkpoint; only rank 0 writes files and reports ``progress``. Every rank returns the summary. The scenes
+    weigh equally when the world size divides ``cfg.scenes`` (a scene weighs 1 / (world size x its shard's size)).
     """
+    if max_steps is not None and max_steps < 0:
+        raise ValueError(f"max_steps must be >= 0 or None, got {max_steps}")
+    ddp = current_distributed()
+    if cfg.scenes < ddp.world_size:
+        raise InputError(None, f"{cfg.scenes} scenes cannot be shared among {ddp.world_size} ranks")
+    main = ddp.rank == 0
+    report = progress if main else None
     out = Path(out_dir)
     cache = out / "scenes"
     cache.mkdir(parents=True, exist_ok=True)
     t0 = time.monotonic()
     deadline = t0 + (cfg.minutes if minutes is None else minutes) * 60.0
     scenes = []
-    for i in range(cfg.scenes):
+    mine = range(ddp.rank, cfg.scenes, ddp.world_size)
+    out_of_time = False
+    for k, i in enumerate(mine):
         scenes.append(load_or_make_scene(cache, cfg.seed * 100003 + i, cfg))
-        if progress:
-            progress("scenes", (i + 1) / cfg.scenes, {"scene": i + 1})
+        if report:
+            report("scenes", (k + 1) / len(mine), {"scene": k + 1})
         if time.monotonic() > deadline:
-            return {"finished": False, "stage": "scenes", "scenes_ready": i + 1}
+            out_of_time = True
+            break
+    if _any_rank([out_of_time], ddp, device)[0]:
+        return {"finished": False, "stage": "scenes", "scenes_ready": int(_rank_sum([len(scenes)], ddp, device)[0])}
     torch.manual_seed(cfg.seed)
-    encoder = Encoder(cfg.encoder)
+    encoder = Encoder(cfg.encoder).to(device)
     opt = torch.optim.AdamW(encoder.parameters(), lr=LR, weight_decay=WEIGHT_DECAY)
     ckpt_path = out / "checkpoint.pt"
     step, elapsed_before = 0, 0.0
@@ -225,6 +383,14 @@ def pretrain(
         opt.load_state_dict(ck["optimizer"])
         step, elapsed_before, history = int(ck["step"]), float(ck["elapsed"]), list(ck["history"])
         sessions = list(ck.get("sessions", []))
+    _same_on_every_rank(step, f"the checkpoint's step (is {ckpt_path} on a file system every rank sees?)", ddp)
+    model: torch.nn.Module = encoder
+    if ddp.world_size > 1:
+        from torch.nn.parallel import DistributedDataParallel
+
+        model = DistributedDataParallel(
+            encoder, device_ids=[torch.device(device).index] if ddp.backend == "nccl" else None
+        )
     this_session = {
         "command": command,
         "start_step": step,
@@ -232,9 +398,12 @@ def pretrain(
         "steps_planned": cfg.steps,
         "seconds": 0.0,
         "threads": torch.get_num_threads(),
+        "world_size": ddp.world_size,
+        "backend": ddp.backend,
+        "device": torch.device(device).type,
     }
     sessions.append(this_session)
-    rng = np.random.default_rng([cfg.seed, step])
+    rng = np.random.default_rng([cfg.seed, step] if main else [cfg.seed, step, ddp.rank])
     t_train = time.monotonic()
 
     def save_checkpoint() -> None:
@@ -254,17 +423,24 @@ def pretrain(
 
     last_ckpt = t_train
     running: list[tuple[float, float]] = []
+    stop_step = cfg.steps if max_steps is None else min(cfg.steps, step + max_steps)
     encoder.train()
-    while step < cfg.steps and time.monotonic() < deadline:
+    while step < stop_step:
+        time_up = time.monotonic() >= deadline
+        if time_up and ddp.world_size == 1:
+            break
         p = step / cfg.steps
         lr = LR * (LR_FINAL_FRACTION + (1 - LR_FINAL_FRACTION) * 0.5 * (1 + np.cos(np.pi * p)))
         lr = float(lr * min(1.0, (step + 1) / 200))
         for g in opt.param_groups:
             g["lr"] = lr
-        out_ = contrastive_loss(scenes, encoder, rng, cfg.pairs)
-        if out_ is None:
+        batch = sample_pairs(scenes, rng, cfg.pairs)
+        time_up, no_batch = _any_rank([time_up, batch is None], ddp, device)
+        if time_up:
+            break
+        if no_batch:
             continue
-        loss, top1 = out_
+        loss, top1 = pair_loss(model, batch)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(encoder.parameters(), 10.0)
@@ -273,16 +449,19 @@ def pretrain(
         running.append((float(loss.detach()), top1))
         if step % 100 == 0:
             arr = np.array(running)
-            history.append({"step": step, "loss": float(arr[:, 0].mean()), "top1": float(arr[:, 1].mean()), "lr": lr})
+            mean_loss, mean_top1 = _rank_mean([float(arr[:, 0].mean()), float(arr[:, 1].mean())], ddp, device)
+            history.append({"step": step, "loss": mean_loss, "top1": mean_top1, "lr": lr})
             running = []
-        if progress:
-            progress("train", step / cfg.steps, {"step": step, "loss": float(loss.detach()), "top1": top1})
-        if time.monotonic() - last_ckpt > CHECKPOINT_EVERY_S:
+        if report:
+            report("train", step / cfg.steps, {"step": step, "loss": float(loss.detach()), "top1": top1, "lr": lr})
+        if main and time.monotonic() - last_ckpt > CHECKPOINT_EVERY_S:
             save_checkpoint()
             last_ckpt = time.monotonic()
     if step == this_session["start_step"]:  # nothing trained (a finished run rerun, e.g. to --install): no entry
         sessions.remove(this_session)
-    save_checkpoint()
+    sha = weights_sha256(encoder)
+    _same_on_every_rank(sha, "the encoder's weights", ddp)
+    this_session.update(end_step=step, seconds=round(time.monotonic() - t_train, 1))
     finished = step >= cfg.steps
     total_s = elapsed_before + time.monotonic() - t_train
     summary = {
@@ -293,10 +472,20 @@ def pretrain(
         "last": history[-1] if history else None,
         "config": _cfg_dict(cfg),
         "sessions": sessions,
+        "world_size": ddp.world_size,
+        "backend": ddp.backend,
+        "global_batch_pairs": cfg.pairs * ddp.world_size,
+        "weights_sha256": sha,
     }
-    with atomic_path(out / "encoder.pt") as tmp:
-        torch.save(encoder.state_dict(), tmp)
-    write_json(out / "pretrain_summary.json", {**summary, "history": history})
+    if main:
+        save_checkpoint()
+        with atomic_path(out / "encoder.pt") as tmp:
+            torch.save(encoder.state_dict(), tmp)
+        write_json(out / "pretrain_summary.json", {**summary, "history": history})
+    if ddp.world_size > 1:
+        import torch.distributed as dist
+
+        dist.barrier()  # the files are in place before any rank goes on (or a later run starts)
     return summary
 
 
@@ -312,6 +501,7 @@ def install_default(out_dir: str | Path, command: str) -> Path:
     DEFAULT_ENCODER.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(DEFAULT_ENCODER) as tmp:
         torch.save(sd, tmp)
+    trained = summary.get("sessions", [])  # the world size of the last session that trained, not of an --install rerun
     provenance = {
         "command": command,
         "sessions": summary.get("sessions", []),
@@ -324,6 +514,8 @@ def install_default(out_dir: str | Path, command: str) -> Path:
         "train_seconds": summary["train_seconds"],
         "last": summary["last"],
         "config": summary["config"],
+        "world_size": trained[-1].get("world_size", 1) if trained else summary.get("world_size", 1),
+        "backend": trained[-1].get("backend") if trained else summary.get("backend"),
         "machine": f"{platform.processor() or platform.machine()}, torch {torch.__version__}",
         "sha256": file_sha256(DEFAULT_ENCODER),
         "bytes": DEFAULT_ENCODER.stat().st_size,
