@@ -26,9 +26,7 @@ console = Console()
 DEFAULT_SPLAT_MINUTES = 1.5
 """Stage 2 budget of the demo: enough to see the Gaussians form (the full recipe is `acesplat splat --minutes 10`)."""
 DEFAULT_REFINE_BUDGET_MS = 200.0
-"""Per-frame budget of the refinement replay. Measured with the demo's bundle (4.5-minute map, load ~2): at 200 ms
-test PSNR 26.49 -> 26.63 dB, 10 of 17 keyframes committed; at 100 ms (INT8 localization takes 40-60 ms of it)
-26.49 -> 26.52 dB, 2 of 8. The issue's 100 ms target is measured by bench/bench_refine.py."""
+"""Per-frame budget of the refinement replay: room for refinement beside INT8 localization (bench/refine.md)."""
 RENDER_PAIRS = 3
 """Before/after render images the demo writes (the test views whose PSNR refinement changed most)."""
 REFINE_PRECISION = "int8"
