@@ -9,7 +9,7 @@ localization leaves), and with unpaced refinement (frames back to back, the work
 localizer all the time: the worst case for contention on 2 cores and the GIL), the Gaussian count
 over time, and the machine's load. Every number comes from this run.
 
-The SCR map is a real Stage 1 map (`acesplat map`'s library function with the default encoder, --map-minutes,
+The SCR map is a real Stage 1 map (`acesplat map`'s library function with the default encoder, --map-steps,
 on the whole training trajectory), or an existing one (--map, with --scene the scene it was mapped on, e.g. the
 demo's); --fitted-map fits one directly to depth-derived coordinates instead (tests/test_edge_scene.train_tiny_map:
 seconds, but poses far better than Stage 1 gives). Keyframe poses are the localizer's, as on a device.
@@ -70,10 +70,13 @@ def prepare(work: Path, args) -> dict:
     map_path = Path(args.map) if args.map else work / ("tiny.map" if args.fitted_map else "map.pt")
     if not map_path.is_file() and not args.fitted_map:
         from acesplat.apps.demo import _stage_map
+        from acesplat.core.config import knob_default
+        from acesplat.scr.mapping import MappingConfig
 
-        log(f"Stage 1: map the whole training trajectory with the default encoder, {args.map_minutes} min")
+        args.map_steps = args.map_steps or knob_default(MappingConfig, "iterations")
+        log(f"Stage 1: map the whole training trajectory with the default encoder, {args.map_steps} steps")
         info: dict = {}
-        map_path = _stage_map(scene, work, args.map_minutes, info)
+        map_path = _stage_map(scene, work, args.map_steps, args.map_minutes, info)
         log(f"map: {info['map']['iterations']} iterations; test median {info['eval']['median_translation_m']} m")
     if not map_path.is_file():
         from tests.test_edge_scene import train_tiny_map
@@ -235,7 +238,10 @@ def main() -> None:
         help="an existing scene (its training split is halved) instead of synthesizing one",
     )
     ap.add_argument("--map", type=str, default=None, help="an existing Stage 1 map of the scene")
-    ap.add_argument("--map-minutes", type=float, default=4.5, help="Stage 1 mapping budget when no --map is given")
+    ap.add_argument(
+        "--map-steps", type=int, default=None, help="Stage 1 head steps when no --map is given (default: the recipe's)"
+    )
+    ap.add_argument("--map-minutes", type=float, default=None, help="Optional wall-clock cap of that map")
     ap.add_argument(
         "--fitted-map", action="store_true", help="fit the map to depth-derived coordinates instead of Stage 1"
     )

@@ -3,7 +3,7 @@
 Runs `acesplat map` and `acesplat eval` through their library functions with default settings, in one
 process, one scene after the other, and prints one table plus the machine it ran on.
 
-    python bench/bench_stage1.py [--herz-minutes 10] [--synth-minutes 4.5] [--out runs/bench_stage1]
+    python bench/bench_stage1.py [--herz-minutes CAP] [--synth-minutes CAP] [--out runs/bench_stage1]
     python bench/bench_stage1.py --skip-herz --iterations 1000 --buffer 300000 --threads 1   # fixed work, not time
     python bench/bench_stage1.py --augment photometric,ace   # each scene mapped once per augmentation preset
     python bench/bench_stage1.py --skip-synth --seeds 0,1,2   # one recipe, several seeds: the spread between runs
@@ -31,17 +31,17 @@ from cell_accuracy import split_cell_accuracy
 from acesplat.core.atomic import write_json
 from acesplat.core.config import knob_default
 from acesplat.core.grid import DENSE_OUTPUT_STRIDE
-from acesplat.core.machine import machine_info, machine_line
+from acesplat.core.machine import cpu_isa, machine_info, machine_line
 from acesplat.core.scene import read_split
 from acesplat.scr.encoders import load_encoder
 from acesplat.scr.keyframes import MapKeyframes
 from acesplat.scr.localize import Localizer, evaluate
-from acesplat.scr.mapping import MappingConfig, default_short_side, map_scene
+from acesplat.scr.mapping import MappingConfig, default_short_side, map_scene, use_bf16
 from acesplat.scr.novel_views import NOVEL_VIEWS
 from acesplat.synth import synthesize
 
 AUGMENT = knob_default(MappingConfig, "augment")
-MAP_MINUTES = knob_default(MappingConfig, "minutes")
+MAP_STEPS = knob_default(MappingConfig, "iterations")
 
 ROOT = Path(__file__).resolve().parents[1]
 HERZ = ROOT.parent / "shared" / "data" / "herzjesu25"
@@ -49,7 +49,7 @@ HERZ = ROOT.parent / "shared" / "data" / "herzjesu25"
 
 def run(
     scene: Path,
-    minutes: float,
+    minutes: float | None,
     triangulate: bool,
     encoder_path: Path | None,
     iterations: int | None = None,
@@ -69,7 +69,7 @@ def run(
         minutes=minutes,
         short_side=side,
         triangulate=triangulate,
-        iterations=iterations,
+        iterations=iterations or MAP_STEPS,
         precision=precision,
         augment=augment,
         seed=seed,
@@ -105,6 +105,10 @@ def run(
         "seed": seed,
         "map_seconds": res.seconds,
         "iterations": res.iterations,
+        "iterations_planned": res.iterations_planned,
+        "cut_short": res.cut_short,
+        "cpu_isa": "/".join(cpu_isa()),
+        "precision": "bf16" if use_bf16(precision, "cpu") else "fp32",
         "buffer_features": res.buffer_features,
         "target_features": res.target_features,
         "novel_views": novel_views,
@@ -133,8 +137,8 @@ def run(
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--synth-minutes", type=float, default=MAP_MINUTES)
-    ap.add_argument("--herz-minutes", type=float, default=10.0)
+    ap.add_argument("--synth-minutes", type=float, default=None, help="Optional wall-clock cap of each map.")
+    ap.add_argument("--herz-minutes", type=float, default=None, help="Optional wall-clock cap of each map.")
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "bench_stage1")
     ap.add_argument(
         "--encoder",

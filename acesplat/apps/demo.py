@@ -16,8 +16,9 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from acesplat.apps.support import PhaseProgress, one_line_errors, parse_int_pair, parse_size, report_json
+from acesplat.apps.support import PhaseProgress, one_line_errors, option, parse_int_pair, parse_size, report_json
 from acesplat.core.errors import InputError
+from acesplat.scr.mapping import MappingConfig
 
 console = Console()
 
@@ -25,9 +26,7 @@ console = Console()
 DEFAULT_SPLAT_MINUTES = 1.5
 """Stage 2 budget of the demo: enough to see the Gaussians form (the full recipe is `acesplat splat --minutes 10`)."""
 DEFAULT_REFINE_BUDGET_MS = 200.0
-"""Per-frame budget of the refinement replay. Measured with the demo's bundle (4.5-minute map, load ~2): at 200 ms
-test PSNR 26.49 -> 26.63 dB, 10 of 17 keyframes committed; at 100 ms (INT8 localization takes 40-60 ms of it)
-26.49 -> 26.52 dB, 2 of 8. The issue's 100 ms target is measured by bench/bench_refine.py."""
+"""Per-frame budget of the refinement replay: room for refinement beside INT8 localization (bench/refine.md)."""
 RENDER_PAIRS = 3
 """Before/after render images the demo writes (the test views whose PSNR refinement changed most)."""
 REFINE_PRECISION = "int8"
@@ -49,7 +48,7 @@ def _stage_synth(work: Path, summary: dict, size: tuple[int, int] | None, frames
     return scene
 
 
-def _stage_map(scene: Path, work: Path, minutes: float, summary: dict) -> Path:
+def _stage_map(scene: Path, work: Path, steps: int, minutes: float | None, summary: dict) -> Path:
     from acesplat.core.scene import read_split
     from acesplat.scr.device import resolve_device
     from acesplat.scr.encoders import load_encoder
@@ -61,7 +60,7 @@ def _stage_map(scene: Path, work: Path, minutes: float, summary: dict) -> Path:
     train, test = read_split(scene, "train"), read_split(scene, "test")
     enc, ident = load_encoder(None)
     side = default_short_side(train)
-    cfg = MappingConfig(minutes=minutes, short_side=side, device=dev)
+    cfg = MappingConfig(iterations=steps, minutes=minutes, short_side=side, device=dev)
     with PhaseProgress("demo map ") as bar:
         res = map_scene(train, enc, cfg, bar)
     map_path = work / "map.pt"
@@ -70,6 +69,8 @@ def _stage_map(scene: Path, work: Path, minutes: float, summary: dict) -> Path:
         "train_frames": len(train),
         "seconds": res.seconds,
         "iterations": res.iterations,
+        "iterations_planned": res.iterations_planned,
+        "cut_short": res.cut_short,
         "buffer_features": res.buffer_features,
         "device": dev,
         "augment": cfg.augment,
@@ -297,7 +298,8 @@ def _accuracy(e: dict) -> str:
 @one_line_errors
 def demo_command(
     workdir: Path = typer.Option(Path("runs/demo"), help="Where the scene, map and outputs go."),
-    map_minutes: float = typer.Option(4.5, help="Mapping budget (Stage 1; acesplat map's default)."),
+    map_steps: int = option(MappingConfig, "iterations", "--map-steps", min=1),
+    map_minutes: float | None = option(MappingConfig, "minutes", "--map-minutes"),
     splat_minutes: float = typer.Option(DEFAULT_SPLAT_MINUTES, help="Stage 2 budget (`acesplat splat --minutes`)."),
     refine_budget_ms: float = typer.Option(
         DEFAULT_REFINE_BUDGET_MS,
@@ -313,7 +315,7 @@ def demo_command(
 ) -> None:
     """Run synth -> map -> eval -> splat -> export -> edge replay (with and without refinement) on the built-in
     synthetic scene and print the results."""
-    if map_minutes <= 0 or splat_minutes <= 0 or refine_budget_ms <= 0:
+    if (map_minutes is not None and map_minutes <= 0) or splat_minutes <= 0 or refine_budget_ms <= 0:
         raise InputError(None, "--map-minutes, --splat-minutes and --refine-budget-ms must be positive")
     if splat_iterations is not None and splat_iterations < 0:
         raise InputError(None, f"--splat-iterations must be >= 0, got {splat_iterations}")
@@ -322,7 +324,7 @@ def demo_command(
     workdir.mkdir(parents=True, exist_ok=True)
     summary: dict = {}
     scene = _stage_synth(workdir, summary, parse_size(size) if size else None, counts)
-    map_path = _stage_map(scene, workdir, map_minutes, summary)
+    map_path = _stage_map(scene, workdir, map_steps, map_minutes, summary)
     splat_dir = _stage_splat(scene, map_path, workdir, splat_minutes, splat_iterations, summary)
     _stage_edge(map_path, scene, splat_dir, workdir, refine_budget_ms, summary)
     summary["seconds"] = time.monotonic() - t0

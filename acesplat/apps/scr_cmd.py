@@ -24,7 +24,8 @@ console = Console()
 def map_command(
     scene: Path = typer.Argument(..., help="Scene folder in the ACE layout."),
     out: Path = typer.Option(..., "-o", "--out", help="Map file to write."),
-    minutes: float = option(MappingConfig, "minutes"),
+    steps: int = option(MappingConfig, "iterations", "--steps", min=1),
+    minutes: float | None = option(MappingConfig, "minutes"),
     device: str = typer.Option("auto", help="auto, cpu or cuda."),
     encoder: Path | None = typer.Option(None, help="Encoder weights (default: the shipped encoder; ACE's file works)."),
     short_side: int | None = option(
@@ -40,6 +41,7 @@ def map_command(
     """Train a scene-specific SCR head on the training split (Stage 1 mapping)."""
     import torch
 
+    from acesplat.core.machine import cpu_isa
     from acesplat.core.scene import read_split
     from acesplat.scr.augment import augment_ranges
     from acesplat.scr.encoders import load_encoder
@@ -48,7 +50,7 @@ def map_command(
 
     if novel_views < 0:
         raise InputError(None, f"--novel-views must be 0 or more, got {novel_views}")
-    if minutes <= 0:
+    if minutes is not None and minutes <= 0:
         raise InputError(None, f"--minutes must be positive, got {minutes}")
     dev = resolve_device(device)
     try:
@@ -65,6 +67,7 @@ def map_command(
     enc, ident = load_encoder(encoder)
     side = short_side or default_short_side(split)
     cfg = MappingConfig(
+        iterations=steps,
         minutes=minutes,
         short_side=side,
         head=HeadConfig(width=head_width, blocks=1),
@@ -81,9 +84,13 @@ def map_command(
         "train_frames": len(split),
         "seconds": res.seconds,
         "iterations": res.iterations,
+        "iterations_planned": res.iterations_planned,
+        "cut_short": res.cut_short,
+        "minutes_cap": minutes,
         "buffer_features": res.buffer_features,
         "device": dev,
         "precision": "bf16" if bf16 else "fp32",
+        "cpu_isa": cpu_isa(),
         "augment": augment,
         "novel_views": novel_views,
         "novel_view_features": res.novel_view_features,
@@ -91,8 +98,15 @@ def map_command(
     save_map(out, SceneMap(res.head, ident, res.mean, side, meta))
     console.print(
         f"mapped {len(split)} images in {res.seconds:.1f} s ({res.buffer_seconds:.1f} s buffer, "
-        f"{res.iterations} iterations, {res.buffer_features} features, final loss {res.final_loss:.2f}) -> {out}"
+        f"{res.iterations} iterations, {res.buffer_features} features, final loss {res.final_loss:.2f}; "
+        f"{meta['precision']} on {'/'.join(meta['cpu_isa']) or 'an unknown ISA'}) -> {out}"
     )
+    if res.cut_short:
+        console.print(
+            f"[bold yellow]warning:[/] --minutes {minutes} cut the recipe short: {res.iterations} of "
+            f"{res.iterations_planned} head steps, {res.buffer_features} of {cfg.buffer_size} buffered features; "
+            "the map is less trained than the default recipe makes it"
+        )
     report_json(
         json_out,
         {

@@ -41,9 +41,9 @@ ACE_IMAGE_SHORT_SIDE = 480
 ACE_BUFFER_SIZE = 8_000_000
 WEIGHT_DECAY = 0.01
 TARGETS_TIME_FRACTION = 0.08
-"""At most this share of the budget goes to matching and triangulating targets."""
+"""Under a wall-clock cap: at most this share of it goes to matching and triangulating targets."""
 BUFFER_TIME_FRACTION = 0.25
-"""Targets and buffer together use at most this share of the budget; the rest trains the head."""
+"""Under a wall-clock cap: targets and buffer together use at most this share of it; the rest trains the head."""
 ONE_CYCLE_WARMUP = 0.25
 """Share of training spent rising from lr_min to lr_max (cosine), then cosine annealing back down."""
 TARGET_WEIGHT_PX = 0.4
@@ -61,7 +61,8 @@ def default_short_side(split: SceneSplit) -> int:
 
 @dataclass
 class MappingConfig:
-    minutes: float = knob(4.5, "Wall-clock budget for mapping, from reading the images to the trained head.")
+    iterations: int = knob(5000, "Head steps of the recipe: the same work, so the same map, on every CPU.")
+    minutes: float | None = knob(None, "Optional wall-clock cap; a map it cuts short is warned of and flagged.")
     short_side: int = knob(360, "Shorter image side for the network (ACE: 480; fewer pixels suit a CPU).")
     head: HeadConfig = knob(reason="The head's 1x1 layers.", factory=lambda: HeadConfig(width=256, blocks=1))
     batch_size: int = knob(5120, "Buffered features per head step (ACE's batch).")
@@ -77,7 +78,6 @@ class MappingConfig:
     novel_views: int = knob(
         0, "Training images warped to in-between cameras, buffered late in training (bench/herz_gap.md)."
     )
-    iterations: int | None = knob(None, "Fixed head steps instead of the wall-clock budget (reproducible runs).")
     seed: int = knob(0, "Seed of sampling, augmentation and initialisation.")
     device: str = knob("cpu", "Torch device of the encoder and head.")
     precision: str = knob("auto", "Mapping arithmetic: auto (bf16 where the CPU/GPU has it), fp32 or bf16.")
@@ -107,6 +107,9 @@ class MappingResult:
     final_valid_fraction: float
     novel_view_features: int = 0
     history: list[dict] = field(default_factory=list)
+    iterations_planned: int = 0
+    cut_short: bool = False
+    """The wall-clock cap ended the recipe early (fewer head steps, or a partial buffer, than planned)."""
 
 
 @dataclass
@@ -193,12 +196,12 @@ def fill_buffer(
     images: list[TrainingImage],
     encoder: Encoder,
     cfg: MappingConfig,
-    deadline: float,
+    deadline: float | None,
     rng: np.random.Generator,
     progress: ProgressFn | None = None,
 ) -> Buffer:
     """Encoder features of augmented views: feats (N, C) fp16, pixels (N, 2), view (N,), and per view
-    w2c (V, 3, 4), K (V, 3, 3)."""
+    w2c (V, 3, 4), K (V, 3, 3); ``cfg.buffer_size`` of them, or fewer past ``deadline`` (time.monotonic)."""
     ranges = augment_ranges(cfg.augment)
     builder = BufferBuilder()
     order: list[int] = []
@@ -220,7 +223,7 @@ def fill_buffer(
             )
             if progress:
                 progress("buffer", builder.features / cfg.buffer_size, {"features": builder.features})
-            if time.monotonic() > deadline:
+            if deadline is not None and time.monotonic() > deadline:
                 break
     buffer = builder.build()
     if buffer is None:
@@ -247,14 +250,15 @@ def train_head(
     head: Head,
     buffer: Buffer,
     cfg: MappingConfig,
-    seconds: float,
+    seconds: float | None = None,
     progress: ProgressFn | None = None,
     extend: BufferExtension | None = None,
     extend_at: float = NOVEL_VIEWS_AT,
 ) -> tuple[int, float, float, list[dict]]:
-    """Train ``head`` on the buffer until the budget (or ``cfg.iterations``) is spent.
+    """Train ``head`` on the buffer for ``cfg.iterations`` steps, or until ``seconds`` (a cap) run out.
 
-    The time ``extend`` takes counts against the budget, so a wall-clock run still ends on time.
+    Under a cap the schedule's progress is the larger of the steps' and the clock's, so a capped run still
+    anneals its learning rate; the time ``extend`` takes counts against the cap.
     """
     dev = torch.device(cfg.device)
     head.to(dev).train()
@@ -273,7 +277,9 @@ def train_head(
     loss_v, valid_frac = float("nan"), float("nan")
     history: list[dict] = []
     while True:
-        p = it / cfg.iterations if cfg.iterations else (time.monotonic() - start) / seconds
+        p = it / cfg.iterations
+        if seconds is not None:
+            p = max(p, (time.monotonic() - start) / seconds)
         if p >= 1.0:
             break
         if extend is not None and p >= extend_at:
@@ -329,10 +335,16 @@ def map_scene(
     cfg: MappingConfig = MappingConfig(),
     progress: ProgressFn | None = None,
 ) -> MappingResult:
-    """Map a scene: buffer, then head training, inside ``cfg.minutes`` of wall-clock time."""
+    """Map a scene: targets, a full buffer, then ``cfg.iterations`` head steps (all cut short by ``cfg.minutes``
+    when a cap is set: ``MappingResult.cut_short``)."""
+    if cfg.iterations < 1:
+        raise ValueError(f"iterations must be positive, got {cfg.iterations}")
+    if cfg.minutes is not None and cfg.minutes <= 0:
+        raise ValueError(f"minutes must be positive, got {cfg.minutes}")
     t0 = time.monotonic()
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
+    budget = None if cfg.minutes is None else cfg.minutes * 60.0
     encoder = encoder.to(cfg.device).eval()
     for p in encoder.parameters():
         p.requires_grad_(False)
@@ -342,18 +354,19 @@ def map_scene(
             [im.gray for im in images],
             [im.intrinsics for im in images],
             [im.c2w for im in images],
-            deadline=t0 + TARGETS_TIME_FRACTION * cfg.minutes * 60.0,
+            deadline=None if budget is None else t0 + TARGETS_TIME_FRACTION * budget,
         )
         for im, t in zip(images, tg):
             im.targets = t
         if progress:
             progress("triangulate", 1.0, {"points": int(sum(len(t.points) for t in tg))})
-    budget = cfg.minutes * 60.0
-    buffer = fill_buffer(images, encoder, cfg, t0 + BUFFER_TIME_FRACTION * budget, rng, progress)
+    buffer = fill_buffer(
+        images, encoder, cfg, None if budget is None else t0 + BUFFER_TIME_FRACTION * budget, rng, progress
+    )
     t_buf = time.monotonic() - t0
     mean = np.mean([im.c2w[:3, 3] for im in images], axis=0)
     head = Head(torch.from_numpy(mean).float(), in_channels=encoder.cfg.out, cfg=cfg.head)
-    remaining = max(budget - (time.monotonic() - t0), 1.0)
+    remaining = None if budget is None else max(budget - (time.monotonic() - t0), 1.0)
     extend = None
     novel_features = 0
     if cfg.novel_views > 0 and len(images) > 1:
@@ -362,7 +375,7 @@ def map_scene(
             nonlocal novel_features
             if progress:
                 progress("novel views", 0.0, {"views": cfg.novel_views})
-            deadline = time.monotonic() + NOVEL_VIEWS_TIME_FRACTION * budget
+            deadline = math.inf if budget is None else time.monotonic() + NOVEL_VIEWS_TIME_FRACTION * budget
             with buffer_encoding(encoder, cfg) as encode:
                 extra = novel_view_buffer(images, encoder, encode, h, cfg.novel_views, rng, deadline)
             novel_features = 0 if extra is None else int(extra["feats"].shape[0])
@@ -384,4 +397,6 @@ def map_scene(
         final_loss=loss_v,
         final_valid_fraction=valid,
         history=history,
+        iterations_planned=cfg.iterations,
+        cut_short=its < cfg.iterations or int(buffer["feats"].shape[0]) < cfg.buffer_size,
     )

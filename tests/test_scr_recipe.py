@@ -1,0 +1,65 @@
+"""Stage 1's recipe is fixed work (head steps and a full buffer), the same on every CPU; ``minutes`` is only a cap,
+and a map it cuts short says so on the terminal and in its JSON."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from acesplat.core.config import knob_default
+from acesplat.core.scene import read_split
+from acesplat.scr.encoders import load_encoder
+from acesplat.scr.mapping import MappingConfig, map_scene
+from acesplat.synth import synthesize
+
+SIZE = (64, 80)
+TINY = dict(short_side=SIZE[0], batch_size=128, buffer_size=2000, samples_per_image=100, precision="fp32")
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    out = tmp_path_factory.mktemp("recipe") / "scene"
+    synthesize(out, seed=5, train_frames=12, test_frames=2, size=SIZE, supersample=1)
+    return out
+
+
+def test_the_default_recipe_is_a_step_count_with_no_clock() -> None:
+    assert knob_default(MappingConfig, "minutes") is None
+    assert knob_default(MappingConfig, "iterations") == 5000
+
+
+def test_uncapped_mapping_does_all_its_work(scene) -> None:
+    enc, _ = load_encoder(None)
+    torch.manual_seed(0)
+    res = map_scene(read_split(scene, "train"), enc, MappingConfig(iterations=25, **TINY))
+    assert (res.iterations, res.iterations_planned, res.buffer_features, res.cut_short) == (25, 25, 2000, False)
+
+
+def test_a_cap_that_binds_cuts_the_map_short_and_says_so(scene) -> None:
+    enc, _ = load_encoder(None)
+    res = map_scene(read_split(scene, "train"), enc, MappingConfig(iterations=100_000, minutes=0.05, **TINY))
+    assert res.cut_short and res.iterations < res.iterations_planned == 100_000
+    assert res.seconds < 0.05 * 60 + 5.0  # the cap holds, with a margin for loading and the last step
+
+
+def test_map_command_warns_and_flags_a_cut_short_map(scene, tmp_path) -> None:
+    from acesplat.apps.cli import app
+
+    out = tmp_path / "m.json"
+    args = ["map", str(scene), "-o", str(tmp_path / "m.pt"), "--steps", "100000", "--minutes", "0.02"]
+    r = CliRunner().invoke(app, [*args, "--precision", "fp32", "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    assert "cut the recipe short" in r.output
+    j = json.loads(out.read_text())
+    assert j["cut_short"] is True and j["iterations"] < j["iterations_planned"] == 100_000
+    assert j["precision"] == "fp32" and isinstance(j["cpu_isa"], list)
+
+
+def test_map_command_refuses_a_non_positive_cap(scene, tmp_path) -> None:
+    from acesplat.apps.cli import app
+
+    r = CliRunner().invoke(app, ["map", str(scene), "-o", str(tmp_path / "m.pt"), "--minutes", "0"])
+    assert r.exit_code == 2 and "--minutes" in r.output and "Traceback" not in r.output
