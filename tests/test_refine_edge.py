@@ -1,4 +1,5 @@
-"""Refinement in the edge runtime: replay --refine numbers, bundles with and without Gaussian models, the worker thread, export --splat."""
+"""Refinement in the edge runtime: replay --refine numbers, bundles with and without Gaussian models, the worker
+thread, export --splat."""
 
 from __future__ import annotations
 
@@ -20,12 +21,6 @@ from edge.refine.keyframes import KeyframePolicy, KeyframeSelector
 from edge.refine.refiner import BatchReport
 from edge.refine.worker import Candidate, RefineWorker
 from tests.refine_scene import depth_gaussians
-from tests.test_edge_scene import tiny_setup
-
-
-@pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    return tiny_setup(tmp_path_factory)
 
 
 @pytest.fixture(scope="module")
@@ -76,8 +71,9 @@ def test_replay_refine_reports_psnr_gain_and_saves_the_map(tiny, bundle_with_gau
     for k in ("window", "candidate_wall", "batch", "step", "render", "guard"):
         assert set(ref["timing_ms"][k]) == {"mean", "p50", "p90", "p95", "p99", "max"}
     assert "refine" in s["timing_ms"]  # beside the localization stages
-    assert ref["keyframes"] >= 3 and ref["keyframes_committed"] >= 2 and ref["steps"] >= 1
-    assert ref["psnr_after"] > ref["psnr_before"] + 1.0
+    assert ref["keyframes"] == 12 and ref["keyframes_committed"] >= 6  # measured 9 of 12
+    assert ref["steps"] >= 150  # measured 300
+    assert ref["psnr_after"] > ref["psnr_before"] + 8.0  # measured 10.9 -> 22.3 dB
     assert (
         ref["gaussians_final"]
         == ref["gaussians_initial"] + ref["gaussians_added"] - ref["gaussians_pruned"] - ref["gaussians_capped"]
