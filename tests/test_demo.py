@@ -35,6 +35,7 @@ def test_tiny_demo_runs_every_stage_and_reports_refinement(tmp_path) -> None:
     )
     assert r.exit_code == 0, r.output
     s = json.loads(out.read_text())
+    print("MEASURE", json.dumps(s))
     assert s["synth"]["train_frames"] == 12 and s["synth"]["size"] == [64, 80]
     assert (
         s["eval_align"]["frames"] == 4 and sum(s["eval_align"]["keyframe_alignment"].values()) == s["eval"]["localized"]

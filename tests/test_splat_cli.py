@@ -117,6 +117,7 @@ def test_splat_rises_above_the_floor_and_render_scores_it(world):
     after = json.loads((root / "splat.json").read_text())
     for key in ("seconds", "gaussians_initial", "gaussians_final", "train_psnr"):
         assert key in after
+    print("MEASURE", before, after)
     assert after["iterations"] == ITERATIONS and after["skipped_steps"] == 0
     assert after["train_psnr"] > PSNR_FLOOR_DB
     assert after["train_psnr"] > before["train_psnr"] + PSNR_RISE_DB
@@ -137,6 +138,7 @@ def test_splat_rises_above_the_floor_and_render_scores_it(world):
     res = run("render", out, world["scene"], "--split", "test", "--out", root / "renders", "--json", root / "r.json")
     assert res.exit_code == 0, res.output
     r = json.loads((root / "r.json").read_text())
+    print("MEASURE", r)
     assert r["frames"] == 3 and r["gaussians"] == len(g) and np.isfinite(r["psnr"]) and 0 < r["ssim"] <= 1
     assert "lpips" not in r
     pngs = sorted((root / "renders").glob("*.png"))
@@ -168,6 +170,7 @@ def test_sparse_protocol_reports_held_out_targets(world):
     )
     assert res.exit_code == 0, res.output
     rep = json.loads((world["root"] / "sparse.json").read_text())
+    print("MEASURE", rep)
     assert rep["protocol"] == "sparse" and rep["target_frames"] == 2 and np.isfinite(rep["target_psnr"])
     m = load_manifest(out)
     assert m["train_views"] == ["frame-00002", "frame-00005"]
