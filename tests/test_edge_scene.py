@@ -171,11 +171,11 @@ def augmented_view(
 
 
 AUG_DEG, AUG_SCALE, AUG_PX = 3.0, 1.04, 3.0
-"""Augmentation range of the tiny map: beyond the test views' offsets (a few degrees, a few pixels)."""
+"""Augmentation range of the tiny map: about the test views' offsets (a few degrees, a few pixels)."""
 
 
 def train_tiny_map(scene: Path, out_dir: Path, steps: int = 600, seed: int = 0, lr: float = 5e-3) -> tuple[Path, Path]:
-    """A map that localizes the tiny room in seconds: encoder and head fitted end to end to depth-derived coordinates.
+    """A map that localizes the tiny room within a minute: encoder and head fitted to depth-derived coordinates.
 
     ACE's reprojection recipe with a random encoder needs minutes to localize anything; the export
     and edge tests need a map that does localize, so this one is fitted directly (L1 on true
