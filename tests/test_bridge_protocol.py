@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import math
+import re
 import struct
-import zlib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -76,9 +77,59 @@ def test_cobs_truncated_block_is_incomplete_and_zero_is_refused() -> None:
 # ---------------------------------------------------------------- CRC and layouts
 
 
-def test_crc_is_crc32_ieee_check_value() -> None:
-    # The catalogue check value of CRC-32/ISO-HDLC; PROTOCOL.md promises exactly this CRC.
-    assert zlib.crc32(b"123456789") == 0xCBF43926
+PROTOCOL_MD = Path(__file__).resolve().parents[1] / "firmware_bridge" / "PROTOCOL.md"
+
+
+def crc32_by_the_spec(data: bytes) -> int:
+    """CRC-32 bit by bit from PROTOCOL.md section 3: reflected polynomial 0xEDB88320, init and final XOR 0xFFFFFFFF."""
+    crc = 0xFFFFFFFF
+    for byte in data:
+        crc ^= byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ (0xEDB88320 if crc & 1 else 0)
+    return crc ^ 0xFFFFFFFF
+
+
+def protocol_md_examples() -> list[tuple[bytes, bytes]]:
+    """(body, wire) of every worked example in PROTOCOL.md section 8."""
+    text = PROTOCOL_MD.read_text()
+    bodies = re.findall(r"^body: ([0-9a-f ]+)$", text, re.M)
+    wires = re.findall(r"^wire: ([0-9a-f ]+)$", text, re.M)
+    assert len(bodies) == len(wires) == 4
+    return [(bytes.fromhex(b), bytes.fromhex(w)) for b, w in zip(bodies, wires)]
+
+
+def test_reference_crc_has_the_catalogue_check_value() -> None:
+    assert crc32_by_the_spec(b"123456789") == 0xCBF43926  # CRC-32/ISO-HDLC, as PROTOCOL.md states
+
+
+@pytest.mark.parametrize("body, wire", protocol_md_examples())
+def test_protocol_md_examples_carry_the_crc_of_exactly_header_and_payload(body: bytes, wire: bytes) -> None:
+    length = body[4]
+    assert len(body) == 5 + length + 4
+    assert struct.unpack("<I", body[-4:])[0] == crc32_by_the_spec(body[: 5 + length])
+    assert cobs_encode(body) + b"\x00" == wire
+    frame = decode_segment(wire[:-1])
+    assert isinstance(frame, Frame) and encode_frame(frame.message, frame.seq) == wire
+
+
+@pytest.mark.parametrize("body, wire", protocol_md_examples())
+def test_a_frame_whose_crc_field_is_wrong_is_rejected(body: bytes, wire: bytes) -> None:
+    n = len(body) - 4
+    wrong = [
+        crc32_by_the_spec(body[:n]) ^ 1,  # one bit off
+        crc32_by_the_spec(body[5:n]),  # the payload alone
+        crc32_by_the_spec(body[:5]),  # the header alone
+        crc32_by_the_spec(body[: n - 1]),  # one byte short
+        crc32_by_the_spec(body[:n] + b"\x00"),  # one byte long
+        crc32_by_the_spec(body[:n]) ^ 0xFFFFFFFF,  # without the final XOR
+    ]
+    for crc in wrong:
+        seg = cobs_encode(body[:n] + struct.pack("<I", crc))
+        assert decode_segment(seg) == "crc"
+        dec = StreamDecoder()
+        assert dec.feed(seg + b"\x00") == [] and dec.rejects["crc"] == 1 and dec.frames_rejected == 1
+    assert isinstance(decode_segment(wire[:-1]), Frame)  # the documented CRC itself is accepted
 
 
 def test_payload_layouts_match_protocol_md() -> None:
@@ -94,7 +145,7 @@ def test_payload_layouts_match_protocol_md() -> None:
     assert struct.unpack("<4f", p[24:40]) == (0.5, 0.5, 0.5, 0.5)
     assert p[40:44] == bytes([0x34, 0x12, 1, 0])
     assert struct.unpack("<f", p[44:48]) == (0.25,)
-    assert body[-4:] == struct.pack("<I", zlib.crc32(body[:-4]))
+    assert body[-4:] == struct.pack("<I", crc32_by_the_spec(body[:-4]))
 
     status = encode_body(Status(7, 30.0, 12.0, 5, 6, RuntimeState.PAUSED), 1)[5:-4]
     assert status == struct.pack("<Q", 7) + struct.pack("<ff", 30.0, 12.0) + struct.pack("<II", 5, 6) + bytes(

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 from typer.testing import CliRunner
@@ -40,7 +39,7 @@ def test_tiny_demo_runs_every_stage_and_reports_refinement(tmp_path) -> None:
         s["eval_align"]["frames"] == 4 and sum(s["eval_align"]["keyframe_alignment"].values()) == s["eval"]["localized"]
     )
     assert "eval (torch), aligned" in r.output
-    assert s["splat"]["iterations"] == 3 and s["splat"]["gaussians_final"] > 0
+    assert s["splat"]["iterations"] == 3 and s["splat"]["gaussians_final"] > 1000  # measured 18576
     checks = s["export"]["checks"]
     assert {"fp32_vs_torch", "test_split", "splat_init_fp32_vs_torch", "splat_init_via_scr_int8_vs_torch"} <= set(
         checks
@@ -49,7 +48,9 @@ def test_tiny_demo_runs_every_stage_and_reports_refinement(tmp_path) -> None:
         assert s[k]["frames"] == 4
     ref = s["replay_refine"]["refine"]
     assert s["replay_refine"]["precision"] == "int8" and ref["budget_ms"] == 500
-    assert ref["psnr_views"] == 4 and math.isfinite(ref["psnr_before"]) and math.isfinite(ref["psnr_after"])
+    # a 6 s map localizes few test views, so refinement may add nothing; it must not make the map worse
+    assert ref["psnr_views"] == 4 and 8.0 < ref["psnr_before"] < 30.0  # measured 13.6 dB
+    assert ref["psnr_after"] >= ref["psnr_before"] - 0.5  # measured equal (no view localized)
     assert ref["seeder"] == "onnx_initializer" and ref["calibration_ms"]["initializer_ms"] > 0
     assert "edge replay (int8) + refinement" in r.output and "PSNR" in r.output
     assert s["replay_paced"]["frames"] == 4 and "park" in ref["timing_ms"]
@@ -57,8 +58,9 @@ def test_tiny_demo_runs_every_stage_and_reports_refinement(tmp_path) -> None:
     assert len(renders) == 3 and all(im["path"] in r.output for im in renders)
     for im in renders:
         png = (tmp_path / "w" / "refine_renders" / Path(im["path"]).name).read_bytes()
-        assert png[:8] == b"\x89PNG\r\n\x1a\n" and math.isfinite(im["psnr_after"])
-    assert s["seconds"] > 0 and (tmp_path / "w" / "bundle" / "splat_init.onnx").is_file()
+        assert png[:8] == b"\x89PNG\r\n\x1a\n" and 5.0 < im["psnr_after"] < 40.0  # measured 7.0 to 16.4 dB
+    stages = sum(v["seconds"] for v in s.values() if isinstance(v, dict) and "seconds" in v)
+    assert s["seconds"] >= stages > 0 and (tmp_path / "w" / "bundle" / "splat_init.onnx").is_file()
 
 
 def test_demo_bad_options_are_one_line_errors(tmp_path) -> None:

@@ -21,14 +21,8 @@ from edge.loop import run_loop
 from edge.replay import replay_split, timing_summary
 from edge.runtime import STAGES, EdgeLocalizer, FrameOutcome, PnPSettings
 from edge.sources import CameraSource, ReplaySource, SourceFrame
-from tests.test_edge_scene import tiny_setup
 
 STAT_KEYS = {"mean", "p50", "p90", "p95", "p99", "max"}
-
-
-@pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    return tiny_setup(tmp_path_factory)
 
 
 @pytest.fixture(scope="module")
@@ -43,7 +37,7 @@ def test_replay_localizes_like_the_desktop_path(tiny, localizer) -> None:
 
     s = replay_split(localizer, tiny["scene"], "test")
     assert s["frames"] == 4 and s["localized"] == 4
-    assert s["median_translation_m"] < 0.25 and s["median_rotation_deg"] < 5.0
+    assert s["median_translation_m"] < 0.25 and s["median_rotation_deg"] < 6.0  # measured 18.6 cm, 4.4 deg
     m = load_map(tiny["map"])
     ref = evaluate(read_split(tiny["scene"], "test"), Localizer(m.network(encoder_for_map(m, tiny["map"])), 64, {}))
     assert ref["localized"] == s["localized"]
@@ -70,7 +64,8 @@ def test_replay_command_json_has_eval_keys_and_stage_timings(tiny, tmp_path: Pat
         assert k in s
     assert set(s["timing_ms"]) == set(STAGES)
     assert all(set(v) == STAT_KEYS for v in s["timing_ms"].values())
-    assert s["precision"] == "int8" and s["localized"] >= 3  # INT8 keeps most frames localized
+    assert s["precision"] == "int8" and s["localized"] >= 3  # INT8 keeps most frames localized (measured 4)
+    assert s["median_translation_m"] < 0.3  # measured 21.7 cm
 
 
 def test_timing_statistics_against_hand_computed_values() -> None:
@@ -295,7 +290,8 @@ def test_camera_that_disappears_is_reconnected_and_the_gap_counted(tiny, localiz
     stats = run_loop(src, localizer, outs.append, events.append, max_frames=8, backoff=(0.01, 0.02))
     kinds = [e.kind for e in events]
     assert kinds.count("disconnected") == 1 and kinds.count("reconnected") == 1
-    assert stats.disconnects == 1 and stats.reconnects == 1 and stats.gap_s > 0.0
+    assert stats.disconnects == 1 and stats.reconnects == 1
+    assert stats.gap_s >= 0.01 + 0.02 + 0.02  # three waits of the backoff before the fourth open works
     assert stats.frames == 8 and script["opens"] == 4
     assert sum(o.record.state == TrackingState.TRACKING for o in outs) >= 6
 
@@ -374,7 +370,8 @@ def test_profile_compare_json(tiny, tmp_path: Path) -> None:
     p = json.loads(out.read_text())
     assert p["precision"] == ["fp32", "int8"] and p["input_size"] == [64, 80]
     for prec in ("fp32", "int8"):
-        assert set(p["stages"][prec]) == set(STAGES) and p["fps"][prec] > 0
+        assert set(p["stages"][prec]) == set(STAGES)
+        assert p["fps"][prec] == pytest.approx(1000.0 / p["stages"][prec]["total"]["mean"])
         assert all(set(v) == STAT_KEYS for v in p["stages"][prec].values())
     assert p["frames"] == 3 and p["warmup_frames"] == 1
     h = p["header"]

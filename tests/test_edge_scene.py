@@ -1,4 +1,4 @@
-"""A tiny analytic scene and a tiny map for the export and edge tests (shared fixtures, no tests here).
+"""A tiny analytic scene and a tiny map for the export and edge tests (the fixtures are in tests/conftest.py).
 
 The room is a box whose six faces carry distinctive random textures; frames are ray cast exactly,
 so the true pose of every image is known. Once the built-in generator (acesplat.synth) offers
@@ -18,6 +18,9 @@ from acesplat.core.scene import write_frame
 
 ROOM = np.array([4.0, 3.0, 2.5])
 TEX = 256
+TEXTURE_BLUR = 1.5
+"""Gaussian blur of each texture (texels): a texel is about half a pixel in the tiny views, so unblurred
+textures alias and a view moved by a centimetre looks like another image."""
 
 
 def _texture(rng: np.random.Generator) -> np.ndarray:
@@ -35,7 +38,7 @@ def _texture(rng: np.random.Generator) -> np.ndarray:
         else:
             q = tuple(int(v) for v in np.array(p) + rng.integers(-24, 24, 2))
             cv2.rectangle(img, p, q, c, -1)
-    return img
+    return cv2.GaussianBlur(img, (0, 0), TEXTURE_BLUR)
 
 
 def render(textures: list[np.ndarray], T_c2w: np.ndarray, intr: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
@@ -122,7 +125,6 @@ def make_room_scene(
 
 # ----------------------------------------------------------------------------------- tiny map + bundle
 ENCODER = dict(c1=8, c2=16, c3=32, c4=32, res2=32, out=32)
-_CACHE: dict[str, dict] = {}
 
 
 def cell_targets(frame) -> np.ndarray:
@@ -137,13 +139,49 @@ def cell_targets(frame) -> np.ndarray:
     return transform_points(frame.pose, frame.intrinsics.unproject(c, z)).reshape(h, w, 3)
 
 
-def train_tiny_map(scene: Path, out_dir: Path, steps: int = 300, seed: int = 0, lr: float = 5e-3) -> tuple[Path, Path]:
-    """A map that localizes the tiny room in seconds: encoder and head fitted end to end to depth-derived coordinates.
+def augmented_view(
+    frame, gray: np.ndarray, depth: np.ndarray, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A randomly rotated, scaled and shifted copy of a training image with its cells' true coordinates.
+
+    Returns the warped image (H, W) float32, the stride-8 cell coordinates (h, w, 3) and their validity
+    (h, w) (a cell whose source pixel left the image has no target). The warp is a similarity about the
+    image centre (rotation AUG_DEG, scale AUG_SCALE, shift AUG_PX); each cell's target is the training
+    image's depth, read at the cell's source pixel and unprojected there, so no other view is used.
+    """
+    from acesplat.core.geometry import transform_points
+    from acesplat.core.grid import cell_centers
+
+    H, W = gray.shape
+    a = np.radians(rng.uniform(-AUG_DEG, AUG_DEG))
+    k = rng.uniform(1 / AUG_SCALE, AUG_SCALE)
+    t = rng.uniform(-AUG_PX, AUG_PX, 2)
+    centre = np.array([W / 2.0, H / 2.0])
+    R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]) / k  # output pixel -> source pixel
+    inv = np.concatenate([R, (centre - R @ (centre + t))[:, None]], axis=1)
+    img = cv2.warpAffine(
+        gray, inv, (W, H), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE
+    )
+    h, w = H // 8, W // 8
+    src = cell_centers(h, w) @ inv[:, :2].T + inv[:, 2]
+    ok = (src[:, 0] >= 0) & (src[:, 0] <= W - 1) & (src[:, 1] >= 0) & (src[:, 1] <= H - 1)
+    z = cv2.remap(depth, *(v.astype(np.float32).reshape(1, -1) for v in src.T), cv2.INTER_LINEAR).reshape(-1)
+    X = transform_points(frame.pose, frame.intrinsics.unproject(src, z.astype(np.float64)))
+    return img, X.reshape(h, w, 3), ok.reshape(h, w)
+
+
+AUG_DEG, AUG_SCALE, AUG_PX = 3.0, 1.04, 3.0
+"""Augmentation range of the tiny map: about the test views' offsets (a few degrees, a few pixels)."""
+
+
+def train_tiny_map(scene: Path, out_dir: Path, steps: int = 600, seed: int = 0, lr: float = 5e-3) -> tuple[Path, Path]:
+    """A map that localizes the tiny room within a minute: encoder and head fitted to depth-derived coordinates.
 
     ACE's reprojection recipe with a random encoder needs minutes to localize anything; the export
     and edge tests need a map that does localize, so this one is fitted directly (L1 on true
-    coordinates, full batch, cosine-decayed Adam). The result is an ordinary map file plus an
-    ordinary encoder file, saved and loaded by the project's own code.
+    coordinates, full batch, cosine-decayed Adam) on randomly rotated, scaled and shifted copies of the
+    training images, so that it recognises views off the training trajectory. The result is an ordinary
+    map file plus an ordinary encoder file, saved and loaded by the project's own code.
     """
     import torch
 
@@ -153,9 +191,9 @@ def train_tiny_map(scene: Path, out_dir: Path, steps: int = 300, seed: int = 0, 
     from acesplat.scr.network import Encoder, EncoderConfig, Head, HeadConfig, SCRNetwork
 
     split = read_split(scene, "train")
-    gray = np.stack([cv2.cvtColor(f.load_rgb(), cv2.COLOR_RGB2GRAY) for f in split.frames])
-    x = torch.from_numpy(gray).float()[:, None]
-    y = torch.from_numpy(np.stack([cell_targets(f) for f in split.frames])).float().permute(0, 3, 1, 2)
+    gray = np.stack([cv2.cvtColor(f.load_rgb(), cv2.COLOR_RGB2GRAY) for f in split.frames]).astype(np.float32)
+    depths = [f.load_depth() for f in split.frames]
+    rng = np.random.default_rng(seed)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # tiny convolutions: one thread is faster, and immune to a busy machine
     try:
@@ -166,9 +204,13 @@ def train_tiny_map(scene: Path, out_dir: Path, steps: int = 300, seed: int = 0, 
         net = SCRNetwork(enc, head)
         opt = torch.optim.Adam(net.parameters(), lr=lr)
         for it in range(steps):
+            views = [augmented_view(f, g, d, rng) for f, g, d in zip(split.frames, gray, depths)]
+            x = torch.from_numpy(np.stack([v[0] for v in views]))[:, None]
+            y = torch.from_numpy(np.stack([v[1] for v in views])).float().permute(0, 3, 1, 2)
+            ok = torch.from_numpy(np.stack([v[2] for v in views]))
             for g in opt.param_groups:
                 g["lr"] = lr * 0.5 * (1 + np.cos(np.pi * it / steps))
-            loss = (net(x) - y).abs().sum(1).mean()
+            loss = (net(x) - y).abs().sum(1)[ok].mean()
             opt.zero_grad()
             loss.backward()
             opt.step()
@@ -192,24 +234,27 @@ def train_tiny_map(scene: Path, out_dir: Path, steps: int = 300, seed: int = 0, 
     return map_path, enc_path
 
 
-def tiny_setup(tmp_path_factory) -> dict:
-    """Scene, map, encoder and an exported FP32+INT8 bundle, built once per test session."""
-    if "tiny" not in _CACHE:
-        root = tmp_path_factory.mktemp("tiny")
-        scene = make_room_scene(root / "room", train=12, test=4, test_offset_m=0.0, test_offset_deg=0.0)
-        map_path, enc_path = train_tiny_map(scene, root)
-        from export.bundle_export import ExportOptions, export_bundle
+TINY_OFFSET_M, TINY_OFFSET_DEG = 0.03, 2.0
+"""How far the tiny scene's test views are moved and turned from the training views they start from."""
 
-        rep = export_bundle(map_path, root / "bundle", ExportOptions(int8=True))
-        _CACHE["tiny"] = {
-            "root": root,
-            "scene": scene,
-            "map": map_path,
-            "encoder": enc_path,
-            "bundle": root / "bundle",
-            "manifest": rep.manifest,
-        }
-    return _CACHE["tiny"]
+
+def tiny_setup(root: Path) -> dict:
+    """Scene, map, encoder and an exported FP32+INT8 bundle in ``root`` (tests/conftest.py builds it once)."""
+    from export.bundle_export import ExportOptions, export_bundle
+
+    scene = make_room_scene(
+        root / "room", train=12, test=4, test_offset_m=TINY_OFFSET_M, test_offset_deg=TINY_OFFSET_DEG
+    )
+    map_path, enc_path = train_tiny_map(scene, root)
+    rep = export_bundle(map_path, root / "bundle", ExportOptions(int8=True))
+    return {
+        "root": root,
+        "scene": scene,
+        "map": map_path,
+        "encoder": enc_path,
+        "bundle": root / "bundle",
+        "manifest": rep.manifest,
+    }
 
 
 # ----------------------------------------------------------------------------------- the scene itself

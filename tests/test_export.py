@@ -12,12 +12,7 @@ from typer.testing import CliRunner
 
 from acesplat.core.bundle import load_bundle
 from acesplat.core.errors import InputError
-from tests.test_edge_scene import tiny_setup
-
-
-@pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    return tiny_setup(tmp_path_factory)
+from acesplat.scr.encoders import file_sha256
 
 
 def test_manifest_describes_the_bundle(tiny) -> None:
@@ -27,7 +22,7 @@ def test_manifest_describes_the_bundle(tiny) -> None:
     assert m["scr"]["output_stride"] == 8 and m["scr"]["output_size"] == [8, 10]
     assert m["scr"]["normalization"]["mean"] == 0.4 and m["scr"]["normalization"]["std"] == 0.25
     assert len(m["scr"]["mean_offset"]) == 3
-    assert m["scr"]["encoder"]["sha256"] == json.loads(json.dumps(m))["scr"]["encoder"]["sha256"]
+    assert m["scr"]["encoder"]["sha256"] == file_sha256(tiny["encoder"])  # the encoder the map was trained with
     assert {f.role for f in b.files.values()} == {"scr_fp32", "scr_int8"}
     assert m["format_version"] == 2
     assert m["scr"]["features"]["name"] == "features" and m["scr"]["features"]["shape"] == [1, 32, 8, 10]
@@ -69,9 +64,9 @@ def test_int8_self_check_keeps_most_frames_localized(tiny) -> None:
     acc = tiny["manifest"]["checks"]["test_split"]
     fp32, int8 = acc["fp32"], acc["int8"]
     assert fp32["localized"] == fp32["frames"] == 4
-    assert fp32["median_translation_m"] < 0.25 and fp32["median_rotation_deg"] < 5.0
-    assert int8["localized"] >= 3
-    assert int8["median_translation_m"] < 0.5
+    assert fp32["median_translation_m"] < 0.25 and fp32["median_rotation_deg"] < 6.0  # measured 18.6 cm, 4.4 deg
+    assert int8["localized"] >= 3  # measured 4
+    assert int8["median_translation_m"] < 0.3 and int8["median_rotation_deg"] < 7.0  # measured 21.7 cm, 4.7 deg
     assert tiny["manifest"]["checks"]["int8_calibration_frames"] == 12
 
 
@@ -148,10 +143,11 @@ def test_dense_bundle_predicts_every_4th_pixel_and_the_edge_localizes_with_it(ti
     scr = rep.manifest["scr"]
     assert scr["output_stride"] == 4 and scr["output_size"] == [16, 20] and scr["output"]["shape"] == [1, 3, 16, 20]
     assert scr["features"]["shape"] == [1, 32, 16, 20] and "(4j+4, 4i+4)" in scr["output"]["content"]
-    assert rep.manifest["checks"]["fp32_vs_torch"]["max_abs_diff_fraction"] < 1e-3
+    assert rep.manifest["checks"]["fp32_vs_torch"]["max_abs_diff_fraction"] < 1e-5  # measured 1.1e-6
     b = load_bundle(tmp_path / "dense")
     s = replay_split(EdgeLocalizer(b, "fp32", 1), tiny["scene"], "test")
-    assert s["frames"] == 4 and s["localized"] == 4 and s["median_translation_m"] < 0.25
+    assert s["frames"] == 4 and s["localized"] == 4
+    assert s["median_translation_m"] < 0.35 and s["median_rotation_deg"] < 8.0  # measured 24.9 cm, 6.0 deg
 
 
 def test_dense_bundles_carry_no_gaussians_and_other_strides_are_refused(tiny, tmp_path: Path) -> None:
@@ -189,7 +185,10 @@ def test_keyframes_ride_in_the_bundle_and_the_edge_aligns_to_them(tiny, tmp_path
     assert r.exit_code == 0, r.output
     s = json.loads(out.read_text())
     assert sum(s["keyframe_alignment"].values()) == s["localized"] == 4
-    assert s["timing_ms"]["align"]["mean"] > 0.0 and s["median_translation_m"] < 0.25
+    assert "align" in s["timing_ms"] and s["median_translation_m"] < 0.25  # measured 18.6 cm
+    # the views near enough to a keyframe to be aligned land within a few millimetres (measured 1 of 4, 0.8 cm)
+    aligned = sorted(f["translation_m"] for f in s["per_frame"])[: s["keyframe_alignment"].get("aligned", 0)]
+    assert len(aligned) >= 1 and max(aligned) < 0.02, s["per_frame"]
     # a bundle without keyframes, and one whose keyframes were altered, are refused in one line
     r = CliRunner().invoke(edge_app, ["replay", str(tiny["bundle"]), str(tiny["scene"]), "--align"])
     assert r.exit_code == 2 and "re-export with --keyframes" in r.output and "Traceback" not in r.output

@@ -62,9 +62,10 @@ def test_cell_targets_follow_the_augmentation(tiny_scene) -> None:
 E2E_SIZE = (120, 160)
 E2E_ITERATIONS = 1500
 """About 70 s on two idle cores in float32 (the suite's one end-to-end map; full-size runs live in bench/)."""
-E2E_MIN_WITHIN = 8
-"""Test frames of 12 that must land within 25 cm / 10 deg (measured 10 of 12: a 120x160 image gives only
-300 prediction cells, so this tiny map is far coarser than the 240x320 built-in scene's)."""
+E2E_MIN_WITHIN = 11
+"""Test frames of 12 that must land within E2E_WITHIN_M / E2E_WITHIN_DEG (measured 12 of 12, the worst 11.0 cm /
+2.4 deg; dense 12 of 12, the worst 8.7 cm / 2.2 deg)."""
+E2E_WITHIN_M, E2E_WITHIN_DEG = 0.15, 5.0
 
 
 def test_tiny_scene_maps_and_localizes_most_test_frames(tmp_path) -> None:
@@ -90,24 +91,31 @@ def test_tiny_scene_maps_and_localizes_most_test_frames(tmp_path) -> None:
     res = map_scene(read_split(scene, "train"), enc, cfg)
     assert res.iterations == E2E_ITERATIONS and res.target_features > 1000
     s = evaluate(read_split(scene, "test"), Localizer(SCRNetwork(enc, res.head).eval(), E2E_SIZE[0], {}))
-    within = [f for f in s["per_frame"] if f["localized"] and f["translation_m"] < 0.25 and f["rotation_deg"] < 10]
+    within = [
+        f
+        for f in s["per_frame"]
+        if f["localized"] and f["translation_m"] < E2E_WITHIN_M and f["rotation_deg"] < E2E_WITHIN_DEG
+    ]
     assert len(within) >= E2E_MIN_WITHIN, s["per_frame"]
-    assert s["median_translation_m"] < 0.25
+    assert s["median_translation_m"] < 0.08  # measured 5.4 cm
     # The dense prediction (every 4th pixel) runs the same map and must localize most test frames too.
     dense = Localizer(SCRNetwork(enc, res.head).eval(), E2E_SIZE[0], {}, output_stride=4)
     d = evaluate(read_split(scene, "test"), dense)
     within_dense = [
-        f for f in d["per_frame"] if f["localized"] and f["translation_m"] < 0.25 and f["rotation_deg"] < 10
+        f
+        for f in d["per_frame"]
+        if f["localized"] and f["translation_m"] < E2E_WITHIN_M and f["rotation_deg"] < E2E_WITHIN_DEG
     ]
     assert len(within_dense) >= E2E_MIN_WITHIN, d["per_frame"]
+    assert d["median_translation_m"] < 0.08  # measured 4.7 cm
     # Refined against the nearest training images (warped with this map's own depth), poses get better.
     from acesplat.scr.keyframes import MapKeyframes
 
     net = SCRNetwork(enc, res.head).eval()
     keyframes = MapKeyframes(read_split(scene, "train"), net, E2E_SIZE[0])
     a = evaluate(read_split(scene, "test"), Localizer(net, E2E_SIZE[0], {}, keyframes=keyframes))
-    assert a["keyframe_alignment"].get("aligned", 0) >= E2E_MIN_WITHIN, a["keyframe_alignment"]
-    assert a["median_translation_m"] < 0.5 * s["median_translation_m"], (a["per_frame"], s["per_frame"])
+    assert a["keyframe_alignment"].get("aligned", 0) >= E2E_MIN_WITHIN, a["keyframe_alignment"]  # measured 12
+    assert a["median_translation_m"] < 0.015, a["per_frame"]  # measured 0.55 cm (5.4 cm before alignment)
 
 
 def test_map_command_rejects_a_bad_precision(tmp_path) -> None:

@@ -28,10 +28,10 @@ from acesplat.synth import synthesize
 SIZE = (48, 64)
 TINY_ENCODER = EncoderConfig(4, 8, 8, 16, 16, 32)
 ITERATIONS = 150
-PSNR_FLOOR_DB = 13.5
-"""Train-view PSNR the tiny splat must exceed after ITERATIONS (measured 14.9 dB; a black render scores ~8 dB)."""
-PSNR_RISE_DB = 1.5
-"""...and its rise over the initial Gaussians (measured 13.0 -> 14.9 dB: with this map's depths metres off, the
+PSNR_FLOOR_DB = 15.0
+"""Train-view PSNR the tiny splat must exceed after ITERATIONS (measured 15.6 dB; a black render scores ~8 dB)."""
+PSNR_RISE_DB = 1.7
+"""...and its rise over the initial Gaussians (measured 13.6 -> 15.6 dB: with this map's depths metres off, the
 optimisation can mostly fix colours and opacities, not move Gaussians into place)."""
 REPROJ = "24"
 
@@ -120,7 +120,8 @@ def test_splat_rises_above_the_floor_and_render_scores_it(world):
     assert after["iterations"] == ITERATIONS and after["skipped_steps"] == 0
     assert after["train_psnr"] > PSNR_FLOOR_DB
     assert after["train_psnr"] > before["train_psnr"] + PSNR_RISE_DB
-    assert before["gaussians_initial"] == before["gaussians_final"] > 0
+    assert before["gaussians_initial"] == before["gaussians_final"]
+    assert 10_000 < before["gaussians_initial"] < 13_000  # measured 11579 from 8 views of 48x64
 
     # the standard 3DGS PLY, the weights (weights_only) and the manifest
     header = (out / "gaussians.ply").read_bytes().split(b"end_header\n")[0].decode()
@@ -137,7 +138,8 @@ def test_splat_rises_above_the_floor_and_render_scores_it(world):
     res = run("render", out, world["scene"], "--split", "test", "--out", root / "renders", "--json", root / "r.json")
     assert res.exit_code == 0, res.output
     r = json.loads((root / "r.json").read_text())
-    assert r["frames"] == 3 and r["gaussians"] == len(g) and np.isfinite(r["psnr"]) and 0 < r["ssim"] <= 1
+    assert r["frames"] == 3 and r["gaussians"] == len(g)
+    assert r["psnr"] > 9.0 and 0.03 < r["ssim"] <= 1  # test views: measured 9.96 dB, SSIM 0.06
     assert "lpips" not in r
     pngs = sorted((root / "renders").glob("*.png"))
     assert len(pngs) == 3
@@ -168,7 +170,8 @@ def test_sparse_protocol_reports_held_out_targets(world):
     )
     assert res.exit_code == 0, res.output
     rep = json.loads((world["root"] / "sparse.json").read_text())
-    assert rep["protocol"] == "sparse" and rep["target_frames"] == 2 and np.isfinite(rep["target_psnr"])
+    assert rep["protocol"] == "sparse" and rep["target_frames"] == 2
+    assert rep["target_psnr"] > 9.0  # measured 10.2 dB after 10 iterations
     m = load_manifest(out)
     assert m["train_views"] == ["frame-00002", "frame-00005"]
     assert m["target_views"] == ["frame-00003", "frame-00004"]
