@@ -22,8 +22,8 @@ def test_tiny_demo_runs_every_stage_and_reports_refinement(tmp_path) -> None:
             "64x80",
             "--frames",
             "12,4",
-            "--map-minutes",
-            "0.1",
+            "--map-steps",
+            "60",
             "--splat-iterations",
             "3",
             "--refine-budget-ms",
@@ -48,7 +48,7 @@ def test_tiny_demo_runs_every_stage_and_reports_refinement(tmp_path) -> None:
         assert s[k]["frames"] == 4
     ref = s["replay_refine"]["refine"]
     assert s["replay_refine"]["precision"] == "int8" and ref["budget_ms"] == 500
-    # a 6 s map localizes few test views, so refinement may add nothing; it must not make the map worse
+    # a 60-step map localizes few test views, so refinement may add nothing; it must not make the map worse
     assert ref["psnr_views"] == 4 and 8.0 < ref["psnr_before"] < 30.0  # measured 13.6 dB
     assert ref["psnr_after"] >= ref["psnr_before"] - 0.5  # measured equal (no view localized)
     assert ref["seeder"] == "onnx_initializer" and ref["calibration_ms"]["initializer_ms"] > 0

@@ -44,6 +44,9 @@ TARGETS_TIME_FRACTION = 0.08
 """Under a wall-clock cap: at most this share of it goes to matching and triangulating targets."""
 BUFFER_TIME_FRACTION = 0.25
 """Under a wall-clock cap: targets and buffer together use at most this share of it; the rest trains the head."""
+MAX_BUFFER_PASSES = 100
+"""A scene too small to fill the buffer stops after this many augmented passes over its images (ACE stops after 10
+passes over far larger scenes; 100 lets a 20-image scene fill 1M features)."""
 ONE_CYCLE_WARMUP = 0.25
 """Share of training spent rising from lr_min to lr_max (cosine), then cosine annealing back down."""
 TARGET_WEIGHT_PX = 0.4
@@ -199,15 +202,22 @@ def fill_buffer(
     deadline: float | None,
     rng: np.random.Generator,
     progress: ProgressFn | None = None,
+    report: dict | None = None,
 ) -> Buffer:
     """Encoder features of augmented views: feats (N, C) fp16, pixels (N, 2), view (N,), and per view
-    w2c (V, 3, 4), K (V, 3, 3); ``cfg.buffer_size`` of them, or fewer past ``deadline`` (time.monotonic)."""
+    w2c (V, 3, 4), K (V, 3, 3); ``cfg.buffer_size`` of them, or fewer after MAX_BUFFER_PASSES over the images or
+    past ``deadline`` (time.monotonic; ``report["deadline_hit"]`` then says so)."""
     ranges = augment_ranges(cfg.augment)
     builder = BufferBuilder()
     order: list[int] = []
+    passes = 0
+    deadline_hit = False
     with buffer_encoding(encoder, cfg) as encode:
         while builder.features < cfg.buffer_size:
             if not order:
+                if passes == MAX_BUFFER_PASSES:
+                    break
+                passes += 1
                 order = list(rng.permutation(len(images)))
             im = images[order.pop()]
             view = augment(im.gray, im.intrinsics, im.c2w, rng, ranges.scale_range, ranges.rotation_deg)
@@ -224,7 +234,11 @@ def fill_buffer(
             if progress:
                 progress("buffer", builder.features / cfg.buffer_size, {"features": builder.features})
             if deadline is not None and time.monotonic() > deadline:
+                deadline_hit = builder.features < cfg.buffer_size
                 break
+    if report is not None:
+        report["deadline_hit"] = deadline_hit
+        report["passes"] = passes
     buffer = builder.build()
     if buffer is None:
         raise ValueError("no training image had a valid cell to buffer")
@@ -360,8 +374,9 @@ def map_scene(
             im.targets = t
         if progress:
             progress("triangulate", 1.0, {"points": int(sum(len(t.points) for t in tg))})
+    fill: dict = {}
     buffer = fill_buffer(
-        images, encoder, cfg, None if budget is None else t0 + BUFFER_TIME_FRACTION * budget, rng, progress
+        images, encoder, cfg, None if budget is None else t0 + BUFFER_TIME_FRACTION * budget, rng, progress, fill
     )
     t_buf = time.monotonic() - t0
     mean = np.mean([im.c2w[:3, 3] for im in images], axis=0)
@@ -398,5 +413,5 @@ def map_scene(
         final_valid_fraction=valid,
         history=history,
         iterations_planned=cfg.iterations,
-        cut_short=its < cfg.iterations or int(buffer["feats"].shape[0]) < cfg.buffer_size,
+        cut_short=its < cfg.iterations or fill["deadline_hit"],
     )
