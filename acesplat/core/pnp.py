@@ -6,7 +6,7 @@ Shared by desktop evaluation and the edge runtime so both compute poses the same
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -16,6 +16,9 @@ from acesplat.core.config import knob
 from acesplat.core.geometry import invert_pose, make_pose, rodrigues_to_matrix
 from acesplat.core.grid import OUTPUT_STRIDE, grid_correspondences
 from acesplat.core.pose_refine import ROBUST_SCALES, refine_pose_robust, reprojection
+
+if TYPE_CHECKING:
+    from acesplat.core.gate import GateVerdict
 
 PNP_METHODS = (
     "usac_magsac",
@@ -63,6 +66,8 @@ class PnPResult:
     inliers: int
     correspondences: int
     localized: bool
+    gate: GateVerdict | None = None
+    """The tracking gate's verdict once acesplat.core.gate.gate_result has decided ``localized``; None before."""
 
     @property
     def inlier_ratio(self) -> float:
