@@ -28,21 +28,19 @@ if TYPE_CHECKING:
 class GateConfig:
     """When a pose counts as TRACKING; the PnP's ``min_inliers`` stays a floor in front of it."""
 
-    min_score: float = knob(0.08, "Gate score (ratio x coverage x residual quality) a TRACKING pose needs.")
+    min_score: float = knob(0.06, "Gate score (inlier ratio x coverage) a TRACKING pose needs (bench/gate.md).")
     min_ratio: float = knob(0.05, "Inliers over the cells with a valid prediction, at least.")
-    min_coverage: float = knob(0.25, "Fraction of the coarse grid's cells holding inliers, at least.")
+    min_coverage: float = knob(0.25, "Fraction of the coarse grid's cells that are covered, at least.")
     coarse_grid: int = knob(4, "Cells per side of the coarse grid the inliers' spread is measured on.")
-    min_cell_inliers: int = knob(3, "Inliers a coarse cell needs to count as covered.")
-    max_residual: float = knob(0.6, "Median inlier residual as a fraction of the PnP threshold, at most.")
+    cell_ratio: float = knob(0.1, "Inlier ratio among a coarse cell's valid predictions for it to count as covered.")
+    max_residual: float = knob(0.8, "Median inlier residual as a fraction of the PnP threshold, at most.")
     max_motion_m: float | None = knob(None, "Translation from the previous pose (m), at most; None: not checked.")
     max_motion_deg: float | None = knob(None, "Rotation from the previous pose (deg), at most; None: not checked.")
 
     def __post_init__(self) -> None:
-        if self.coarse_grid < 1 or self.min_cell_inliers < 1:
-            raise ValueError(
-                f"coarse_grid and min_cell_inliers must be >= 1, got {self.coarse_grid}, {self.min_cell_inliers}"
-            )
-        for name in ("min_score", "min_ratio", "min_coverage", "max_residual"):
+        if self.coarse_grid < 1:
+            raise ValueError(f"coarse_grid must be >= 1, got {self.coarse_grid}")
+        for name in ("min_score", "min_ratio", "min_coverage", "cell_ratio", "max_residual"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
 
@@ -53,13 +51,14 @@ class GateVerdict:
 
     passed: bool
     score: float
-    """ratio * coverage * (1 - residual), in [0, 1]; compared with GateConfig.min_score."""
+    """ratio * coverage, in [0, 1]; compared with GateConfig.min_score."""
     inliers: int
     valid: int
     """Cells with a finite prediction."""
     ratio: float
     coverage: float
-    """Fraction of the coarse grid's cells with at least min_cell_inliers inliers."""
+    """Fraction of the coarse grid's cells whose valid predictions are inliers at least ``cell_ratio`` of the time
+    (a cell without valid predictions is not covered)."""
     hull: float
     """Convex-hull area of the inliers over the image area (reported, not gated)."""
     residual: float
@@ -138,14 +137,16 @@ def gate_pose(
     n = int(np.count_nonzero(inl))
     ratio = n / valid
     g = cfg.coarse_grid
-    xy = pixels[inl]
-    cx = np.clip((xy[:, 0] * g / W).astype(int), 0, g - 1)
-    cy = np.clip((xy[:, 1] * g / H).astype(int), 0, g - 1)
-    counts = np.bincount(cy * g + cx, minlength=g * g)
-    coverage = float(np.count_nonzero(counts >= cfg.min_cell_inliers)) / (g * g)
-    hull = _hull_area(xy) / (H * W)
+    cx = np.clip((pixels[:, 0] * g / W).astype(int), 0, g - 1)
+    cy = np.clip((pixels[:, 1] * g / H).astype(int), 0, g - 1)
+    cell = cy * g + cx
+    cells = np.bincount(cell, minlength=g * g)
+    cell_inliers = np.bincount(cell[inl], minlength=g * g)
+    covered = (cells > 0) & (cell_inliers >= cfg.cell_ratio * cells)
+    coverage = float(np.count_nonzero(covered)) / (g * g)
+    hull = _hull_area(pixels[inl]) / (H * W)
     residual = float(np.median(err[inl]) / threshold_px) if n else 1.0
-    score = ratio * coverage * (1.0 - residual)
+    score = ratio * coverage
     reasons = []
     if n < min_inliers:
         reasons.append(f"{n} inliers < {min_inliers}")
