@@ -42,7 +42,9 @@ class PnPConfig:
 
     method: str = knob("ransac_ap3p", "PnP-RANSAC solver (one of PNP_METHODS; bench/pnp_choice.md).")
     threshold_px: float = knob(10.0, "Inlier threshold in pixels of the network input image (ACE's 10 px).")
-    min_inliers: int = knob(50, "Inliers a pose needs to count as localized (TRACKING rather than LOST).")
+    min_inliers: int = knob(
+        50, "Inliers a pose needs at least; the tracking gate (acesplat.core.gate) then decides TRACKING."
+    )
     iterations: int = knob(1000, "RANSAC iterations at most.")
     confidence: float = knob(0.9999, "RANSAC confidence: it stops early once this sure of the best sample.")
     robust_scales: tuple[float, ...] = knob(
@@ -99,7 +101,7 @@ def solve_pnp(
     RANSAC finds the pose, then a Cauchy-weighted refinement over all correspondences with the scale
     annealed through ``robust_scales`` (pixels) lets the precise ones decide (acesplat.core.pose_refine);
     with ``robust_scales=()`` Levenberg-Marquardt on RANSAC's inliers refines instead. The frame counts as
-    localized only with at least ``min_inliers`` inliers (the gate that turns a guess into TRACKING or LOST); a
+    localized only with at least ``min_inliers`` inliers (the floor of acesplat.core.gate, which decides TRACKING); a
     pose that fails it is retried once with ``fallback`` (None: no retry, for comparing solvers on their own).
 
     ``config`` (default PnPConfig()) holds the settings; ``overrides`` replace some of its fields by name
