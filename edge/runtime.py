@@ -20,7 +20,8 @@ from acesplat.core.bundle import Bundle
 from acesplat.core.camera import Intrinsics
 from acesplat.core.config import knob, knob_default
 from acesplat.core.errors import InputError
-from acesplat.core.pnp import DEFAULT_MIN_INLIERS, PnPResult, solve_from_grid
+from acesplat.core.gate import GateConfig, gate_result
+from acesplat.core.pnp import DEFAULT_MIN_INLIERS, PnPConfig, PnPResult, solve_from_grid
 from acesplat.core.pose import PoseRecord, TrackingState
 from edge.frame_prep import FramePrep
 from edge.inference import ScrSession, SessionSettings
@@ -99,6 +100,10 @@ class PnPSettings:
     def kwargs(self) -> dict:
         return {"method": self.method, "min_inliers": self.min_inliers, "iterations": self.iterations, **self.extra}
 
+    def config(self) -> PnPConfig:
+        """The same settings as a PnPConfig (its defaults for the rest)."""
+        return replace(PnPConfig(), **self.kwargs())
+
 
 class EdgeLocalizer:
     """A bundle's SCR model (FP32 or INT8) plus frame preparation and the shared PnP solver."""
@@ -112,6 +117,7 @@ class EdgeLocalizer:
         align: bool = False,
         pace_ms: float | None = None,
         provider: str = knob_default(SessionSettings, "provider"),
+        gate: GateConfig | None = None,
     ) -> None:
         if pace_ms is not None and not pace_ms > 0:
             raise ValueError(f"pace must be positive, got {pace_ms} ms")
@@ -122,6 +128,10 @@ class EdgeLocalizer:
         self.session = ScrSession(bundle.scr_model(precision), self.input_size, threads, provider)
         self.prep = FramePrep(self.input_size)
         self.pnp = pnp or PnPSettings()
+        self.gate = gate or GateConfig()
+        """When a pose is TRACKING (acesplat.core.gate): the same decision as the desktop's."""
+        self.previous: np.ndarray | None = None
+        """The last frame's camera-to-world pose if it was TRACKING (the gate's motion check), else None."""
         self.keyframes = bundle_keyframes(bundle) if align else None
         """The bundle's keyframes when poses are refined against them (InputError at start if it has none)."""
         self.pace_ms = pace_ms
@@ -177,7 +187,10 @@ class EdgeLocalizer:
         else:
             coords, feats = self.session.run(gray), None
         t2 = time.perf_counter()
-        res = solve_from_grid(coords, intr, stride=self.stride, **self.pnp.kwargs())
+        pnp = self.pnp.config()
+        res = solve_from_grid(coords, intr, stride=self.stride, config=pnp)
+        res = gate_result(res, coords, intr, pnp, self.stride, self.gate, self.previous)
+        self.previous = res.T_c2w if res.localized else None
         t3 = time.perf_counter()
         status = None
         if self.keyframes is not None and res.localized and res.T_c2w is not None:

@@ -6,7 +6,7 @@ Shared by desktop evaluation and the edge runtime so both compute poses the same
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -16,6 +16,9 @@ from acesplat.core.config import knob
 from acesplat.core.geometry import invert_pose, make_pose, rodrigues_to_matrix
 from acesplat.core.grid import OUTPUT_STRIDE, grid_correspondences
 from acesplat.core.pose_refine import ROBUST_SCALES, refine_pose_robust, reprojection
+
+if TYPE_CHECKING:
+    from acesplat.core.gate import GateVerdict
 
 PNP_METHODS = (
     "usac_magsac",
@@ -39,7 +42,9 @@ class PnPConfig:
 
     method: str = knob("ransac_ap3p", "PnP-RANSAC solver (one of PNP_METHODS; bench/pnp_choice.md).")
     threshold_px: float = knob(10.0, "Inlier threshold in pixels of the network input image (ACE's 10 px).")
-    min_inliers: int = knob(50, "Inliers a pose needs to count as localized (TRACKING rather than LOST).")
+    min_inliers: int = knob(
+        50, "Inliers a pose needs at least; the tracking gate (acesplat.core.gate) then decides TRACKING."
+    )
     iterations: int = knob(1000, "RANSAC iterations at most.")
     confidence: float = knob(0.9999, "RANSAC confidence: it stops early once this sure of the best sample.")
     robust_scales: tuple[float, ...] = knob(
@@ -63,6 +68,8 @@ class PnPResult:
     inliers: int
     correspondences: int
     localized: bool
+    gate: GateVerdict | None = None
+    """The tracking gate's verdict once acesplat.core.gate.gate_result has decided ``localized``; None before."""
 
     @property
     def inlier_ratio(self) -> float:
@@ -94,7 +101,7 @@ def solve_pnp(
     RANSAC finds the pose, then a Cauchy-weighted refinement over all correspondences with the scale
     annealed through ``robust_scales`` (pixels) lets the precise ones decide (acesplat.core.pose_refine);
     with ``robust_scales=()`` Levenberg-Marquardt on RANSAC's inliers refines instead. The frame counts as
-    localized only with at least ``min_inliers`` inliers (the gate that turns a guess into TRACKING or LOST); a
+    localized only with at least ``min_inliers`` inliers (the floor of acesplat.core.gate, which decides TRACKING); a
     pose that fails it is retried once with ``fallback`` (None: no retry, for comparing solvers on their own).
 
     ``config`` (default PnPConfig()) holds the settings; ``overrides`` replace some of its fields by name

@@ -14,6 +14,7 @@ import torch
 from acesplat.align.keyframe_align import KeyframeAlignment, align_scr_pose
 from acesplat.core.camera import Intrinsics
 from acesplat.core.config import knob
+from acesplat.core.gate import GateConfig, gate_result
 from acesplat.core.geometry import pose_error
 from acesplat.core.grid import OUTPUT_STRIDE
 from acesplat.core.metrics import FrameResult, accuracy_summary
@@ -35,6 +36,7 @@ class Localizer:
     pnp: PnPConfig | dict = knob(
         reason="PnP settings: a PnPConfig, or a dict of overrides of its defaults ({} for none).", factory=PnPConfig
     )
+    gate: GateConfig = knob(reason="When a pose counts as localized (acesplat.core.gate).", factory=GateConfig)
     input_size: tuple[int, int] | None = None
     """Exact (H, W) to run at instead of the short side's (a bundle's stride-aligned size, for parity)."""
     output_stride: int = knob(
@@ -70,10 +72,9 @@ class Localizer:
         alignment's record (None when none was tried)."""
         gray, intr = self.network_input(rgb, intrinsics)
         coords = self.coordinates(gray)
-        if isinstance(self.pnp, PnPConfig):
-            res = solve_from_grid(coords, intr, stride=self.output_stride, config=self.pnp)
-        else:
-            res = solve_from_grid(coords, intr, stride=self.output_stride, **self.pnp)
+        pnp = self.pnp if isinstance(self.pnp, PnPConfig) else replace(PnPConfig(), **self.pnp)
+        res = solve_from_grid(coords, intr, stride=self.output_stride, config=pnp)
+        res = gate_result(res, coords, intr, pnp, self.output_stride, self.gate)
         if self.keyframes is None or not res.localized or res.T_c2w is None:
             return res, None
         al = align_scr_pose(gray, intr, coords, self.output_stride, res.T_c2w, self.keyframes.near)
