@@ -6,8 +6,20 @@ import json
 import sys
 from pathlib import Path
 
-KEYS = ("frames", "localized", "median_translation_m", "median_rotation_deg", "recall_5cm_5deg", "recall_10cm_5deg",
-        "psnr", "ssim", "train_psnr", "train_ssim", "gaussians_initial", "gaussians_final")
+KEYS = (
+    "frames",
+    "localized",
+    "median_translation_m",
+    "median_rotation_deg",
+    "recall_5cm_5deg",
+    "recall_10cm_5deg",
+    "psnr",
+    "ssim",
+    "train_psnr",
+    "train_ssim",
+    "gaussians_initial",
+    "gaussians_final",
+)
 
 
 def main(out: Path, a: str, b: str) -> int:
@@ -20,7 +32,10 @@ def main(out: Path, a: str, b: str) -> int:
             differ += not same
             cells = "  ".join(f"{k}={x:.6g}" if isinstance(x, float) else f"{k}={x}" for k, (x, _) in row.items())
             diffs = "  ".join(f"{k}: {x} -> {y}" for k, (x, y) in row.items() if x != y)
-            print(f"{scene:5s} {fa.stem:18s} {'same' if same else 'DIFFERENT'}  {cells}" + (f"\n      {diffs}" if diffs else ""))
+            print(
+                f"{scene:5s} {fa.stem:18s} {'same' if same else 'DIFFERENT'}  {cells}"
+                + (f"\n      {diffs}" if diffs else "")
+            )
     return 1 if differ else 0
 
 

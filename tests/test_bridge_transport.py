@@ -109,7 +109,7 @@ def test_sink_over_loop_url_reads_back_what_it_sent() -> None:
     with open_sink("loop://", 115200, "frame") as sink:
         for i in range(20):
             sink.submit(record(i))
-            wait_for(lambda: sink.stats().sent == i + 1, "pose sent")
+            wait_for(lambda n=i + 1: sink.stats().sent == n, "pose sent")
         wait_for(lambda: sink.stats().rx_frames_ok >= 20 + sink.stats().heartbeats, "echo decoded")
         s = sink.stats()
     assert (s.submitted, s.sent, s.dropped, s.rx_frames_rejected, s.reconnects) == (20, 20, 0, 0, 0)
@@ -123,7 +123,7 @@ def test_sink_over_pty_delivers_poses_and_status(peer: PtyPeer) -> None:
         recs = [record(i) for i in range(10)]
         for i, rec in enumerate(recs):
             sink.submit(rec)
-            peer.wait(lambda fr: len([f for f in fr if isinstance(f.message, Pose)]) == i + 1, f"pose {i}")
+            peer.wait(lambda fr, n=i + 1: len([f for f in fr if isinstance(f.message, Pose)]) == n, f"pose {i}")
         sink.update_status(state=RuntimeState.TRACKING, fps=29.5, latency_ms=33.0, frames_dropped=4)
         peer.wait(
             lambda fr: any(isinstance(f.message, Status) and f.message.state == RuntimeState.TRACKING for f in fr),

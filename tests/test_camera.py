@@ -1,4 +1,5 @@
-"""acesplat.core.camera.Intrinsics: hand cases, round trips, and cv2.resize as the brute-force reference for resized()."""
+"""acesplat.core.camera.Intrinsics: hand cases, round trips, and cv2.resize as the brute-force reference for
+resized()."""
 
 from __future__ import annotations
 

@@ -380,7 +380,7 @@ def test_colmap_undistortion_puts_points_where_new_K_projects_them(
     np.testing.assert_allclose(frame.pose, np.eye(4), atol=1e-12)
     img = frame.load_rgb()[..., 0]
     expected = frame.intrinsics.project(X)
-    for uv_exp, uv_dist in zip(expected, distorted[:, 0]):
+    for uv_exp in expected:
         np.testing.assert_allclose(local_centroid(img, uv_exp), uv_exp, atol=0.15)
     # Meaningful: without undistortion the corner blobs would sit pixels away from the pinhole projection.
     assert np.abs(expected - distorted[:, 0]).max() > 1.0

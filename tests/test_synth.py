@@ -326,7 +326,8 @@ def test_built_in_scene_matches_its_stored_reference() -> None:
     for f in FRAMES:
         d = np.abs(got[f].astype(np.float64) - ref[f.replace("/", "__")].astype(np.float64))
         assert d.mean() < 0.5, (
-            f"{f}: mean |diff| {d.mean():.2f}/255 against the reference (OpenCV {ref['opencv']}, here {cv2.__version__})"
+            f"{f}: mean |diff| {d.mean():.2f}/255 against the reference "
+            f"(OpenCV {ref['opencv']}, here {cv2.__version__})"
         )
 
 

@@ -32,8 +32,16 @@ def _modules(package: str) -> list[str]:
 
 
 def test_edge_side_imports_without_torch_or_onnx() -> None:
-    packages = ["edge", "firmware_bridge", "acesplat.core", "acesplat.raster", "acesplat.align", "acesplat.splatcore",
-                "acesplat.synth", "acesplat.importers"]
+    packages = [
+        "edge",
+        "firmware_bridge",
+        "acesplat.core",
+        "acesplat.raster",
+        "acesplat.align",
+        "acesplat.splatcore",
+        "acesplat.synth",
+        "acesplat.importers",
+    ]
     modules = ["acesplat"] + [m for p in packages for m in _modules(p)]
     out = subprocess.run([sys.executable, "-c", BLOCKER, *modules], capture_output=True, text=True, cwd=ROOT)
     assert out.returncode == 0, out.stderr

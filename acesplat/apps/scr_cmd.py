@@ -104,7 +104,8 @@ def map_command(
     if res.cut_short:
         console.print(
             f"[bold yellow]warning:[/] --minutes {minutes} cut the recipe short: {res.iterations} of "
-            f"{res.iterations_planned} head steps, {res.buffer_features} of {cfg.buffer_size} buffered features planned; "
+            f"{res.iterations_planned} head steps, {res.buffer_features} of {cfg.buffer_size} buffered features "
+            "planned; "
             "the map is less trained than the default recipe makes it"
         )
     report_json(

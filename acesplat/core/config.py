@@ -7,7 +7,8 @@ the field (``acesplat.apps.support.option``), so a knob is written once.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 HELP = "help"
 
