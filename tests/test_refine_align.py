@@ -1,14 +1,15 @@
-"""Pose alignment of a keyframe against the map (edge/refine/align.py) on textured walls of Gaussians."""
+"""Pose alignment of a keyframe against the map (acesplat.align.flow_pnp.align_to_render) on textured walls of
+Gaussians."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from acesplat.align.flow_pnp import align_to_render
 from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import look_at, pose_error
 from acesplat.raster import rasterize
 from acesplat.splatcore.seeding import gaussians_at
-from edge.refine.align import align_pose
 from tests.test_edge_scene import jitter
 
 K = Intrinsics.from_focal(150.0, 160, 120)
@@ -41,7 +42,7 @@ def test_a_pose_a_few_centimetres_off_is_corrected_against_the_map() -> None:
     image, _, _ = render(g, true)
     off = jitter(true, rng, 0.04, 0.8)
     c, a, d = render(g, off)
-    al = align_pose(c, a, d, image, K, off)
+    al = align_to_render(c, a, d, image, K, off)
     assert al.status == "aligned", al
     t0, r0 = pose_error(off, true)
     t1, r1 = pose_error(al.pose, true)
@@ -55,7 +56,7 @@ def test_a_grossly_wrong_pose_is_flagged_and_kept() -> None:
     image, _, _ = render(g, true)
     off = jitter(true, rng, 0.4, 8.0)
     c, a, d = render(g, off)
-    al = align_pose(c, a, d, image, K, off)
+    al = align_to_render(c, a, d, image, K, off)
     assert al.status in ("too_far", "no_fit", "unlike"), al
     assert np.array_equal(al.pose, off)
 
@@ -66,5 +67,5 @@ def test_a_render_unlike_the_image_is_not_trusted() -> None:
     pose = look_at(np.zeros(3), np.array([0.0, 0.0, 2.0]), np.array([0.0, -1.0, 0.0]))
     c, a, d = render(g, pose)
     other = rng.uniform(0, 1, c.shape).astype(np.float32)  # a photograph of something else
-    al = align_pose(c, a, d, other, K, pose)
+    al = align_to_render(c, a, d, other, K, pose)
     assert al.status == "unlike" and np.array_equal(al.pose, pose)

@@ -18,15 +18,26 @@ cameras), so cameras with other calibrations align too.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 
 from acesplat.align.depth_warp import forward_map, warp_to_camera
+from acesplat.align.flow_pnp import (
+    KEYFRAME_ALIGN,
+    AlignConfig,
+    Alignment,
+    bilinear,
+    dis_flow,
+    flow_to_query,
+    gradient,
+    refine_pose,
+    sample_grid,
+)
 from acesplat.core.camera import Intrinsics
 from acesplat.core.config import knob_default
-from acesplat.core.geometry import invert_pose, make_pose, pose_error
+from acesplat.core.geometry import invert_pose
 from acesplat.core.grid import OUTPUT_STRIDE, grid_correspondences
 from acesplat.core.pnp import PnPConfig
 from acesplat.core.pose_refine import reprojection
@@ -39,25 +50,6 @@ ROTATION_WEIGHT = 0.25
 """Weight of the angle between viewing directions against the baseline's parallax (baseline / depth, radians) when
 keyframes are ranked by viewpoint change: a keyframe's depth error moves its warp by the parallax only (a rotation
 warps without depth), so the baseline counts most; the angle only breaks ties on a turn."""
-ITERATIONS = 3
-"""Warp-flow-PnP rounds; each starts from the last round's pose, so the warp's parallax error shrinks."""
-SAMPLE_STEP_PX = 2
-"""Training-view pixels are sampled on this grid."""
-MIN_GRADIENT = 20.0
-"""Sobel magnitude (8-bit) a warped pixel needs: flow is undetermined on flat intensity."""
-MAX_FB_ERROR_PX = 0.5
-"""Forward-backward flow disagreement above this marks an occlusion or a mismatch."""
-REPROJ_PX = 1.0
-"""RANSAC threshold in pixels of the query at the map's resolution (flow errors are sub-pixel)."""
-RANSAC_ITERATIONS = 200
-MIN_POINTS = 300
-MIN_INLIER_RATIO = 0.5
-MAX_SHIFT_M = 0.5
-MAX_SHIFT_DEG = 3.0
-"""A correction beyond these means the SCR pose was wrong, not imprecise: the SCR pose is kept."""
-MIN_ANCHOR_KEPT = 0.8
-"""The refined pose must keep this share of the SCR correspondences' inliers (at the solver's threshold) that the
-start pose had: a flow locked onto the wrong structure is refused by the scene coordinates (bench/herz_gap.md)."""
 
 
 @dataclass(frozen=True)
@@ -73,23 +65,6 @@ class Keyframe:
     c2w: np.ndarray
     depth: np.ndarray
     stride: int
-
-
-@dataclass(frozen=True)
-class KeyframeAlignment:
-    """pose (4, 4): the refined camera-to-world, or the input pose unless ``status`` is 'aligned'.
-
-    status: 'aligned'; 'few_points' (too little textured overlap with the keyframes); 'no_fit' (PnP failed or
-    too few inliers); 'too_far' (the correction exceeded MAX_SHIFT_*: the input pose was not near enough);
-    'disagrees' (the refined pose lost the SCR correspondences' inliers, see MIN_ANCHOR_KEPT).
-    """
-
-    pose: np.ndarray
-    status: str
-    points: int = 0
-    inliers: int = 0
-    shift_m: float = 0.0
-    shift_deg: float = 0.0
 
 
 def nearest_keyframes(
@@ -126,29 +101,13 @@ def scene_depth(points: np.ndarray, pose_c2w: np.ndarray) -> float | None:
     return float(np.median(z)) if z.size else None
 
 
-def _bilinear(a: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """a (H, W, C) sampled at (x, y) (N,), clamped to the image: (N, C)."""
-    h, w = a.shape[:2]
-    x = np.clip(x, 0.0, w - 1.0)
-    y = np.clip(y, 0.0, h - 1.0)
-    x0 = np.minimum(np.floor(x).astype(np.int64), w - 2)
-    y0 = np.minimum(np.floor(y).astype(np.int64), h - 2)
-    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-    return (
-        a[y0, x0] * (1 - fx) * (1 - fy)
-        + a[y0, x0 + 1] * fx * (1 - fy)
-        + a[y0 + 1, x0] * (1 - fx) * fy
-        + a[y0 + 1, x0 + 1] * fx * fy
-    )
-
-
 def _depth_at(kf: Keyframe, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """The keyframe's depth interpolated at pixels (u, v) (N,); 0 next to an unknown cell."""
     first = OUTPUT_STRIDE / 2.0  # pixel of cell 0 on either axis (acesplat.core.grid.cell_centers)
     gx, gy = (u - first) / kf.stride, (v - first) / kf.stride
     d = kf.depth.astype(np.float64)
     stacked = np.stack([d, (d > 0).astype(np.float64)], axis=-1)
-    z, known = _bilinear(stacked, gx, gy).T
+    z, known = bilinear(stacked, gx, gy).T
     return np.where(known > 1.0 - 1e-9, z, 0.0)
 
 
@@ -161,40 +120,48 @@ def resample_to(gray: np.ndarray, src: Intrinsics, dst: Intrinsics) -> np.ndarra
 
 
 def keyframe_matches(
-    query: np.ndarray, pose_c2w: np.ndarray, kf: Keyframe, flow: cv2.DISOpticalFlow
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The keyframe's textured pixels (M, 2) with their depth (M,), and where the query (H, W) uint8, already at
-    the keyframe's intrinsics and seen from ``pose_c2w`` (4, 4), shows them (M, 2)."""
+    query: np.ndarray,
+    pose_c2w: np.ndarray,
+    kf: Keyframe,
+    flow: cv2.DISOpticalFlow,
+    cfg: AlignConfig = KEYFRAME_ALIGN,
+    scale: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The keyframe's textured pixels (M, 2) with their depth (M,), where the query (H, W) uint8, already at
+    the keyframe's intrinsics and seen from ``pose_c2w`` (4, 4), shows them (M, 2), and the flow's
+    forward-backward error there (M,) px (acesplat.align.flow_pnp.flow_to_query; ``scale`` < 1: a coarse flow)."""
     h, w = kf.gray.shape
     fmap = forward_map(kf.depth, kf.intrinsics, kf.stride, kf.c2w, pose_c2w)  # keyframe pixel -> query pixel
     warped, valid = warp_to_camera(kf.gray, kf.depth, kf.intrinsics, kf.stride, kf.c2w, pose_c2w)
-    fwd = flow.calc(warped, query, None)
-    bwd = flow.calc(query, warped, None)
-    ys, xs = np.mgrid[0:h:SAMPLE_STEP_PX, 0:w:SAMPLE_STEP_PX]
+    ys, xs = sample_grid(h, w, cfg.sample_step_px)
     u, v = xs.ravel().astype(np.float64), ys.ravel().astype(np.float64)
     at = fmap[ys.ravel(), xs.ravel()].astype(np.float64)
     inside = np.isfinite(at).all(1) & (at[:, 0] >= 0) & (at[:, 0] <= w - 1) & (at[:, 1] >= 0) & (at[:, 1] <= h - 1)
     u, v, at = u[inside], v[inside], at[inside]
     ai = np.rint(at).astype(np.int64)
-    grad = np.hypot(cv2.Sobel(warped, cv2.CV_32F, 1, 0), cv2.Sobel(warped, cv2.CV_32F, 0, 1))
-    keep = valid[ai[:, 1], ai[:, 0]] & (grad[ai[:, 1], ai[:, 0]] > MIN_GRADIENT)
+    keep = valid[ai[:, 1], ai[:, 0]] & (gradient(warped)[ai[:, 1], ai[:, 0]] > cfg.min_gradient)
     u, v, at = u[keep], v[keep], at[keep]
-    seen = at + _bilinear(fwd, at[:, 0], at[:, 1])
-    back = seen + _bilinear(bwd, seen[:, 0], seen[:, 1])
     z = _depth_at(kf, u, v)
-    ok = (np.linalg.norm(back - at, axis=1) < MAX_FB_ERROR_PX) & (z > 0) & np.isfinite(z)
-    ok &= (seen[:, 0] >= 0) & (seen[:, 0] <= w - 1) & (seen[:, 1] >= 0) & (seen[:, 1] <= h - 1)
-    return np.stack([u[ok], v[ok]], axis=1), z[ok], seen[ok]
+    known = (z > 0) & np.isfinite(z)
+    u, v, at, z = u[known], v[known], at[known], z[known]
+    seen, ok, err = flow_to_query(warped, query, at, flow, cfg, scale)
+    return np.stack([u[ok], v[ok]], axis=1), z[ok], seen[ok], err[ok]
 
 
 def keyframe_correspondences(
-    query: np.ndarray, pose_c2w: np.ndarray, kf: Keyframe, flow: cv2.DISOpticalFlow
-) -> tuple[np.ndarray, np.ndarray]:
-    """World points (M, 3) of the keyframe's textured pixels and where the query (H, W) uint8, already at the
-    keyframe's intrinsics, shows them (M, 2), given the query's estimated pose (4, 4)."""
-    uv, z, seen = keyframe_matches(query, pose_c2w, kf, flow)
+    query: np.ndarray,
+    pose_c2w: np.ndarray,
+    kf: Keyframe,
+    flow: cv2.DISOpticalFlow,
+    cfg: AlignConfig = KEYFRAME_ALIGN,
+    scale: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World points (M, 3) of the keyframe's textured pixels, where the query (H, W) uint8, already at the
+    keyframe's intrinsics, shows them (M, 2) given the query's estimated pose (4, 4), and the flow's
+    forward-backward error (M,) px."""
+    uv, z, seen, err = keyframe_matches(query, pose_c2w, kf, flow, cfg, scale)
     X = kf.intrinsics.unproject(uv, z) @ kf.c2w[:3, :3].T + kf.c2w[:3, 3]
-    return X, seen
+    return X, seen, err
 
 
 def _check(gray: np.ndarray, intrinsics: Intrinsics, pose_c2w: np.ndarray) -> None:
@@ -211,67 +178,44 @@ def align_to_keyframes(
     intrinsics: Intrinsics,
     pose_c2w: np.ndarray,
     keyframes: Sequence[Keyframe],
-    iterations: int = ITERATIONS,
     anchor: tuple[np.ndarray, np.ndarray] | None = None,
-) -> KeyframeAlignment:
+    cfg: AlignConfig = KEYFRAME_ALIGN,
+) -> Alignment:
     """Refine the query's camera-to-world ``pose_c2w`` (4, 4) against ``keyframes`` (nearest first, see
     nearest_keyframes); ``gray`` (H, W) uint8 is the query at the map's resolution with ``intrinsics``.
 
     ``anchor``: the correspondences the start pose was solved from, scene points (N, 3) and pixels (N, 2) of
-    ``gray``; a refined pose that loses their inliers is refused."""
+    ``gray``; a refined pose that loses their inliers is refused (``cfg.min_anchor_kept``)."""
     _check(gray, intrinsics, pose_c2w)
     start = np.asarray(pose_c2w, np.float64)
     if not keyframes:
-        return KeyframeAlignment(start, "few_points")
-    flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+        return Alignment(start, "few_points")
+    flow = dis_flow(cfg)
     queries: dict[Intrinsics, np.ndarray] = {}
-    pose, points, inliers = start, 0, 0
-    for _ in range(iterations):
-        Xs, uvs = [], []
+
+    def pairs(pose: np.ndarray, r: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        Xs, uvs, errs = [], [], []
+        scale = cfg.first_flow_scale if r == 0 else 1.0
         for kf in keyframes:
             if kf.intrinsics not in queries:
                 queries[kf.intrinsics] = resample_to(gray, intrinsics, kf.intrinsics)
-            X, uv = keyframe_correspondences(queries[kf.intrinsics], pose, kf, flow)
+            X, uv, err = keyframe_correspondences(queries[kf.intrinsics], pose, kf, flow, cfg, scale)
             # back to the query's own pixels, so every keyframe's pairs share one camera matrix
             H = intrinsics.K @ np.linalg.inv(kf.intrinsics.K)
             uvh = np.c_[uv, np.ones(len(uv))] @ H.T
             Xs.append(X)
             uvs.append(uvh[:, :2] / uvh[:, 2:3])
-        X, uv = np.concatenate(Xs), np.concatenate(uvs)
-        points = len(X)
-        if points < MIN_POINTS:
-            return KeyframeAlignment(start, "few_points", points)
-        w2c = invert_pose(pose)
-        rvec0, _ = cv2.Rodrigues(w2c[:3, :3])
-        ok, rvec, tvec, inl = cv2.solvePnPRansac(
-            X,
-            uv,
-            intrinsics.K,
-            None,
-            rvec0,
-            w2c[:3, 3].reshape(3, 1).copy(),
-            useExtrinsicGuess=True,
-            iterationsCount=RANSAC_ITERATIONS,
-            reprojectionError=REPROJ_PX,
-            flags=cv2.SOLVEPNP_ITERATIVE,
-        )
-        inliers = 0 if inl is None else len(inl)
-        if not ok or inliers < max(MIN_POINTS, MIN_INLIER_RATIO * points):
-            return KeyframeAlignment(start, "no_fit", points, inliers)
-        idx = inl[:, 0]
-        rvec, tvec = cv2.solvePnPRefineLM(X[idx], uv[idx], intrinsics.K, None, rvec, tvec)
-        if not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
-            return KeyframeAlignment(start, "no_fit", points, inliers)
-        pose = invert_pose(make_pose(cv2.Rodrigues(rvec)[0], tvec.reshape(3)))
-        dt, dr = pose_error(pose, start)
-        if dt > MAX_SHIFT_M or dr > MAX_SHIFT_DEG:
-            return KeyframeAlignment(start, "too_far", points, inliers, dt, dr)
-    dt, dr = pose_error(pose, start)
-    if anchor is not None and anchor_inliers(anchor, intrinsics, pose) < MIN_ANCHOR_KEPT * anchor_inliers(
-        anchor, intrinsics, start
-    ):
-        return KeyframeAlignment(start, "disagrees", points, inliers, dt, dr)
-    return KeyframeAlignment(pose, "aligned", points, inliers, dt, dr)
+            errs.append(err)
+            if cfg.enough_pairs and sum(len(x) for x in Xs) >= cfg.enough_pairs:
+                break
+        return np.concatenate(Xs), np.concatenate(uvs), np.concatenate(errs)
+
+    al = refine_pose(start, intrinsics, pairs, cfg)
+    if al.status != "aligned" or anchor is None:
+        return al
+    if anchor_inliers(anchor, intrinsics, al.pose) < cfg.min_anchor_kept * anchor_inliers(anchor, intrinsics, start):
+        return replace(al, pose=start, status="disagrees")
+    return al
 
 
 def align_scr_pose(
@@ -281,13 +225,14 @@ def align_scr_pose(
     stride: int,
     pose_c2w: np.ndarray,
     near: Callable[..., Sequence[Keyframe]],
-) -> KeyframeAlignment:
+    cfg: AlignConfig = KEYFRAME_ALIGN,
+) -> Alignment:
     """Refine a pose solved from the SCR grid ``coords`` (h, w, 3) (cells ``stride`` px apart) of ``gray``: the
     keyframes ``near(pose, depth=...)`` gives for the scene's depth in front of it, the grid as the anchor.
     One path for the desktop localizer and the edge runtime."""
     anchor = grid_correspondences(coords, stride)
     keyframes = near(pose_c2w, depth=scene_depth(anchor[0], pose_c2w))
-    return align_to_keyframes(gray, intrinsics, pose_c2w, keyframes, anchor=anchor)
+    return align_to_keyframes(gray, intrinsics, pose_c2w, keyframes, anchor=anchor, cfg=cfg)
 
 
 def anchor_inliers(anchor: tuple[np.ndarray, np.ndarray], intrinsics: Intrinsics, pose_c2w: np.ndarray) -> int:

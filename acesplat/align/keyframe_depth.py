@@ -11,9 +11,9 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-import cv2
 import numpy as np
 
+from acesplat.align.flow_pnp import KEYFRAME_ALIGN, dis_flow
 from acesplat.align.keyframe_align import MAX_VIEW_ANGLE_DEG, Keyframe, keyframe_matches, resample_to
 from acesplat.core.geometry import invert_pose
 from acesplat.core.grid import OUTPUT_STRIDE
@@ -70,13 +70,13 @@ def triangulate_along_rays(
 def refine_depth(kf: Keyframe, neighbours: Sequence[Keyframe]) -> np.ndarray:
     """The keyframe's depth grid (h, w) with every cell that enough neighbour pixels triangulate replaced by their
     median; ``neighbours`` are other keyframes (their images and exact poses; their depths are not used)."""
-    flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    flow = dis_flow(KEYFRAME_ALIGN)
     gh, gw = kf.depth.shape
     first = OUTPUT_STRIDE / 2.0
     cells, depths = [], []
     for nb in neighbours:
         query = resample_to(nb.gray, nb.intrinsics, kf.intrinsics)
-        uv, z_head, seen = keyframe_matches(query, nb.c2w, kf, flow)
+        uv, z_head, seen, _ = keyframe_matches(query, nb.c2w, kf, flow)
         if not len(uv):
             continue
         z, sens = triangulate_along_rays(uv, kf, seen, kf.intrinsics.K, nb.c2w)

@@ -11,7 +11,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from acesplat.align.keyframe_align import KeyframeAlignment, align_scr_pose
+from acesplat.align.flow_pnp import Alignment
+from acesplat.align.keyframe_align import align_scr_pose
 from acesplat.core.camera import Intrinsics
 from acesplat.core.config import knob
 from acesplat.core.gate import GateConfig, gate_result
@@ -67,7 +68,7 @@ class Localizer:
     def localize(self, rgb: np.ndarray, intrinsics: Intrinsics) -> PnPResult:
         return self.localize_and_align(rgb, intrinsics)[0]
 
-    def localize_and_align(self, rgb: np.ndarray, intrinsics: Intrinsics) -> tuple[PnPResult, KeyframeAlignment | None]:
+    def localize_and_align(self, rgb: np.ndarray, intrinsics: Intrinsics) -> tuple[PnPResult, Alignment | None]:
         """The pose, refined against the keyframes when there are any and the frame localized; and the
         alignment's record (None when none was tried)."""
         gray, intr = self.network_input(rgb, intrinsics)

@@ -26,17 +26,13 @@ from typing import Protocol
 import cv2
 import numpy as np
 
+from acesplat.align.flow_pnp import RENDER_ALIGN, align_to_render
 from acesplat.core.camera import Intrinsics
 from acesplat.core.config import knob
 from acesplat.core.gaussians import Gaussians, concat_gaussians
 from acesplat.raster import rasterize, rasterize_backward
 from acesplat.splatcore.prune import PRUNE_OPACITY, transparent
 from edge.refine.adam import LearningRates, RowAdam
-from edge.refine.align import MAX_MSE as ALIGN_MAX_MSE
-from edge.refine.align import MAX_SHIFT_DEG as ALIGN_MAX_DEG
-from edge.refine.align import MAX_SHIFT_M as ALIGN_MAX_M
-from edge.refine.align import MIN_COVERAGE as ALIGN_MIN_COVERAGE
-from edge.refine.align import align_pose
 from edge.refine.coverage import ALPHA_MIN, RenderAnalysis, analyse_render, frustum_mask
 from edge.refine.deadline import Clock, CostEstimate, Deadline
 from edge.refine.guard import HELD_TOLERANCE, HeldView, HeldViews, all_finite, downsample, held_verdict, view_mse
@@ -66,11 +62,11 @@ class RefineConfig:
     crop_side: int = knob(80, "Longer side of the full-resolution crops the steps fit (bench/refine.md).")
     held: int = knob(2, "Earlier keyframes the photometric guard checks.")
     tiles: int = knob(2, "Keyframe renders are split into tiles x tiles pieces, each fitting one frame's window.")
-    align: bool = knob(True, "Correct each keyframe's pose against the map before using it (edge.refine.align).")
+    align: bool = knob(True, "Correct each keyframe's pose against the map before using it (acesplat.align.flow_pnp).")
     align_side: int = knob(160, "Longer side of the pose alignment's render (bench/refine.md).")
     align_tiles: int = knob(3, "The pose alignment's render is split into this many tiles a side.")
-    align_max_m: float = knob(ALIGN_MAX_M, "Largest pose correction the alignment may make (m).")
-    align_max_deg: float = knob(ALIGN_MAX_DEG, "Largest pose correction the alignment may make (deg).")
+    align_max_m: float = knob(RENDER_ALIGN.max_shift_m, "Largest pose correction the alignment may make (m).")
+    align_max_deg: float = knob(RENDER_ALIGN.max_shift_deg, "Largest pose correction the alignment may make (deg).")
     guard_max_side: int = knob(48, "Longer side of the held views the guard renders.")
     held_tolerance: float = knob(HELD_TOLERANCE, "Relative error increase a held view may take.")
     alpha_min: float = knob(ALPHA_MIN, "Alpha at which a pixel counts as covered by the map.")
@@ -159,7 +155,7 @@ class BatchReport:
     step_ms: list[float] = field(default_factory=list)
     stopped_by_deadline: bool = False
     align: str = ""
-    """The pose alignment's status (edge.refine.align.Alignment), '' when not run."""
+    """The pose alignment's status (acesplat.align.flow_pnp.Alignment), '' when not run."""
     align_shift_m: float = 0.0
     align_shift_deg: float = 0.0
     windows: int = 1
@@ -399,11 +395,11 @@ class Refiner:
         rep.ms["render"] = 1000.0 * (clock() - t0)
         # Where the map covers the view, the pose is corrected against it and the analysis redone from the
         # corrected pose. New territory keeps the localizer's pose.
-        if cfg.align and an.coverage >= ALIGN_MIN_COVERAGE:
+        if cfg.align and an.coverage >= RENDER_ALIGN.min_coverage:
             t0 = clock()
             al = yield from self._align(kf)
             rep.align, rep.align_shift_m, rep.align_shift_deg = al.status, al.shift_m, al.shift_deg
-            if al.status == "too_far" or (al.status == "no_fit" and an.mse <= ALIGN_MAX_MSE):
+            if al.status == "too_far" or (al.status == "no_fit" and an.mse <= RENDER_ALIGN.max_mse):
                 # The map covers and explains the view, yet the frame's pose disagrees with it or no pose fits the
                 # flow: fitting the map to it would smear it. A view the map explains poorly (new territory seen
                 # from afar) keeps the localizer's pose: there the map has more to gain than a few centimetres can
@@ -429,8 +425,8 @@ class Refiner:
         return _View(kf, kf_px, in_view, seen, an)
 
     def _align(self, kf: Keyframe):
-        """The keyframe's pose aligned to the map (edge.refine.align.Alignment), from a render at the alignment's
-        size."""
+        """The keyframe's pose aligned to the map (acesplat.align.flow_pnp.Alignment), from a render at the
+        alignment's size."""
         cfg, clock = self.cfg, self.clock
         yield ("must", self.cull_cost.predict(), 0.0)
         k_al, img = _align_image(kf, cfg.align_side)
@@ -440,7 +436,8 @@ class Refiner:
         )
         yield ("must", self.align_cost.predict(), 0.0)
         t1 = clock()
-        al = align_pose(c_al, a_al, d_al, img, k_al, kf.pose, cfg.align_max_m, cfg.align_max_deg)
+        al_cfg = replace(RENDER_ALIGN, max_shift_m=cfg.align_max_m, max_shift_deg=cfg.align_max_deg)
+        al = align_to_render(c_al, a_al, d_al, img, k_al, kf.pose, al_cfg)
         self.align_cost.record(clock() - t1)
         return al
 

@@ -1,0 +1,315 @@
+"""A pose refined by dense flow from a reference view to the query and PnP on the pairs (torch-free).
+
+One method for two kinds of reference: a mapping image warped to the estimated pose with its depth
+(acesplat.align.keyframe_align: ``acesplat eval --align``, the edge's ``--align``) and the map rendered from the
+estimated pose (``align_to_render``: the edge refiner's keyframes). Either way the reference shows the scene from
+(nearly) the query's viewpoint with a 3D point at each pixel; its textured pixels are sampled, DIS optical flow
+carries them to where the query shows them (forward-backward checked), PnP-RANSAC (+ LM) on the (3D point, query
+pixel) pairs gives the pose, and guards keep the start pose when there are too few points or inliers or the
+correction is too large to be a refinement. The thresholds are an ``AlignConfig``; ``KEYFRAME_ALIGN`` and
+``RENDER_ALIGN`` are the two references' settings (bench/herz_gap.md, bench/refine.md; costs in bench/align.md).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import cv2
+import numpy as np
+
+from acesplat.core.camera import Intrinsics
+from acesplat.core.config import knob
+from acesplat.core.geometry import invert_pose, make_pose, pose_error
+
+FLOW_PRESETS = {
+    "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
+    "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
+    "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
+}
+THINNING = ("even", "confidence")
+COVERED_ALPHA = 0.5
+"""Alpha at which a rendered pixel counts towards the render's coverage."""
+MIN_DEPTH_M = 1e-3
+"""Rendered depth at or below this is no surface."""
+
+
+@dataclass(frozen=True)
+class AlignConfig:
+    """Thresholds of flow + PnP alignment; the defaults are the keyframe alignment's (KEYFRAME_ALIGN)."""
+
+    sample_step_px: int = knob(2, "Reference pixels are sampled on a grid this many pixels apart.")
+    min_gradient: float = knob(
+        20.0, "Sobel magnitude (8-bit) a sampled reference pixel needs: flat areas have no flow."
+    )
+    max_fb_error_px: float | None = knob(
+        0.5, "Forward-backward flow disagreement above this marks an occlusion or mismatch (None: no check)."
+    )
+    reproj_px: float = knob(1.0, "PnP-RANSAC inlier threshold in query pixels (flow errors are sub-pixel).")
+    ransac_iterations: int = knob(200, "PnP-RANSAC iterations.")
+    refine_lm: bool = knob(True, "Refine the RANSAC pose by Levenberg-Marquardt on its inliers.")
+    min_points: int = knob(300, "Fewer pairs than this (or fewer inliers) keep the start pose.")
+    min_inlier_ratio: float = knob(0.5, "RANSAC inliers needed, as a share of the pairs PnP was given.")
+    max_shift_m: float = knob(0.5, "A correction beyond this (m) means the start pose was wrong, not imprecise.")
+    max_shift_deg: float = knob(3.0, "A correction beyond this (deg) means the start pose was wrong, not imprecise.")
+    rounds: int = knob(3, "Warp-flow-PnP rounds (keyframes), each from the last round's pose; a render is one round.")
+    min_anchor_kept: float = knob(
+        0.8, "Share of the SCR correspondences' inliers the refined pose must keep (keyframes; bench/herz_gap.md)."
+    )
+    min_alpha: float = knob(0.8, "Rendered pixels sampled are this opaque at least (renders; bench/refine.md).")
+    max_mse: float = knob(0.01, "A render whose MSE against the image exceeds this is not trusted (bench/refine.md).")
+    min_coverage: float = knob(0.5, "A render covering less of the view than this is not trusted (bench/refine.md).")
+    flow_preset: str = knob("medium", "DIS optical flow preset: ultrafast, fast or medium (bench/align.md).")
+    first_flow_scale: float = knob(
+        1.0, "The first round's flow runs on images scaled by this (coarse-to-fine; 1: full size; bench/align.md)."
+    )
+    max_pairs: int = knob(0, "PnP gets at most this many pairs, thinned (0: all; bench/align.md).")
+    thinning: str = knob("even", "How pairs beyond max_pairs are dropped: even (over the image) or confidence.")
+    converged_m: float = knob(0.0, "Stop the rounds when one moves the pose less than this (m; 0: never).")
+    converged_deg: float = knob(0.0, "...and less than this (deg).")
+    enough_pairs: int = knob(0, "Keyframes are used nearest first until this many pairs (0: all; bench/align.md).")
+
+    def __post_init__(self) -> None:
+        if self.sample_step_px < 1 or self.ransac_iterations < 1 or self.rounds < 1 or self.min_points < 4:
+            raise ValueError(f"sample_step_px, ransac_iterations, rounds must be >= 1 and min_points >= 4: {self}")
+        if self.max_fb_error_px is not None and not self.max_fb_error_px > 0:
+            raise ValueError(f"max_fb_error_px must be > 0 or None, got {self.max_fb_error_px}")
+        if not (self.reproj_px > 0 and 0 <= self.min_inlier_ratio <= 1 and 0 < self.first_flow_scale <= 1):
+            raise ValueError(f"need reproj_px > 0, min_inlier_ratio in [0, 1], first_flow_scale in (0, 1]: {self}")
+        if self.flow_preset not in FLOW_PRESETS or self.thinning not in THINNING:
+            raise ValueError(f"flow_preset must be one of {sorted(FLOW_PRESETS)}, thinning one of {THINNING}")
+        if self.max_pairs and self.max_pairs < self.min_points:
+            raise ValueError(f"max_pairs {self.max_pairs} is below min_points {self.min_points}")
+        if self.thinning == "confidence" and self.max_fb_error_px is None:
+            raise ValueError("thinning by confidence needs the forward-backward check (max_fb_error_px)")
+
+
+KEYFRAME_ALIGN = AlignConfig()
+"""Mapping images warped to the estimate with their depth (bench/herz_gap.md)."""
+RENDER_ALIGN = replace(
+    KEYFRAME_ALIGN,
+    max_fb_error_px=None,
+    ransac_iterations=100,
+    refine_lm=False,
+    min_points=400,
+    max_shift_m=0.15,
+    rounds=1,
+)
+"""The map rendered at the estimate (bench/refine.md): no forward-backward check, RANSAC alone, one round."""
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """pose (4, 4): the refined camera-to-world, or the start pose unless ``status`` is 'aligned'.
+
+    status: 'aligned'; 'few_points' (too little textured overlap with the references); 'no_fit' (PnP failed or
+    too few inliers); 'too_far' (the correction exceeded max_shift_*: the start pose was wrong, not imprecise);
+    keyframes only: 'disagrees' (the refined pose lost the SCR correspondences' inliers); renders only: 'unlike'
+    (the render does not resemble the image, or covers too little of it, to trust a flow between them).
+    points: pairs found (last round); inliers: PnP's among those it was given; mse: a render's against the image.
+    """
+
+    pose: np.ndarray
+    status: str
+    points: int = 0
+    inliers: int = 0
+    shift_m: float = 0.0
+    shift_deg: float = 0.0
+    mse: float = float("nan")
+
+
+def dis_flow(cfg: AlignConfig) -> cv2.DISOpticalFlow:
+    """The DIS optical flow of ``cfg.flow_preset``."""
+    return cv2.DISOpticalFlow_create(FLOW_PRESETS[cfg.flow_preset])
+
+
+def sample_grid(h: int, w: int, step: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and columns (h', w') int of the pixels of an (h, w) image sampled ``step`` apart."""
+    return np.mgrid[0:h:step, 0:w:step]
+
+
+def gradient(gray: np.ndarray) -> np.ndarray:
+    """Sobel gradient magnitude (H, W) float32 of an (H, W) uint8 image."""
+    return np.hypot(cv2.Sobel(gray, cv2.CV_32F, 1, 0), cv2.Sobel(gray, cv2.CV_32F, 0, 1))
+
+
+def bilinear(a: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """a (H, W, C) sampled at (x, y) (N,), clamped to the image: (N, C)."""
+    h, w = a.shape[:2]
+    x = np.clip(x, 0.0, w - 1.0)
+    y = np.clip(y, 0.0, h - 1.0)
+    x0 = np.minimum(np.floor(x).astype(np.int64), w - 2)
+    y0 = np.minimum(np.floor(y).astype(np.int64), h - 2)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    return (
+        a[y0, x0] * (1 - fx) * (1 - fy)
+        + a[y0, x0 + 1] * fx * (1 - fy)
+        + a[y0 + 1, x0] * (1 - fx) * fy
+        + a[y0 + 1, x0 + 1] * fx * fy
+    )
+
+
+def _flow(a: np.ndarray, b: np.ndarray, flow: cv2.DISOpticalFlow, scale: float) -> tuple[np.ndarray, float]:
+    """Flow from a to b (H', W', 2) computed on both scaled by ``scale``, and the scale it is at."""
+    a, b = np.ascontiguousarray(a), np.ascontiguousarray(b)
+    if scale == 1.0:
+        return flow.calc(a, b, None), 1.0
+    h, w = a.shape
+    size = (max(8, round(w * scale)), max(8, round(h * scale)))
+    small = [cv2.resize(x, size, interpolation=cv2.INTER_AREA) for x in (a, b)]
+    return flow.calc(small[0], small[1], None), size[0] / w
+
+
+def _flow_at(f: np.ndarray, s: float, p: np.ndarray) -> np.ndarray:
+    """A flow field at scale s sampled at full-size pixels p (N, 2), in full-size pixels (N, 2)."""
+    if s == 1.0:
+        return bilinear(f, p[:, 0], p[:, 1])
+    q = (p + 0.5) * s - 0.5
+    return bilinear(f, q[:, 0], q[:, 1]) / s
+
+
+def flow_to_query(
+    ref: np.ndarray,
+    query: np.ndarray,
+    at: np.ndarray,
+    flow: cv2.DISOpticalFlow,
+    cfg: AlignConfig,
+    scale: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where ``query`` (H, W) uint8 shows the pixels ``at`` (M, 2) of ``ref`` (H, W) uint8: seen (M, 2), the
+    forward-backward check's verdict keep (M,) bool (the seen pixel inside the query and the flow back within
+    ``cfg.max_fb_error_px``; all True without the check) and its error (M,) px (0 without the check).
+    ``scale`` < 1 computes the flow on downscaled images (coarse and cheaper)."""
+    if ref.shape != query.shape or ref.ndim != 2:
+        raise ValueError(f"reference {ref.shape} and query {query.shape} must be the same (H, W)")
+    fwd, s = _flow(ref, query, flow, scale)
+    seen = at + _flow_at(fwd, s, at)
+    if cfg.max_fb_error_px is None:
+        return seen, np.ones(len(at), bool), np.zeros(len(at))
+    h, w = query.shape
+    bwd, s = _flow(query, ref, flow, scale)
+    back = seen + _flow_at(bwd, s, seen)
+    err = np.linalg.norm(back - at, axis=1)
+    keep = err < cfg.max_fb_error_px
+    keep &= (seen[:, 0] >= 0) & (seen[:, 0] <= w - 1) & (seen[:, 1] >= 0) & (seen[:, 1] <= h - 1)
+    return seen, keep, err
+
+
+def thin(count: int, err: np.ndarray, cfg: AlignConfig) -> np.ndarray:
+    """Indices of the ``count`` pairs PnP gets under ``cfg.max_pairs``: evenly spaced in their order (the pairs
+    come in raster order, so this thins evenly over the image) or the lowest forward-backward errors ``err``."""
+    if not cfg.max_pairs or count <= cfg.max_pairs:
+        return np.arange(count)
+    if cfg.thinning == "confidence":
+        return np.sort(np.argsort(err, kind="stable")[: cfg.max_pairs])
+    return np.unique(np.linspace(0, count - 1, cfg.max_pairs).round().astype(np.int64))
+
+
+PairSource = Callable[[np.ndarray, int], tuple[np.ndarray, np.ndarray, np.ndarray]]
+"""(pose (4, 4), round) -> world points (M, 3), query pixels (M, 2), forward-backward errors (M,)."""
+
+
+def refine_pose(
+    start_c2w: np.ndarray, intrinsics: Intrinsics, pairs: PairSource, cfg: AlignConfig, rounds: int | None = None
+) -> Alignment:
+    """The camera-to-world ``start_c2w`` (4, 4) refined by PnP on ``pairs(pose, round)`` (pixels of a camera
+    with ``intrinsics``), ``rounds`` times (default ``cfg.rounds``) each from the last pose, under the guards."""
+    start = np.asarray(start_c2w, np.float64)
+    if start.shape != (4, 4) or not np.all(np.isfinite(start)):
+        raise ValueError(f"pose must be a finite (4, 4) camera-to-world, got shape {start.shape}")
+    K = intrinsics.K
+    pose, points, inliers = start, 0, 0
+    for r in range(cfg.rounds if rounds is None else rounds):
+        X, uv, err = pairs(pose, r)
+        points = len(X)
+        if points < cfg.min_points:
+            return Alignment(start, "few_points", points)
+        use = thin(points, err, cfg)
+        if len(use) < points:
+            X, uv = X[use], uv[use]
+        w2c = invert_pose(pose)
+        rvec0, _ = cv2.Rodrigues(w2c[:3, :3])
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(
+            X,
+            uv,
+            K,
+            None,
+            rvec0,
+            w2c[:3, 3].reshape(3, 1).copy(),
+            useExtrinsicGuess=True,
+            iterationsCount=cfg.ransac_iterations,
+            reprojectionError=cfg.reproj_px,
+            flags=cv2.SOLVEPNP_ITERATIVE,
+        )
+        inliers = 0 if inl is None else len(inl)
+        if not ok or inliers < max(cfg.min_points, cfg.min_inlier_ratio * len(X)):
+            return Alignment(start, "no_fit", points, inliers)
+        if cfg.refine_lm:
+            idx = inl[:, 0]
+            rvec, tvec = cv2.solvePnPRefineLM(X[idx], uv[idx], K, None, rvec, tvec)
+        if not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
+            return Alignment(start, "no_fit", points, inliers)
+        last, pose = pose, invert_pose(make_pose(cv2.Rodrigues(rvec)[0], tvec.reshape(3)))
+        dt, dr = pose_error(pose, start)
+        if dt > cfg.max_shift_m or dr > cfg.max_shift_deg:
+            return Alignment(start, "too_far", points, inliers, dt, dr)
+        if cfg.converged_m > 0 or cfg.converged_deg > 0:
+            st, sr = pose_error(pose, last)
+            if st < cfg.converged_m and sr < cfg.converged_deg:
+                break
+    dt, dr = pose_error(pose, start)
+    return Alignment(pose, "aligned", points, inliers, dt, dr)
+
+
+def gray8(rgb: np.ndarray) -> np.ndarray:
+    """An RGB image (H, W, 3) in [0, 1] as (H, W) uint8 gray."""
+    return cv2.cvtColor((np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8), cv2.COLOR_RGB2GRAY)
+
+
+def align_to_render(
+    render_rgb: np.ndarray,
+    render_alpha: np.ndarray,
+    render_depth: np.ndarray,
+    image: np.ndarray,
+    k: Intrinsics,
+    pose_c2w: np.ndarray,
+    cfg: AlignConfig = RENDER_ALIGN,
+) -> Alignment:
+    """Correct ``pose_c2w`` (4, 4) from a render of the map at that pose (rgb (H, W, 3), alpha (H, W), camera
+    depth (H, W)) and the captured ``image`` (H, W, 3) in [0, 1], both with intrinsics ``k``: one round of flow
+    from the render to the image and PnP on (rendered 3D point, observed pixel)."""
+    h, w = k.height, k.width
+    if (
+        render_rgb.shape != (h, w, 3)
+        or image.shape != (h, w, 3)
+        or render_alpha.shape != (h, w)
+        or render_depth.shape != (h, w)
+    ):
+        raise ValueError(
+            f"render {render_rgb.shape}, alpha {render_alpha.shape}, depth {render_depth.shape} and image "
+            f"{image.shape} must all match the {h}x{w} intrinsics"
+        )
+    pose = np.asarray(pose_c2w, np.float64)
+    a, b = gray8(render_rgb), gray8(image)
+    ys, xs = sample_grid(h, w, cfg.sample_step_px)
+    grad = gradient(a)
+    z = render_depth[ys, xs].astype(np.float64)
+    use = (
+        (render_alpha[ys, xs] >= cfg.min_alpha) & np.isfinite(z) & (z > MIN_DEPTH_M) & (grad[ys, xs] > cfg.min_gradient)
+    )
+    n = int(use.sum())
+    opaque = render_alpha >= cfg.min_alpha
+    mse = float(np.mean((render_rgb[opaque] - image[opaque]) ** 2)) if opaque.any() else float("inf")
+    coverage = float(np.mean(render_alpha >= COVERED_ALPHA))
+    if n < cfg.min_points:
+        return Alignment(pose, "few_points", n, mse=mse)
+    if mse > cfg.max_mse or coverage < cfg.min_coverage:
+        return Alignment(pose, "unlike", n, mse=mse)
+    at = np.stack([xs[use].astype(np.float64), ys[use].astype(np.float64)], axis=1)
+    X = k.unproject(at, z[use]) @ pose[:3, :3].T + pose[:3, 3]
+
+    def pairs(_pose: np.ndarray, r: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        seen, keep, err = flow_to_query(a, b, at, dis_flow(cfg), cfg, cfg.first_flow_scale if r == 0 else 1.0)
+        return X[keep], seen[keep], err[keep]
+
+    return replace(refine_pose(pose, k, pairs, cfg, rounds=1), mse=mse)

@@ -1,0 +1,108 @@
+"""Keyframe alignment options measured against each other on one map, interleaved frame by frame (bench/align.md).
+
+Each test frame is localized once (SCR + PnP); then every option aligns that same pose, in an order rotated per
+frame and repeat, so the machine's load hits all options alike. Only the alignment is timed.
+
+    PYTHONPATH=. python -P bench/align_options.py MAP SCENE [--frames N] [--repeats R] [--only a,b] [--json OUT]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from acesplat.align.flow_pnp import KEYFRAME_ALIGN
+from acesplat.align.keyframe_align import align_scr_pose
+from acesplat.core.geometry import pose_error
+from acesplat.core.grid import OUTPUT_STRIDE
+from acesplat.core.scene import read_split
+from acesplat.scr.keyframes import MapKeyframes
+from acesplat.scr.localize import Localizer
+from acesplat.scr.mapfile import encoder_for_map, load_map
+
+OPTIONS = {
+    "base": KEYFRAME_ALIGN,
+    "cap2k_even": replace(KEYFRAME_ALIGN, max_pairs=2000),
+    "cap5k_even": replace(KEYFRAME_ALIGN, max_pairs=5000),
+    "cap2k_conf": replace(KEYFRAME_ALIGN, max_pairs=2000, thinning="confidence"),
+    "dis_fast": replace(KEYFRAME_ALIGN, flow_preset="fast"),
+    "coarse_first": replace(KEYFRAME_ALIGN, first_flow_scale=0.5),
+    "early_exit": replace(KEYFRAME_ALIGN, converged_m=1e-3, converged_deg=0.01),
+    "enough_8k": replace(KEYFRAME_ALIGN, enough_pairs=8000),
+    "two_rounds": replace(KEYFRAME_ALIGN, rounds=2),
+    "cap2k+early": replace(KEYFRAME_ALIGN, max_pairs=2000, converged_m=1e-3, converged_deg=0.01),
+}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("map")
+    ap.add_argument("scene")
+    ap.add_argument("--frames", type=int, default=0, help="every k-th test frame so that about this many run")
+    ap.add_argument("--repeats", type=int, default=1)
+    ap.add_argument("--only", default="", help="comma-separated option names (base always runs)")
+    ap.add_argument("--json", default="")
+    a = ap.parse_args()
+    names = list(OPTIONS) if not a.only else ["base"] + [n for n in a.only.split(",") if n != "base"]
+    m = load_map(a.map)
+    net = m.network(encoder_for_map(m, a.map, None))
+    kfs = MapKeyframes(read_split(a.scene, "train"), net, m.short_side)
+    kfs.prepare()
+    loc = Localizer(net, m.short_side, {}, keyframes=None)
+    frames = read_split(a.scene, "test").frames
+    if a.frames and len(frames) > a.frames:
+        frames = frames[:: int(np.ceil(len(frames) / a.frames))]
+    rows: dict[str, dict[str, list]] = {n: {"t": [], "r": [], "ms": [], "status": []} for n in names}
+    scr_err = []
+    for fi, f in enumerate(frames):
+        gray, intr = loc.network_input(f.load_rgb(), f.intrinsics)
+        coords = loc.coordinates(gray)
+        res = loc.localize(f.load_rgb(), f.intrinsics)
+        if not res.localized or res.T_c2w is None:
+            continue
+        scr_err.append(pose_error(res.T_c2w, f.pose))
+        for rep in range(a.repeats):
+            k = (fi + rep) % len(names)
+            for n in names[k:] + names[:k]:
+                t0 = time.perf_counter()
+                al = align_scr_pose(gray, intr, coords, OUTPUT_STRIDE, res.T_c2w, kfs.near, OPTIONS[n])
+                ms = 1000.0 * (time.perf_counter() - t0)
+                dt, dr = pose_error(al.pose, f.pose)
+                r = rows[n]
+                r["ms"].append(ms)
+                if rep == 0:
+                    r["t"].append(dt)
+                    r["r"].append(dr)
+                    r["status"].append(al.status)
+    base_ms = np.array(rows["base"]["ms"])
+    out = {"frames": len(scr_err), "scr_median_cm": 100 * float(np.median([e[0] for e in scr_err]))}
+    print(f"{len(scr_err)} frames; SCR alone median {out['scr_median_cm']:.2f} cm")
+    print(f"{'option':14s} {'med cm':>7s} {'p90 cm':>7s} {'med deg':>8s} {'mean ms':>8s} {'ratio':>6s}  statuses")
+    for n in names:
+        r = rows[n]
+        t, ms = np.array(r["t"]) * 100, np.array(r["ms"])
+        ratio = float(np.median(ms / base_ms))
+        st = {s: r["status"].count(s) for s in sorted(set(r["status"]))}
+        out[n] = {
+            "median_cm": float(np.median(t)),
+            "p90_cm": float(np.percentile(t, 90)),
+            "median_deg": float(np.median(r["r"])),
+            "mean_ms": float(ms.mean()),
+            "ms_ratio_to_base": ratio,
+            "statuses": st,
+        }
+        print(
+            f"{n:14s} {np.median(t):7.2f} {np.percentile(t, 90):7.2f} {np.median(r['r']):8.3f} {ms.mean():8.1f} "
+            f"{ratio:6.2f}  {st}"
+        )
+    if a.json:
+        with open(a.json, "w") as fh:
+            json.dump(out, fh, indent=2)
+
+
+if __name__ == "__main__":
+    main()
