@@ -100,13 +100,6 @@ def test_gate_result_decides_localized() -> None:
 
 
 # ----------------------------------------------------------------------------------- end to end, tiny scene
-@pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    from tests.test_edge_scene import tiny_setup
-
-    return tiny_setup(tmp_path_factory)
-
-
 def test_tiny_scene_true_frames_track_bad_frames_are_lost(tiny) -> None:
     from acesplat.core.bundle import load_bundle
     from acesplat.core.scene import read_split

@@ -24,15 +24,9 @@ from edge.inference import (
     runtime_info,
     session_options,
 )
-from tests.test_edge_scene import tiny_setup
 
 SIZE = (8, 8)
 NAMES = "cpu, cuda, tensorrt, openvino, coreml"
-
-
-@pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    return tiny_setup(tmp_path_factory)
 
 
 @pytest.fixture(scope="module")
