@@ -25,6 +25,7 @@ from edge.profile import ProfileOptions
 from edge.refine.session import RefineOptions
 from edge.runtime import STAGES, EdgeLocalizer, FrameOutcome, FrameTap, PnPSettings
 from edge.sources import SourceOptions, open_source
+from firmware_bridge.sink import SinkConfig
 
 console = Console(stderr=True)
 
@@ -62,6 +63,10 @@ def _warn(msg: str) -> None:
     console.print(f"[yellow]{msg}[/yellow]")
 
 
+ALIGN_HELP = (
+    "Refine each pose against the bundle's keyframes (export --keyframes): "
+    "centimetre poses where SCR alone is a few cm off, at a few hundred ms per frame."
+)
 FOXGLOVE_HELP = "Serve a live Foxglove WebSocket on this port (Foxglove's usual: 8765; 0 picks a free one)."
 MCAP_HELP = "Log the same channels to this MCAP file (written as PATH.partial, renamed into place at the end)."
 
@@ -125,8 +130,8 @@ def localize_command(
     min_inliers: int | None = option(PnPSettings, "min_inliers", default=None),
     quiet: bool = typer.Option(False, help="No per-frame lines, only the summary."),
     serial: str | None = typer.Option(None, help="Send poses to this serial port (device path or pyserial URL)."),
-    baud: int = typer.Option(115200, help="Serial baud rate."),
-    protocol: str = typer.Option("frame", help="frame (acesplat protocol v1) or mavlink."),
+    baud: int = option(SinkConfig, "baud"),
+    protocol: str = option(SinkConfig, "protocol"),
     rate: float | None = typer.Option(None, help="Cap on poses per second sent over --serial."),
     json_out: Path | None = typer.Option(None, "--json", help="Write the run summary here."),
     refine: bool = typer.Option(
@@ -134,12 +139,7 @@ def localize_command(
     ),
     budget_ms: float = option(RefineOptions, "budget_ms", "--budget-ms"),
     save_splat: Path | None = option(RefineOptions, "save_path", "--save-splat"),
-    align: bool = typer.Option(
-        False,
-        "--align",
-        help="Refine each pose against the bundle's keyframes (export --keyframes): "
-        "centimetre poses where SCR alone is a few cm off, at a few hundred ms per frame.",
-    ),
+    align: bool = typer.Option(False, "--align", help=ALIGN_HELP),
     foxglove: int | None = typer.Option(None, "--foxglove", metavar="PORT", help=FOXGLOVE_HELP),
     foxglove_host: str = option(FoxgloveSettings, "host", "--foxglove-host"),
     mcap: Path | None = typer.Option(None, "--mcap", metavar="PATH", help=MCAP_HELP),
@@ -261,12 +261,7 @@ def replay_command(
     ),
     budget_ms: float = option(RefineOptions, "budget_ms", "--budget-ms"),
     save_splat: Path | None = option(RefineOptions, "save_path", "--save-splat"),
-    align: bool = typer.Option(
-        False,
-        "--align",
-        help="Refine each pose against the bundle's keyframes (export --keyframes): "
-        "centimetre poses where SCR alone is a few cm off, at a few hundred ms per frame.",
-    ),
+    align: bool = typer.Option(False, "--align", help=ALIGN_HELP),
     foxglove: int | None = typer.Option(None, "--foxglove", metavar="PORT", help=FOXGLOVE_HELP),
     foxglove_host: str = option(FoxgloveSettings, "host", "--foxglove-host"),
     mcap: Path | None = typer.Option(None, "--mcap", metavar="PATH", help=MCAP_HELP),

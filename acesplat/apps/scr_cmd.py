@@ -121,30 +121,25 @@ def map_command(
     )
 
 
+RESULT_KEYS = (
+    "frames",
+    "localized",
+    "median_translation_m",
+    "median_rotation_deg",
+    "recall_5cm_5deg",
+    "recall_10cm_5deg",
+    "recall_25cm_2deg",
+    "mean_ms",
+)
+"""The accuracy summary's columns (acesplat.core.metrics), in the order eval and replay print them."""
+
+
 def results_table(title: str, s: dict) -> Table:
     t = Table(title=title)
-    for k in (
-        "frames",
-        "localized",
-        "median_translation_m",
-        "median_rotation_deg",
-        "recall_5cm_5deg",
-        "recall_10cm_5deg",
-        "recall_25cm_2deg",
-        "mean_ms",
-    ):
+    for k in RESULT_KEYS:
         t.add_column(k.replace("_", " "), justify="right")
     vals = []
-    for k in (
-        "frames",
-        "localized",
-        "median_translation_m",
-        "median_rotation_deg",
-        "recall_5cm_5deg",
-        "recall_10cm_5deg",
-        "recall_25cm_2deg",
-        "mean_ms",
-    ):
+    for k in RESULT_KEYS:
         v = s.get(k)
         vals.append("-" if v is None else (f"{v:.4g}" if isinstance(v, float) else str(v)))
     t.add_row(*vals)

@@ -20,9 +20,9 @@ import numpy as np
 from acesplat.core.errors import InputError
 from acesplat.core.geometry import invert_pose, make_pose, quat_to_matrix
 from acesplat.importers.colmap_text import (
-    CV_DIST_ORDER,
     MODEL_PARAMS,
     REFUSED_MODELS,
+    camera_spec,
     find_colmap_model,
     find_images_dir,
     import_colmap_text,
@@ -116,16 +116,10 @@ def read_cameras_bin(path: Path) -> dict[int, CameraSpec]:
             raise InputError(path, f"{what}: non-finite camera parameters {params}")
         if not (0 < width < 2**31 and 0 < height < 2**31):
             raise InputError(path, f"{what}: image size must be positive, got {width}x{height}")
-        p = dict(zip(names, params))
-        fx, fy = (p["f"], p["f"]) if "f" in p else (p["fx"], p["fy"])
-        if fx <= 0 or fy <= 0:
-            raise InputError(path, f"{what}: focal length must be positive, got fx={fx} fy={fy}")
+        spec = camera_spec(dict(zip(names, params)), int(width), int(height), path, what)
         if cam_id in cameras:
             raise InputError(path, f"{what}: CAMERA_ID {cam_id} defined twice")
-        dist = tuple(p.get(key, 0.0) for key in CV_DIST_ORDER[: 8 if "k3" in p else 4])
-        cameras[cam_id] = CameraSpec(
-            fx=fx, fy=fy, cx=p["cx"], cy=p["cy"], width=int(width), height=int(height), dist=dist if any(dist) else ()
-        )
+        cameras[cam_id] = spec
     f.end()
     if not cameras:
         raise InputError(path, "no cameras defined")

@@ -108,18 +108,23 @@ def read_cameras_txt(path: Path) -> dict[int, CameraSpec]:
                 path, f"line {n}: {model} needs {len(names)} parameters ({' '.join(names)}), got {len(tokens) - 4}"
             )
         p = dict(zip(names, _floats(tokens[4:], path, n, "camera parameters")))
-        fx, fy = (p["f"], p["f"]) if "f" in p else (p["fx"], p["fy"])
-        if fx <= 0 or fy <= 0:
-            raise InputError(path, f"line {n}: focal length must be positive, got fx={fx} fy={fy}")
+        spec = camera_spec(p, width, height, path, f"line {n}")
         if cam_id in cameras:
             raise InputError(path, f"line {n}: CAMERA_ID {cam_id} defined twice")
-        dist = tuple(p.get(k, 0.0) for k in CV_DIST_ORDER[: 8 if "k3" in p else 4])  # OpenCV takes 4 or 8
-        cameras[cam_id] = CameraSpec(
-            fx=fx, fy=fy, cx=p["cx"], cy=p["cy"], width=width, height=height, dist=dist if any(dist) else ()
-        )
+        cameras[cam_id] = spec
     if not cameras:
         raise InputError(path, "no cameras defined")
     return cameras
+
+
+def camera_spec(p: dict[str, float], width: int, height: int, path: Path, where: str) -> CameraSpec:
+    """A camera from its model's named parameters ``p`` (MODEL_PARAMS); InputError naming ``where`` in ``path`` if
+    the focal length is not positive. Distortion in OpenCV's order, 4 or 8 terms; () when there is none."""
+    fx, fy = (p["f"], p["f"]) if "f" in p else (p["fx"], p["fy"])
+    if fx <= 0 or fy <= 0:
+        raise InputError(path, f"{where}: focal length must be positive, got fx={fx} fy={fy}")
+    dist = tuple(p.get(k, 0.0) for k in CV_DIST_ORDER[: 8 if "k3" in p else 4])  # OpenCV takes 4 or 8
+    return CameraSpec(fx=fx, fy=fy, cx=p["cx"], cy=p["cy"], width=width, height=height, dist=dist if any(dist) else ())
 
 
 def read_images_txt(path: Path, cameras: dict[int, CameraSpec], images_dir: Path) -> list[SourceFrame]:
