@@ -21,7 +21,7 @@ from acesplat.core.camera import Intrinsics
 from acesplat.core.config import knob, knob_default
 from acesplat.core.errors import InputError
 from acesplat.core.gate import GateConfig, gate_result
-from acesplat.core.pnp import DEFAULT_MIN_INLIERS, PnPConfig, PnPResult, solve_from_grid
+from acesplat.core.pnp import PnPConfig, PnPResult, solve_from_grid
 from acesplat.core.pose import PoseRecord, TrackingState
 from edge.frame_prep import FramePrep
 from edge.inference import ScrSession, SessionSettings
@@ -93,7 +93,7 @@ class PnPSettings:
     """The edge's PnP solver (acesplat.core.pnp.solve_from_grid)."""
 
     method: str = knob("ransac_ap3p", "PnP method (the measured choice: bench/pnp_choice.md).")
-    min_inliers: int = knob(DEFAULT_MIN_INLIERS, "Inlier gate for TRACKING.")
+    min_inliers: int = knob(knob_default(PnPConfig, "min_inliers"), "Inlier floor of TRACKING (PnPConfig's).")
     iterations: int = knob(256, "RANSAC cap: a lost frame costs a third of the desktop's (bench/pnp_choice.md).")
     extra: dict = knob(reason="Further keyword arguments of solve_from_grid.", factory=dict)
 

@@ -29,8 +29,6 @@ PNP_METHODS = (
     "ransac_sqpnp",
     "ransac_epnp",
 )
-DEFAULT_MIN_INLIERS = 50
-"""Kept importable for edge/runtime.py; the knob is PnPConfig.min_inliers."""
 RANSAC_SEED = 0
 """RANSAC's random samples are seeded per call: the same predictions always give the same pose, so
 torch-vs-ONNX parity, replays and tests compare solutions, not random draws."""
