@@ -63,3 +63,48 @@ def test_map_command_refuses_a_non_positive_cap(scene, tmp_path) -> None:
 
     r = CliRunner().invoke(app, ["map", str(scene), "-o", str(tmp_path / "m.pt"), "--minutes", "0"])
     assert r.exit_code == 2 and "--minutes" in r.output and "Traceback" not in r.output
+
+
+def _map_cli(scene, tmp_path):
+    from acesplat.apps.cli import app
+
+    out = tmp_path / "m.pt"
+    r = CliRunner().invoke(app, ["map", str(scene), "-o", str(out), "--steps", "5", "--precision", "fp32"])
+    return r, out
+
+
+def test_a_scene_with_two_training_images_is_refused(scene, tmp_path) -> None:
+    import shutil
+
+    small = tmp_path / "two"
+    for sub in ("rgb", "poses", "calibration"):
+        files = sorted((scene / "train" / sub).iterdir())[:2]
+        (small / "train" / sub).mkdir(parents=True)
+        for f in files:
+            shutil.copy(f, small / "train" / sub / f.name)
+    r, out = _map_cli(small, tmp_path)
+    assert r.exit_code == 2, r.output
+    assert "2 training image(s); mapping needs at least 3" in r.output
+    assert "Traceback" not in r.output and len(r.output.strip().splitlines()) == 1
+    assert not out.exists()
+
+
+def test_training_images_without_overlap_are_refused(tmp_path) -> None:
+    import numpy as np
+
+    from acesplat.core.geometry import make_pose
+    from acesplat.core.scene import write_frame
+
+    rng = np.random.default_rng(0)
+    K = np.array([[60.0, 0, 40], [0, 60.0, 32], [0, 0, 1]])
+    noisy = tmp_path / "noise"
+    for i in range(4):  # independent noise images, cameras turned away from each other: nothing matches
+        rgb = rng.integers(0, 256, (64, 80, 3), dtype=np.uint8)
+        a = np.radians(90.0 * i)
+        R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+        write_frame(noisy / "train", f"{i:04d}", rgb, make_pose(R, np.array([0.3 * i, 0, 0])), K)
+    r, out = _map_cli(noisy, tmp_path)
+    assert r.exit_code == 2, r.output
+    assert "do not overlap" in r.output and str(noisy / "train") in r.output
+    assert "Traceback" not in r.output
+    assert not out.exists()

@@ -25,6 +25,7 @@ import torch
 
 from acesplat.core.camera import Intrinsics
 from acesplat.core.config import knob, knob_default
+from acesplat.core.errors import InputError
 from acesplat.core.grid import OUTPUT_STRIDE, cell_centers
 from acesplat.core.preprocess import size_for_short_side, to_gray_input
 from acesplat.core.scene import SceneSplit
@@ -38,6 +39,10 @@ from acesplat.scr.targets import ImageTargets, triangulate_targets
 # ACE's recipe, named where it is used; where this project departs from it for a CPU budget the knob is a
 # MappingConfig field below (bench/augment_choice.md and bench/herz_gap.md measure the departures).
 ACE_IMAGE_SHORT_SIDE = 480
+MIN_TRAINING_IMAGES = 3
+"""Fewer posed views than this cannot constrain a scene's coordinates beyond a single stereo pair."""
+MIN_TRIANGULATED = 20
+"""Fewer triangulated points than this over all neighbouring pairs: the training images see nothing in common."""
 ACE_BUFFER_SIZE = 8_000_000
 WEIGHT_DECAY = 0.01
 TARGETS_TIME_FRACTION = 0.08
@@ -362,16 +367,26 @@ def map_scene(
     encoder = encoder.to(cfg.device).eval()
     for p in encoder.parameters():
         p.requires_grad_(False)
+    if len(split.frames) < MIN_TRAINING_IMAGES:
+        raise InputError(
+            split.root / split.split,
+            f"{len(split.frames)} training image(s); mapping needs at least {MIN_TRAINING_IMAGES} posed views",
+        )
     images = load_training_images(split, cfg.short_side)
-    if cfg.triangulate and len(images) > 1:
+    if cfg.triangulate:
+        deadline = None if budget is None else t0 + TARGETS_TIME_FRACTION * budget
         tg = triangulate_targets(
-            [im.gray for im in images],
-            [im.intrinsics for im in images],
-            [im.c2w for im in images],
-            deadline=None if budget is None else t0 + TARGETS_TIME_FRACTION * budget,
+            [im.gray for im in images], [im.intrinsics for im in images], [im.c2w for im in images], deadline=deadline
         )
         for im, t in zip(images, tg):
             im.targets = t
+        cut = deadline is not None and time.monotonic() > deadline
+        if not cut and sum(len(t.points) for t in tg) < MIN_TRIANGULATED:
+            raise InputError(
+                split.root / split.split,
+                f"the training images do not overlap: fewer than {MIN_TRIANGULATED} points triangulate between "
+                f"neighbouring views ({len(images)} images)",
+            )
         if progress:
             progress("triangulate", 1.0, {"points": int(sum(len(t.points) for t in tg))})
     fill: dict = {}
