@@ -40,8 +40,9 @@ def main() -> None:
     ap.add_argument("--scale-from", nargs=2, default=None)
     args = ap.parse_args()
     gt = truth(args.gt)
-    cmd = [sys.executable, "-P", "-c", "from acesplat.apps.cli import main; main()", "pose", str(args.images),
-           "-o", str(args.out), "--matcher", args.matcher, "--test-every", "0", "--json", str(args.out) + ".json"]  # fmt: skip
+    cli = [sys.executable, "-P", "-c", "from acesplat.apps.cli import main; main()"]
+    cmd = cli + ["pose", str(args.images), "-o", str(args.out), "--matcher", args.matcher, "--test-every", "0"]
+    cmd += ["--json", str(args.out) + ".json"]
     if args.scale_from:
         a, b = args.scale_from
         d = float(np.linalg.norm(gt[Path(a).stem][:3, 3] - gt[Path(b).stem][:3, 3]))
