@@ -11,6 +11,7 @@ import pytest
 from acesplat.core.geometry import (
     OPENGL_TO_OPENCV,
     RIGID_TOL,
+    apply_similarity,
     interpolate_pose,
     invert_pose,
     look_at,
@@ -21,6 +22,7 @@ from acesplat.core.geometry import (
     rigidity_problem,
     rodrigues_to_matrix,
     rotation_angle_deg,
+    similarity_align,
     transform_points,
 )
 
@@ -245,3 +247,88 @@ def test_interpolated_pose_runs_the_straight_line_at_constant_angular_speed() ->
     Rz = rodrigues_to_matrix([0.0, 0.0, np.radians(170.0)])
     mid = interpolate_pose(np.eye(4), make_pose(Rz, np.zeros(3)), 0.5)
     assert rotation_angle_deg(mid[:3, :3]) == pytest.approx(85.0, abs=1e-6)
+
+
+# ----------------------------------------------------------------------------------- similarity alignment
+def _cost(s: float, R: np.ndarray, t: np.ndarray, src: np.ndarray, dst: np.ndarray) -> float:
+    return float(((dst - (s * src @ R.T + t)) ** 2).sum())
+
+
+def test_similarity_align_hand_case() -> None:
+    """A triangle turned 90 deg about z, doubled and shifted: the exact (s, R, t) comes back."""
+    src = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    Rz = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    dst = 2.0 * src @ Rz.T + np.array([1.0, 2.0, 3.0])
+    s, R, t = similarity_align(src, dst)
+    assert s == pytest.approx(2.0, abs=1e-12)
+    np.testing.assert_allclose(R, Rz, atol=1e-12)
+    np.testing.assert_allclose(t, [1.0, 2.0, 3.0], atol=1e-12)
+
+
+def test_similarity_align_recovers_random_similarities() -> None:
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        src = rng.normal(size=(rng.integers(3, 40), 3))
+        R0 = rodrigues_to_matrix(rng.normal(size=3))
+        s0, t0 = float(rng.uniform(0.01, 100.0)), rng.normal(size=3) * 10
+        s, R, t = similarity_align(src, s0 * src @ R0.T + t0)
+        assert s == pytest.approx(s0, rel=1e-9)
+        np.testing.assert_allclose(R, R0, atol=1e-9)
+        np.testing.assert_allclose(t, t0, atol=1e-8 * max(1.0, s0))
+        s1, R1, t1 = similarity_align(src, src @ R0.T + t0, with_scale=False)
+        assert s1 == 1.0
+        np.testing.assert_allclose(R1, R0, atol=1e-9)
+        np.testing.assert_allclose(t1, t0, atol=1e-9)
+
+
+def test_similarity_align_noisy_is_the_least_squares_optimum() -> None:
+    """With noise: the residual equals Umeyama's closed form, and no perturbation of s, R or t lowers it."""
+    rng = np.random.default_rng(4)
+    src = rng.normal(size=(30, 3))
+    dst = 1.7 * src @ rodrigues_to_matrix([0.3, -0.2, 1.1]).T + [0.5, -1.0, 2.0] + rng.normal(scale=0.05, size=(30, 3))
+    s, R, t = similarity_align(src, dst)
+    best = _cost(s, R, t, src, dst)
+    xs, xd = src - src.mean(0), dst - dst.mean(0)
+    D = np.linalg.svd(xd.T @ xs / len(src), compute_uv=False)
+    closed = len(src) * ((xd**2).sum() / len(src) - D.sum() ** 2 / ((xs**2).sum() / len(src)))
+    assert best == pytest.approx(closed, rel=1e-9)
+    for k in range(3):
+        for eps in (-1e-3, 1e-3):
+            dr = np.zeros(3)
+            dr[k] = eps
+            assert _cost(s, rodrigues_to_matrix(dr) @ R, t, src, dst) > best
+            assert _cost(s, R, t + dr, src, dst) > best
+        assert _cost(s * (1 + 1e-3 * (k - 1)), R, t, src, dst) >= best
+
+
+def test_similarity_align_never_returns_a_reflection() -> None:
+    rng = np.random.default_rng(5)
+    src = rng.normal(size=(10, 3))
+    s, R, _ = similarity_align(src, src * np.array([1.0, 1.0, -1.0]))
+    assert np.linalg.det(R) == pytest.approx(1.0)
+    assert s > 0
+
+
+def test_similarity_align_refuses_bad_inputs() -> None:
+    pts = np.random.default_rng(6).normal(size=(5, 3))
+    line = np.outer(np.arange(5.0), [1.0, 2.0, 3.0])
+    for src, dst, match in (
+        (pts[:2], pts[:2], "at least 3"),
+        (pts, pts[:4], r"\(N, 3\)"),
+        (line, line, "collinear"),
+        (pts, np.full((5, 3), np.nan), "finite"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            similarity_align(src, dst)
+
+
+def test_apply_similarity_maps_poses_back() -> None:
+    rng = np.random.default_rng(7)
+    poses = np.stack([make_pose(rodrigues_to_matrix(rng.normal(size=3)), rng.normal(size=3)) for _ in range(6)])
+    R0 = rodrigues_to_matrix([0.2, 0.4, -0.3])
+    moved = apply_similarity(0.25, R0, np.array([1.0, 0.0, -2.0]), poses)
+    assert all(rigidity_problem(T) is None for T in moved)
+    s, R, t = similarity_align(moved[:, :3, 3], poses[:, :3, 3])
+    np.testing.assert_allclose(apply_similarity(s, R, t, moved), poses, atol=1e-9)
+    with pytest.raises(ValueError, match="scale"):
+        apply_similarity(0.0, R0, np.zeros(3), poses)

@@ -1,4 +1,4 @@
-"""`acesplat`: the desktop program (synth, import, map, demo, eval, pretrain-encoder, splat, render, export)."""
+"""`acesplat`: the desktop program (synth, import, pose, map, demo, eval, pretrain-encoder, splat, render, export)."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ import typer
 from acesplat.apps.demo import demo_command
 from acesplat.apps.export_cmd import export_command  # the CLI is the top layer, so it may reach up to export/
 from acesplat.apps.import_cmd import import_command
+from acesplat.apps.pose_cmd import pose_command
 from acesplat.apps.scr_cmd import eval_command, map_command, pretrain_command
 from acesplat.apps.splat_cmd import render_command, splat_command
 from acesplat.apps.synth_cmd import synth_command
@@ -23,6 +24,7 @@ def _root() -> None:
 
 app.command("synth")(synth_command)
 app.command("import")(import_command)
+app.command("pose")(pose_command)
 app.command("map")(map_command)
 app.command("demo")(demo_command)
 app.command("eval")(eval_command)

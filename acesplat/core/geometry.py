@@ -161,3 +161,47 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0,
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     return make_pose(np.stack([x, y, z], axis=1), eye)
+
+
+def similarity_align(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> tuple[float, np.ndarray, np.ndarray]:
+    """The similarity ``(s, R, t)`` minimising ``sum_i |dst_i - (s R src_i + t)|^2`` over points ``src``, ``dst``
+    (N, 3), N >= 3 and not all on one line (Umeyama 1991, with the reflection correction: ``det R = +1``).
+
+    ``with_scale=False`` fixes ``s = 1`` (a rigid alignment). Returns the scale, R (3, 3) and t (3,).
+    """
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    if src.ndim != 2 or src.shape[1] != 3 or src.shape != dst.shape:
+        raise ValueError(f"src and dst must both be (N, 3), got {src.shape} and {dst.shape}")
+    if len(src) < 3:
+        raise ValueError(f"a similarity needs at least 3 point pairs, got {len(src)}")
+    if not (np.all(np.isfinite(src)) and np.all(np.isfinite(dst))):
+        raise ValueError("src and dst must be finite")
+    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
+    xs, xd = src - mu_s, dst - mu_d
+    var_s = float((xs**2).sum()) / len(src)
+    U, D, Vt = np.linalg.svd(xd.T @ xs / len(src))
+    extent = max(float(np.sqrt(var_s * float((xd**2).sum()) / len(src))), 1e-300)
+    if D[1] <= 1e-12 * extent:
+        raise ValueError("the points are (nearly) collinear or coincident: the rotation is not determined")
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1.0
+    R = U @ S @ Vt
+    s = float(np.trace(np.diag(D) @ S) / var_s) if with_scale else 1.0
+    t = mu_d - s * R @ mu_s
+    return s, R, t
+
+
+def apply_similarity(s: float, R: np.ndarray, t: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """Camera-to-world poses (N, 4, 4) moved by the similarity ``x -> s R x + t``: centres mapped, orientations
+    rotated by ``R`` (3, 3); still rigid (the scale changes only the units of the translations)."""
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+        raise ValueError(f"poses must be (N, 4, 4), got {poses.shape}")
+    if not (np.isfinite(s) and s > 0):
+        raise ValueError(f"scale must be positive and finite, got {s}")
+    out = poses.copy()
+    out[:, :3, :3] = R @ poses[:, :3, :3]
+    out[:, :3, 3] = s * poses[:, :3, 3] @ np.asarray(R).T + np.asarray(t).reshape(3)
+    return out

@@ -3,6 +3,7 @@
 - ``import_transforms_json``: instant-ngp / nerfstudio / Blender-NeRF ``transforms.json`` (OpenGL axes).
 - ``import_colmap_text``: COLMAP text model (``cameras.txt``, ``images.txt``; world-to-camera).
 - ``import_scene``: either, chosen by ``detect_format``.
+- ``sfm.pose_images``: images without poses, posed with pycolmap (``acesplat pose``).
 
 Conventions on import (see ``common``): OpenCV camera axes and pixel centres; natural-name order;
 every 8th frame to test unless the source ships a split.
