@@ -226,7 +226,7 @@ def initial_view(scene: ViewScene) -> InitialView:
         look = eye + forward * (depth if depth > 1e-3 else 0.25 * diag)
         return InitialView(eye.copy(), look, up, cam.fov_y)
     direction = np.array([1.0, 1.0, 1.0]) / math.sqrt(3.0)
-    return InitialView(centre + direction * diag, centre, up, math.radians(50.0))
+    return InitialView(centre + 1.5 * diag * direction, centre, up, math.radians(50.0))
 
 
 def build_scene(server: Any, scene: ViewScene) -> dict[str, int]:
