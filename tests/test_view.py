@@ -168,6 +168,19 @@ def red_pixels(im: np.ndarray) -> int:
     return int(np.sum((r > 150) & (g < 90) & (b < 90)))
 
 
+def settled(ready):
+    """A capture predicate: ``ready(image)`` and the canvas unchanged since the previous capture (viser fades new
+    content in over seconds under software WebGL)."""
+    last: list[np.ndarray] = []
+
+    def done(im: np.ndarray) -> bool:
+        still = bool(last) and float(np.abs(canvas(im).astype(float) - canvas(last[0])).mean()) < 1.0
+        last[:] = [im]
+        return still and ready(im)
+
+    return done
+
+
 def drawn(im: np.ndarray) -> float:
     """Fraction of the canvas that is not the page's white background."""
     return float(np.mean(np.any(canvas(im) < 235, axis=-1)))
@@ -245,7 +258,7 @@ def test_a_map_shows_its_valid_cells_coloured_by_their_pixels(tiny: dict, tmp_pa
     if chromium() is not None:
         server, _ = serve(view, "127.0.0.1", 0)
         try:
-            im = capture_until(f"http://127.0.0.1:{server.get_port()}", lambda im: drawn(im) > 0.3)
+            im = capture_until(f"http://127.0.0.1:{server.get_port()}", settled(lambda im: drawn(im) > 0.3))
         finally:
             server.stop()
         cv2.imwrite(str(tmp_path / "map.png"), im)
