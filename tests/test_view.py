@@ -278,6 +278,10 @@ def test_a_splat_folder_shows_the_cameras_of_its_recorded_scene(tiny: dict, tmp_
     (folder / "splat.json").write_text(json.dumps({**manifest, "scene": str(tmp_path / "gone")}))
     view = load_view_scene(folder, None, None, 1000)
     assert view.cameras == [] and "not there" in view.note
+    (folder / "splat.json").unlink()  # a bare folder of Gaussians: shown without cameras
+    view = load_view_scene(folder, None, None, 1000)
+    assert len(view.splats.centers) == 100 and view.cameras == []
+    assert len(load_view_scene(folder, tiny["scene"], None, 1000).cameras) == 12
 
 
 # ----------------------------------------------------------------------------------- bad input

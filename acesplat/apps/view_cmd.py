@@ -25,9 +25,9 @@ def load_view_scene(path: Path, scene: Path | None, encoder: Path | None, max_po
             return map_view(path, scene, encoder, max_points, progress)
     note = ""
     if kind == "splat":
-        from acesplat.splat.splatfile import load_manifest
+        from acesplat.splat.splatfile import MANIFEST_NAME, load_manifest
 
-        recorded = load_manifest(path).get("scene")
+        recorded = load_manifest(path).get("scene") if (path / MANIFEST_NAME).exists() else None
         g = read_ply(path / SPLAT_PLY)
         if scene is None and recorded and not Path(recorded).is_dir():
             note = f"no cameras: the splat's scene {recorded} is not there (pass --scene)"
