@@ -1,4 +1,5 @@
-"""`acesplat`: the desktop program (synth, import, pose, map, demo, eval, pretrain-encoder, splat, render, export)."""
+"""`acesplat`: the desktop program (synth, import, pose, map, demo, eval, pretrain-encoder, splat, render, export,
+view)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from acesplat.apps.pose_cmd import pose_command
 from acesplat.apps.scr_cmd import eval_command, map_command, pretrain_command
 from acesplat.apps.splat_cmd import render_command, splat_command
 from acesplat.apps.synth_cmd import synth_command
+from acesplat.apps.view_cmd import view_command
 
 app = typer.Typer(
     no_args_is_help=True, add_completion=False, help="ACEsplat desktop: make maps and splats, export bundles."
@@ -32,6 +34,7 @@ app.command("pretrain-encoder")(pretrain_command)
 app.command("splat")(splat_command)
 app.command("render")(render_command)
 app.command("export")(export_command)
+app.command("view")(view_command)
 
 
 def main() -> None:
