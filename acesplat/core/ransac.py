@@ -152,7 +152,10 @@ def ransac_pnp(
     rays = np.column_stack([pixels, np.ones(n)]) @ Kinv.T
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
     sub = rng.choice(n, SCORE_SAMPLE, replace=False) if n > SCORE_SAMPLE else np.arange(n)
-    sub_pts, sub_pix = points[sub], pixels[sub]
+    # Hypotheses are ranked in float32 (a thousandth of a pixel at these magnitudes); the inliers returned are
+    # counted in float64.
+    pts32, pix32, K32 = points.astype(np.float32), pixels.astype(np.float32), K.astype(np.float32)
+    sub_pts, sub_pix = pts32[sub], pix32[sub]
     best: tuple[np.ndarray, np.ndarray, int] | None = None
     drawn, needed = 0, max_iterations
     while drawn < needed:
@@ -163,9 +166,10 @@ def ransac_pnp(
         R, t, _ = p3p(rays[idx], points[idx])
         if len(R) == 0:
             continue
-        pre = _inlier_counts(R, t, sub_pts, sub_pix, K, threshold_px)
+        R32, t32 = R.astype(np.float32), t.astype(np.float32)
+        pre = _inlier_counts(R32, t32, sub_pts, sub_pix, K32, threshold_px)
         top = np.argsort(-pre, kind="stable")[:TOP_K]
-        full = _inlier_counts(R[top], t[top], points, pixels, K, threshold_px)
+        full = _inlier_counts(R32[top], t32[top], pts32, pix32, K32, threshold_px)
         j = int(np.argmax(full))
         if best is None or full[j] > best[2]:
             best = (R[top[j]], t[top[j]], int(full[j]))
