@@ -33,7 +33,20 @@ from acesplat.core.pnp import PnPConfig, solve_from_grid
 
 EDGE = PnPConfig(method="ransac_ap3p", iterations=256)
 """The edge's PnPSettings as a PnPConfig (edge/runtime.py)."""
-CONFIGS = {"old": EDGE, "new": replace(EDGE, method="batch_p3p")}
+CONFIGS = {"old": EDGE}
+try:
+    CONFIGS["new"] = replace(EDGE, method="batch_p3p")
+except ValueError:  # the tree before batch_p3p (for the "before" rows)
+    pass
+
+
+def isa() -> str:
+    """The vector extensions that matter here, from /proc/cpuinfo (as lscpu | grep -o -E ... | sort -u)."""
+    try:
+        flags = set(Path("/proc/cpuinfo").read_text().split())
+    except OSError:
+        return "unknown"
+    return " ".join(f for f in ("avx2", "avx512f", "avx512_bf16", "avx512_vnni", "amx_bf16") if f in flags)
 
 
 def synth_grids(n: int, seed: int = 0) -> dict:
@@ -73,7 +86,12 @@ def record(args: argparse.Namespace) -> None:
         sets = {args.name or "synth": synth_grids(args.synth)}
     elif args.npz:
         raw = np.load(args.npz)
-        sets = {args.name: {k: raw[k] for k in ("coords", "K", "kinds")}}
+        d = {k: raw[k] for k in ("coords", "K", "kinds")}
+        if "gt" in raw:  # the true frames' poses, in the order they were collected (bench/gate_foreign.py)
+            gt = np.full((len(d["kinds"]), 4, 4), np.nan)
+            gt[d["kinds"] == "true"] = raw["gt"]
+            d["gt"] = gt
+        sets = {args.name: d}
     else:
         sets = {args.name: map_grids(args.map, args.scene)}
     for name, d in sets.items():
@@ -139,7 +157,7 @@ class StageClock:
 def solve_timed(c: np.ndarray, intr: Intrinsics, cfg: PnPConfig, prior: np.ndarray | None = None) -> tuple:
     with StageClock() as clk:
         t0 = time.perf_counter()
-        res = solve_from_grid(c, intr, config=cfg, prior_c2w=prior)
+        res = solve_from_grid(c, intr, config=cfg, **({"prior_c2w": prior} if prior is not None else {}))
         t1 = time.perf_counter()
         res = gate_result(res, c, intr, cfg)
         t2 = time.perf_counter()
@@ -166,6 +184,23 @@ def perturb(T: np.ndarray, rng: np.random.Generator, cm: float = 2.0, deg: float
     return T @ d
 
 
+def table_row(label: str, per_frame: list[list[dict]]) -> str:
+    """One markdown row: each stage's p50 over every solve and, in brackets, over each frame's fastest repeat."""
+    flat = [s for runs in per_frame for s in runs]
+    fastest = [min(runs, key=lambda s: s["total"]) for runs in per_frame]
+    cell = {}
+    for k in flat[0]:
+        v = np.array([s[k] for s in flat])
+        f = np.array([s[k] for s in fastest])
+        cell[k] = f"{np.percentile(v, 50):.1f} ({np.percentile(f, 50):.1f})"
+    p90 = np.percentile([s["total"] for s in flat], 90)
+    p90f = np.percentile([s["total"] for s in fastest], 90)
+    return (
+        f"| {label} | {len(per_frame)} | {cell['ransac']} | {cell['refine']} | {cell['fallback']} | "
+        f"{cell['gate']} | {cell['total']} | {p90:.1f} ({p90f:.1f}) |"
+    )
+
+
 def run(args: argparse.Namespace) -> None:
     load = os.getloadavg()
     rows = {}
@@ -175,56 +210,59 @@ def run(args: argparse.Namespace) -> None:
         kinds = np.load(f"{base}.kinds.npy")
         gt = np.load(f"{base}.gt.npy") if Path(f"{base}.gt.npy").exists() else None
         name = Path(base).name
-        st = {k: [] for k in ("old", "new", "prior", "prior_wrong")}
+        st: dict[str, dict[int, list[dict]]] = {k: {} for k in ("old", "new", "prior", "prior_wrong")}
+        configs = {k: v for k, v in CONFIGS.items() if k in args.configs}
         cmp = []
         rng = np.random.default_rng(0)
         for i, (c, k, kind) in enumerate(zip(coords, Ks, kinds)):
             c = c.astype(np.float64)
             intr = Intrinsics(k[0], k[1], k[2], k[3], int(k[4]), int(k[5]))
             out = {}
-            for label, cfg in CONFIGS.items():
-                for _ in range(args.repeats):
-                    res, s = solve_timed(c, intr, cfg)
-                    st[label].append(s)
-                out[label] = res
+            for label, cfg in configs.items():
+                runs = [solve_timed(c, intr, cfg) for _ in range(args.repeats)]
+                st[label][i] = [s for _, s in runs]
+                out[label] = runs[0][0]
+            if "new" not in out:  # the tree before batch_p3p: the old solver alone
+                out["new"] = out["old"]
             a, b = out["old"], out["new"]
             row = {"i": i, "kind": str(kind), "old_inl": a.inliers, "new_inl": b.inliers}
             row.update(old_loc=a.localized, new_loc=b.localized, old_score=a.gate.score, new_score=b.gate.score)
             if a.T_c2w is not None and b.T_c2w is not None:
                 dt, dr = pose_error(b.T_c2w, a.T_c2w)
                 row.update(d_mm=dt * 1e3, d_mdeg=dr * 1e3)
-            if gt is not None:
+            if gt is not None and np.isfinite(gt[i]).all():
                 for label, r in (("old", a), ("new", b)):
                     e = pose_error(r.T_c2w, gt[i]) if r.T_c2w is not None else (np.inf, np.inf)
                     row[f"{label}_err_cm"], row[f"{label}_err_deg"] = e[0] * 100, e[1]
-            if kind == "true" and a.localized:
+            if kind == "true" and a.localized and "new" in configs:
                 prior = perturb(a.T_c2w, rng)
-                for _ in range(args.repeats):
-                    pr, s = solve_timed(c, intr, CONFIGS["new"], prior)
-                    st["prior"].append(s)
+                runs = [solve_timed(c, intr, CONFIGS["new"], prior) for _ in range(args.repeats)]
+                st["prior"][i] = [s for _, s in runs]
+                pr = runs[0][0]
                 dt, dr = pose_error(pr.T_c2w, a.T_c2w)
                 row.update(prior_mm=dt * 1e3, prior_mdeg=dr * 1e3, prior_inl=pr.inliers)
                 wrong = perturb(a.T_c2w, rng, cm=300.0, deg=30.0)
-                wr, s = solve_timed(c, intr, CONFIGS["new"], wrong)
-                st["prior_wrong"].append(s)
+                runs = [solve_timed(c, intr, CONFIGS["new"], wrong) for _ in range(args.repeats)]
+                st["prior_wrong"][i] = [s for _, s in runs]
+                wr = runs[0][0]
                 dt, dr = pose_error(wr.T_c2w, b.T_c2w)
                 row.update(wrong_prior_mm=dt * 1e3, wrong_prior_inl=wr.inliers)
             cmp.append(row)
             if args.verbose:
                 print(json.dumps({k: round(v, 2) if isinstance(v, float) else v for k, v in row.items()}))
-        rows[name] = cmp
+        rows[name] = {"frames": cmp, "ms": {k: {str(j): v for j, v in d.items()} for k, d in st.items()}}
         print(f"\n## {name}: {len(coords)} grids {coords.shape[1]}x{coords.shape[2]}, repeats {args.repeats}")
-        print("| config | frames | ransac | refine | fallback | gate | total p50 | total p90 |")
-        print("|---|---|---|---|---|---|---|---|")
-        for label, ss in st.items():
-            if not ss:
+        for group in ("true", "bad"):
+            sel = [j for j, r in enumerate(cmp) if (r["kind"] == "true") == (group == "true")]
+            if not sel:
                 continue
-            m = {k: np.array([s[k] for s in ss]) for k in ss[0]}
-            p = {k: float(np.percentile(v, 50)) for k, v in m.items()}
-            print(
-                f"| {label} | {len(ss) // args.repeats} | {p['ransac']:.1f} | {p['refine']:.1f} | "
-                f"{p['fallback']:.1f} | {p['gate']:.1f} | {p['total']:.1f} | {np.percentile(m['total'], 90):.1f} |"
-            )
+            print(f"{group} frames: ms p50 over every solve (p50 of each frame's fastest repeat, the least loaded)")
+            print("| config | frames | ransac | refine | fallback | gate | total p50 | total p90 |")
+            print("|---|---|---|---|---|---|---|---|")
+            for label, per_frame in st.items():
+                runs_of = [per_frame[j] for j in sel if j in per_frame]
+                if runs_of:
+                    print(table_row(label, runs_of))
         true = [r for r in cmp if r["kind"] == "true"]
         bad = [r for r in cmp if r["kind"] != "true"]
         both = [r for r in true if r["old_loc"] and r["new_loc"] and "d_mm" in r]
@@ -243,7 +281,7 @@ def run(args: argparse.Namespace) -> None:
         )
         if gt is not None:
             for label in ("old", "new"):
-                e = np.array([[r[f"{label}_err_cm"], r[f"{label}_err_deg"]] for r in true])
+                e = np.array([[r[f"{label}_err_cm"], r[f"{label}_err_deg"]] for r in true if f"{label}_err_cm" in r])
                 print(f"{label} vs ground truth: median {np.median(e[:, 0]):.2f} cm / {np.median(e[:, 1]):.3f} deg")
         pri = [r for r in true if "prior_mm" in r]
         if pri:
@@ -253,7 +291,7 @@ def run(args: argparse.Namespace) -> None:
                 f"{np.median(d[:, 1]):.3f} mdeg, max {d[:, 0].max():.3f} mm; wrong prior (3 m / 30 deg): vs new "
                 f"pose max {max(r['wrong_prior_mm'] for r in pri):.3f} mm"
             )
-    print(f"\nload average before {load[0]:.1f}, after {os.getloadavg()[0]:.1f}; ISA: see bench/pnp_speed.md")
+    print(f"\nload average before {load[0]:.1f}, after {os.getloadavg()[0]:.1f}; ISA {isa()}")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))
 
@@ -274,6 +312,7 @@ def main() -> None:
     u.add_argument("--repeats", type=int, default=3)
     u.add_argument("--json", default=None)
     u.add_argument("--verbose", action="store_true")
+    u.add_argument("--configs", nargs="+", default=list(CONFIGS), help="old (the edge's solver), new (batch_p3p)")
     u.set_defaults(fn=run)
     args = ap.parse_args()
     args.fn(args)

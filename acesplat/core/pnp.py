@@ -160,7 +160,15 @@ def _ransac_and_refine(
         if found is None or len(found[2]) < 4:
             return None, 0
         R0, t0, inl, _ = found
-        return _refine(pixels, points, K, cv2.Rodrigues(R0)[0].reshape(3), t0, inl, cfg)
+        rvec, tvec = cv2.Rodrigues(R0)[0], t0.reshape(3, 1).copy()
+        # EPnP on the sample's inliers, as OpenCV's RANSAC ends, so the refinement starts from all of them.
+        ok, r_all, t_all = cv2.solvePnP(points[inl], pixels[inl], K, dist, rvec, tvec, False, cv2.SOLVEPNP_EPNP)
+        if ok and np.isfinite(r_all).all() and np.isfinite(t_all).all():
+            R1 = rodrigues_to_matrix(r_all.reshape(3))
+            _, _, err = reprojection(points, pixels, K, R1, t_all.reshape(3))
+            if np.count_nonzero(err < threshold_px) >= len(inl):
+                rvec, tvec, inl = r_all, t_all, np.flatnonzero(err < threshold_px)
+        return _refine(pixels, points, K, rvec.reshape(3), tvec.reshape(3), inl, cfg)
     cv2.setRNGSeed(RANSAC_SEED)
     try:
         if method.startswith("usac"):
