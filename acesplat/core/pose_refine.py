@@ -81,24 +81,23 @@ def _normal_equations(
     """Weighted Gauss-Newton H (6, 6) and gradient g (6,) for the update Xc -> exp([w]x) Xc + v (rotation about the
     camera): du/dXc = fx (1/z, 0, -x/z^2), dv/dXc = fy (0, 1/z, -y/z^2); dXc/dw = -[Xc]x, dXc/dv = I."""
     m = len(xn)
-    J = np.empty((2, m, 6))
+    J = np.empty((6, 2, m))  # one contiguous row per pose parameter: residual u then v
     xy = xn * yn
-    J[0, :, 0] = -fx * xy
-    J[0, :, 1] = fx * (1.0 + xn * xn)
-    J[0, :, 2] = -fx * yn
-    J[0, :, 3] = fx * iz
-    J[0, :, 4] = 0.0
-    J[0, :, 5] = -fx * xn * iz
-    J[1, :, 0] = -fy * (1.0 + yn * yn)
-    J[1, :, 1] = fy * xy
-    J[1, :, 2] = fy * xn
-    J[1, :, 3] = 0.0
-    J[1, :, 4] = fy * iz
-    J[1, :, 5] = -fy * yn * iz
-    J = J.reshape(2 * m, 6)
-    w2 = np.concatenate([w, w])
-    Jw = J * w2[:, None]
-    return Jw.T @ J, Jw.T @ res.reshape(-1)
+    np.multiply(-fx, xy, out=J[0, 0])
+    np.multiply(fx, 1.0 + xn * xn, out=J[1, 0])
+    np.multiply(-fx, yn, out=J[2, 0])
+    np.multiply(fx, iz, out=J[3, 0])
+    J[4, 0] = 0.0
+    np.multiply(-fx * xn, iz, out=J[5, 0])
+    np.multiply(-fy, 1.0 + yn * yn, out=J[0, 1])
+    np.multiply(fy, xy, out=J[1, 1])
+    np.multiply(fy, xn, out=J[2, 1])
+    J[3, 1] = 0.0
+    np.multiply(fy, iz, out=J[4, 1])
+    np.multiply(-fy * yn, iz, out=J[5, 1])
+    J = J.reshape(6, 2 * m)
+    Jw = J * np.concatenate([w, w])
+    return Jw @ J.T, Jw @ res.reshape(-1)
 
 
 def refine_pose_robust(
@@ -138,10 +137,14 @@ def refine_pose_robust(
         cost = _cost2(e2, s)
         for _ in range(steps_per_scale):
             keep = e2 < cut2  # cauchy_weights is zero exactly beyond the cutoff
-            if np.count_nonzero(keep) < MIN_SUPPORT:
+            kept = np.count_nonzero(keep)
+            if kept < MIN_SUPPORT:
                 break
-            w = 1.0 / (1.0 + e2[keep] / (s * s))
-            H, g = _normal_equations(xn[keep], yn[keep], iz[keep], res[:, keep], w, fx, fy)
+            if kept == len(e2):
+                H, g = _normal_equations(xn, yn, iz, res, 1.0 / (1.0 + e2 / (s * s)), fx, fy)
+            else:
+                w = 1.0 / (1.0 + e2[keep] / (s * s))
+                H, g = _normal_equations(xn[keep], yn[keep], iz[keep], res[:, keep], w, fx, fy)
             for _attempt in range(4):
                 step = cv2.solve(
                     H + damping * np.diag(np.diag(H) + 1e-12), -g.reshape(6, 1), flags=cv2.DECOMP_CHOLESKY

@@ -18,9 +18,9 @@ from acesplat.core.pose_refine import reprojection
 
 SAMPLE_SIZE = 3
 """Correspondences per minimal sample (P3P)."""
-BATCH = 64
+BATCH = 128
 """Minimal samples solved per batch; the iteration count is checked between batches."""
-SCORE_SAMPLE = 384
+SCORE_SAMPLE = 256
 """Cells every hypothesis is scored on before the best ones are scored on all cells."""
 TOP_K = 4
 """Hypotheses per batch scored on every cell."""
