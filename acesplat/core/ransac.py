@@ -51,13 +51,25 @@ def _polymul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross products (B, 3) (np.cross costs more in overhead than in arithmetic at these sizes)."""
+    return np.stack(
+        [
+            a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],
+            a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+            a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0],
+        ],
+        axis=1,
+    )
+
+
 def _frame(p: np.ndarray) -> np.ndarray:
     """Orthonormal frames (B, 3, 3) (columns) of triangles p (B, 3, 3): x along p1 - p0, z normal to the plane."""
     e1 = p[:, 1] - p[:, 0]
-    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    e3 = np.cross(e1, p[:, 2] - p[:, 0])
-    e3 /= np.linalg.norm(e3, axis=1, keepdims=True)
-    return np.stack([e1, np.cross(e3, e1), e3], axis=2)
+    e1 /= np.sqrt(np.einsum("bi,bi->b", e1, e1))[:, None]
+    e3 = _cross(e1, p[:, 2] - p[:, 0])
+    e3 /= np.sqrt(np.einsum("bi,bi->b", e3, e3))[:, None]
+    return np.stack([e1, _cross(e3, e1), e3], axis=2)
 
 
 def p3p(bearings: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -110,19 +122,25 @@ def p3p(bearings: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return R[fin], t[fin], src[fin]
 
 
-def _inlier_counts(R: np.ndarray, t: np.ndarray, points: np.ndarray, pixels: np.ndarray, K: np.ndarray, thr: float):
-    """Inliers (M,) of poses R (M, 3, 3), t (M, 3) among points (S, 3) / pixels (S, 2); points behind never count.
+def _inlier_counts(R: np.ndarray, t: np.ndarray, points_t: np.ndarray, pixels_t: np.ndarray, K: np.ndarray, thr: float):
+    """Inliers (M,) of poses R (M, 3, 3), t (M, 3) among points (3, S) / pixels (2, S) (transposed, contiguous);
+    points behind the camera never count.
 
     One matrix product for all poses, in homogeneous image coordinates q = K (R X + t) with the test
     |q_xy - q_z x|^2 < thr^2 q_z^2 (no division).
     """
     M = R.shape[0]
     KR = (K @ R).reshape(3 * M, 3)
-    q = (KR @ points.T).reshape(M, 3, -1) + (t @ K.T)[:, :, None]
+    q = (KR @ points_t).reshape(M, 3, -1)
+    q += (t @ K.T)[:, :, None]
     z = q[:, 2]
-    du = q[:, 0] - pixels[:, 0] * z
-    dv = q[:, 1] - pixels[:, 1] * z
-    return np.count_nonzero((z > 1e-9) & (du * du + dv * dv < (thr * thr) * (z * z)), axis=1)
+    du = q[:, 0] - pixels_t[0] * z
+    dv = q[:, 1] - pixels_t[1] * z
+    front = z > 1e-9
+    du *= du
+    dv *= dv
+    du += dv
+    return np.count_nonzero(front & (du < (thr * thr) * (z * z)), axis=1)
 
 
 def ransac_pnp(
@@ -154,8 +172,9 @@ def ransac_pnp(
     sub = rng.choice(n, SCORE_SAMPLE, replace=False) if n > SCORE_SAMPLE else np.arange(n)
     # Hypotheses are ranked in float32 (a thousandth of a pixel at these magnitudes); the inliers returned are
     # counted in float64.
-    pts32, pix32, K32 = points.astype(np.float32), pixels.astype(np.float32), K.astype(np.float32)
-    sub_pts, sub_pix = pts32[sub], pix32[sub]
+    pts32, pix32 = np.ascontiguousarray(points.T, np.float32), np.ascontiguousarray(pixels.T, np.float32)
+    K32 = K.astype(np.float32)
+    sub_pts, sub_pix = np.ascontiguousarray(pts32[:, sub]), np.ascontiguousarray(pix32[:, sub])
     best: tuple[np.ndarray, np.ndarray, int] | None = None
     drawn, needed = 0, max_iterations
     while drawn < needed:
