@@ -229,6 +229,8 @@ def run(args: argparse.Namespace) -> None:
                 out[label] = runs[0][0]
             if "new" not in out:  # the tree before batch_p3p: the old solver alone
                 out["new"] = out["old"]
+            if "old" not in out:  # the new solver alone: its poses stand in for the comparison
+                out["old"] = out["new"]
             a, b = out["old"], out["new"]
             row = {"i": i, "kind": str(kind), "old_inl": a.inliers, "new_inl": b.inliers}
             row.update(old_loc=a.localized, new_loc=b.localized, old_score=a.gate.score, new_score=b.gate.score)
@@ -239,7 +241,7 @@ def run(args: argparse.Namespace) -> None:
                 for label, r in (("old", a), ("new", b)):
                     e = pose_error(r.T_c2w, gt[i]) if r.T_c2w is not None else (np.inf, np.inf)
                     row[f"{label}_err_cm"], row[f"{label}_err_deg"] = e[0] * 100, e[1]
-            if kind == "true" and a.localized and "new" in configs:
+            if kind == "true" and a.localized and "new" in configs and "old" in configs:
                 prior = perturb(a.T_c2w, rng)
                 runs = [solve_timed(c, intr, CONFIGS["new"], prior) for _ in range(args.repeats)]
                 st["prior"][i] = [s for _, s in runs]
