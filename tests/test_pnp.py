@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
@@ -9,7 +10,7 @@ from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import invert_pose, look_at, pose_error, transform_points
 from acesplat.core.grid import cell_centers
 from acesplat.core.metrics import FrameResult, accuracy_summary, timing_stats
-from acesplat.core.pnp import PNP_METHODS, solve_from_grid, solve_pnp
+from acesplat.core.pnp import PNP_METHODS, PnPConfig, solve_from_grid, solve_pnp
 
 INTR = Intrinsics(200.0, 200.0, 79.5, 59.5, 160, 120)
 
@@ -134,3 +135,44 @@ def test_a_mirror_pose_from_the_first_solver_falls_back_to_magsac(monkeypatch) -
     calls.clear()
     alone = solve_from_grid(coords, INTR, fallback=None)
     assert calls == ["p3p"] and not alone.localized
+
+
+def _nudged(T: np.ndarray, cm: float, deg: float) -> np.ndarray:
+    d = np.eye(4)
+    d[:3, :3] = cv2.Rodrigues(np.deg2rad(np.array([deg, 0.0, 0.0])).reshape(3, 1))[0]
+    d[:3, 3] = [cm / 100.0, 0.0, 0.0]
+    return T @ d
+
+
+def test_a_good_prior_skips_ransac_and_gives_ransacs_pose(monkeypatch: pytest.MonkeyPatch) -> None:
+    coords, T = _grid_scene(np.random.default_rng(5), outliers=0.4)
+    ransac = solve_from_grid(coords, INTR, method="batch_p3p")
+    import acesplat.core.pnp as pnp
+
+    def no_ransac(*a, **kw):
+        raise AssertionError("RANSAC ran although the prior explains the frame")
+
+    monkeypatch.setattr(pnp, "_ransac_and_refine", no_ransac)
+    res = solve_from_grid(coords, INTR, method="batch_p3p", prior_c2w=_nudged(T, 2.0, 0.5))
+    assert res.localized and res.inliers == ransac.inliers
+    t, r = pose_error(res.T_c2w, ransac.T_c2w)
+    assert t < 1e-6 and r < 1e-4
+
+
+def test_a_wrong_prior_falls_back_to_ransac() -> None:
+    coords, T = _grid_scene(np.random.default_rng(6), outliers=0.4)
+    ransac = solve_from_grid(coords, INTR, method="batch_p3p")
+    for wrong in (_nudged(T, 300.0, 30.0), _nudged(T, 0.0, 180.0)):  # far off; facing away (nothing in front)
+        res = solve_from_grid(coords, INTR, method="batch_p3p", prior_c2w=wrong)
+        assert res.localized
+        np.testing.assert_array_equal(res.T_c2w, ransac.T_c2w)
+
+
+def test_a_malformed_prior_or_ratio_is_refused() -> None:
+    coords, _ = _grid_scene(np.random.default_rng(7), outliers=0.0)
+    with pytest.raises(ValueError, match="prior_c2w"):
+        solve_from_grid(coords, INTR, prior_c2w=np.eye(3))
+    with pytest.raises(ValueError, match="prior_c2w"):
+        solve_from_grid(coords, INTR, prior_c2w=np.full((4, 4), np.nan))
+    with pytest.raises(ValueError, match="prior_min_ratio"):
+        PnPConfig(prior_min_ratio=1.5)

@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
+import cv2
 import numpy as np
 
 from acesplat.core.camera import Intrinsics
@@ -83,26 +84,11 @@ class GateVerdict:
 
 
 def _hull_area(xy: np.ndarray) -> float:
-    """Area of the convex hull of points (N, 2) (monotone chain; 0 for fewer than 3 points)."""
-    pts = np.unique(np.asarray(xy, dtype=np.float64), axis=0)
+    """Area of the convex hull of points (N, 2) (0 for fewer than 3 distinct points)."""
+    pts = np.asarray(xy, dtype=np.float32).reshape(-1, 2)
     if len(pts) < 3:
         return 0.0
-    pts = pts[np.lexsort((pts[:, 1], pts[:, 0]))]
-
-    def half(seq: np.ndarray) -> list[np.ndarray]:
-        out: list[np.ndarray] = []
-        for p in seq:
-            while len(out) >= 2:
-                a, b = out[-2], out[-1]
-                if (b[0] - a[0]) * (p[1] - a[1]) - (b[1] - a[1]) * (p[0] - a[0]) > 0:
-                    break
-                out.pop()
-            out.append(p)
-        return out
-
-    hull = np.array(half(pts)[:-1] + half(pts[::-1])[:-1])
-    x, y = hull[:, 0], hull[:, 1]
-    return float(0.5 * abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+    return float(cv2.contourArea(cv2.convexHull(pts)))
 
 
 def gate_pose(

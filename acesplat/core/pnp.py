@@ -16,11 +16,13 @@ from acesplat.core.config import knob
 from acesplat.core.geometry import invert_pose, make_pose, rodrigues_to_matrix
 from acesplat.core.grid import OUTPUT_STRIDE, grid_correspondences
 from acesplat.core.pose_refine import ROBUST_SCALES, refine_pose_robust, reprojection
+from acesplat.core.ransac import ransac_pnp
 
 if TYPE_CHECKING:
     from acesplat.core.gate import GateVerdict
 
 PNP_METHODS = (
+    "batch_p3p",
     "usac_magsac",
     "usac_default",
     "usac_accurate",
@@ -38,7 +40,9 @@ torch-vs-ONNX parity, replays and tests compare solutions, not random draws."""
 class PnPConfig:
     """The PnP solver's settings, shared by desktop evaluation, the edge runtime and the benchmarks."""
 
-    method: str = knob("ransac_ap3p", "PnP-RANSAC solver (one of PNP_METHODS; bench/pnp_choice.md).")
+    method: str = knob(
+        "ransac_ap3p", "PnP-RANSAC solver (one of PNP_METHODS; bench/pnp_choice.md, batch_p3p: bench/pnp_speed.md)."
+    )
     threshold_px: float = knob(10.0, "Inlier threshold in pixels of the network input image (ACE's 10 px).")
     min_inliers: int = knob(
         50, "Inliers a pose needs at least; the tracking gate (acesplat.core.gate) then decides TRACKING."
@@ -51,11 +55,16 @@ class PnPConfig:
     fallback: str | None = knob(
         "usac_magsac", "Solver retried when the pose fails the inlier gate (AP3P can return the mirror pose); None."
     )
+    prior_min_ratio: float = knob(
+        0.1, "A pose prior is refined instead of running RANSAC when this share of the cells are its inliers."
+    )
 
     def __post_init__(self) -> None:
         for m in (self.method, self.fallback):
             if m is not None and m not in PNP_METHODS:
                 raise ValueError(f"unknown PnP method {m!r}; choose from {PNP_METHODS}")
+        if not 0.0 <= self.prior_min_ratio <= 1.0:
+            raise ValueError(f"prior_min_ratio must be in [0, 1], got {self.prior_min_ratio}")
 
 
 @dataclass
@@ -92,6 +101,7 @@ def solve_pnp(
     points: np.ndarray,
     intrinsics: Intrinsics,
     config: PnPConfig | None = None,
+    prior_c2w: np.ndarray | None = None,
     **overrides: Any,
 ) -> PnPResult:
     """Camera-to-world pose from pixels (N, 2) and scene points (N, 3) of an undistorted pinhole image.
@@ -101,6 +111,10 @@ def solve_pnp(
     with ``robust_scales=()`` Levenberg-Marquardt on RANSAC's inliers refines instead. The frame counts as
     localized only with at least ``min_inliers`` inliers (the floor of acesplat.core.gate, which decides TRACKING); a
     pose that fails it is retried once with ``fallback`` (None: no retry, for comparing solvers on their own).
+
+    ``prior_c2w`` (4, 4), a predicted camera-to-world pose (tracking): when at least ``prior_min_ratio`` of the
+    correspondences (and ``min_inliers``) are its inliers, it is refined as RANSAC's pose would be and RANSAC is
+    skipped; when it explains fewer, or its refinement ends with fewer than ``min_inliers``, RANSAC runs as without it.
 
     ``config`` (default PnPConfig()) holds the settings; ``overrides`` replace some of its fields by name
     (e.g. ``method="usac_magsac"``, ``min_inliers=20``).
@@ -115,6 +129,10 @@ def solve_pnp(
     n = pixels.shape[0]
     if n < 6:
         return PnPResult(None, 0, n, False)
+    if prior_c2w is not None:
+        from_prior = _refine_prior(pixels, points, intrinsics.K, prior_c2w, cfg)
+        if from_prior is not None:
+            return PnPResult(from_prior[0], from_prior[1], n, True)
     first = _ransac_and_refine(pixels, points, intrinsics.K, cfg.method, cfg)
     if first[1] >= cfg.min_inliers or cfg.fallback is None or cfg.fallback == cfg.method:
         best = first
@@ -137,6 +155,20 @@ def _ransac_and_refine(
     """Camera-to-world pose and its inlier count under the final pose, or (None, 0) when the solver fails."""
     threshold_px, iterations, confidence = cfg.threshold_px, cfg.iterations, cfg.confidence
     dist = np.zeros(5)
+    if method == "batch_p3p":
+        found = ransac_pnp(pixels, points, K, threshold_px, iterations, confidence, RANSAC_SEED)
+        if found is None or len(found[2]) < 4:
+            return None, 0
+        R0, t0, inl, _ = found
+        rvec, tvec = cv2.Rodrigues(R0)[0], t0.reshape(3, 1).copy()
+        # EPnP on the sample's inliers, as OpenCV's RANSAC ends, so the refinement starts from all of them.
+        ok, r_all, t_all = cv2.solvePnP(points[inl], pixels[inl], K, dist, rvec, tvec, False, cv2.SOLVEPNP_EPNP)
+        if ok and np.isfinite(r_all).all() and np.isfinite(t_all).all():
+            R1 = rodrigues_to_matrix(r_all.reshape(3))
+            _, _, err = reprojection(points, pixels, K, R1, t_all.reshape(3))
+            if np.count_nonzero(err < threshold_px) >= len(inl):
+                rvec, tvec, inl = r_all, t_all, np.flatnonzero(err < threshold_px)
+        return _refine(pixels, points, K, rvec.reshape(3), tvec.reshape(3), inl, cfg)
     cv2.setRNGSeed(RANSAC_SEED)
     try:
         if method.startswith("usac"):
@@ -164,18 +196,52 @@ def _ransac_and_refine(
         return None, 0
     if not ok or inl is None or len(inl) < 4:
         return None, 0
+    return _refine(pixels, points, K, rvec.reshape(3), tvec.reshape(3), inl.reshape(-1), cfg)
+
+
+def _refine(
+    pixels: np.ndarray,
+    points: np.ndarray,
+    K: np.ndarray,
+    rvec: np.ndarray,
+    tvec: np.ndarray,
+    inliers: np.ndarray,
+    cfg: PnPConfig,
+) -> tuple[np.ndarray, int]:
+    """RANSAC's world-to-camera pose (rvec (3,), tvec (3,)) refined over every correspondence (robust) or on the
+    ``inliers`` indices (LM); the camera-to-world pose and its inlier count under it."""
     if cfg.robust_scales:
         # The robust refinement starts from RANSAC's pose directly: an LM polish first changed no
         # pose measurably (bench/pnp_choice.md) and cost 1.5 ms at 2700 correspondences.
         r, t = refine_pose_robust(pixels, points, K, rvec, tvec, tuple(cfg.robust_scales))
     else:
-        idx = inl.reshape(-1)
-        rvec, tvec = cv2.solvePnPRefineLM(points[idx], pixels[idx], K, dist, rvec, tvec)
+        rvec, tvec = cv2.solvePnPRefineLM(
+            points[inliers], pixels[inliers], K, np.zeros(5), rvec.reshape(3, 1).copy(), tvec.reshape(3, 1).copy()
+        )
         r, t = rvec.reshape(3), tvec.reshape(3)
     # Recount inliers under the final pose so the gate sees the final solution.
     R = rodrigues_to_matrix(r)
     _, _, err = reprojection(points, pixels, K, R, t)  # inf behind the camera: never an inlier
-    return invert_pose(make_pose(R, t)), int(np.count_nonzero(err < threshold_px))
+    return invert_pose(make_pose(R, t)), int(np.count_nonzero(err < cfg.threshold_px))
+
+
+def _refine_prior(
+    pixels: np.ndarray, points: np.ndarray, K: np.ndarray, prior_c2w: np.ndarray, cfg: PnPConfig
+) -> tuple[np.ndarray, int] | None:
+    """The prior's refined camera-to-world pose and inlier count, or None when the prior or its refinement explain
+    too few correspondences (then RANSAC decides)."""
+    prior = np.asarray(prior_c2w, dtype=np.float64)
+    if prior.shape != (4, 4) or not np.isfinite(prior).all():
+        raise ValueError(f"prior_c2w must be a finite (4, 4) pose, got shape {prior.shape}")
+    T = invert_pose(prior)
+    _, _, err = reprojection(points, pixels, K, T[:3, :3], T[:3, 3])
+    inl = np.flatnonzero(err < cfg.threshold_px)
+    need = max(cfg.min_inliers, cfg.prior_min_ratio * len(points))
+    if len(inl) < max(need, 4):
+        return None
+    rvec = cv2.Rodrigues(T[:3, :3])[0].reshape(3)
+    T_c2w, count = _refine(pixels, points, K, rvec, T[:3, 3].copy(), inl, cfg)
+    return (T_c2w, count) if count >= need else None
 
 
 def solve_from_grid(
@@ -183,9 +249,10 @@ def solve_from_grid(
     intrinsics: Intrinsics,
     stride: int = OUTPUT_STRIDE,
     config: PnPConfig | None = None,
+    prior_c2w: np.ndarray | None = None,
     **overrides: Any,
 ) -> PnPResult:
     """Pose from a scene-coordinate grid (3, h, w) or (h, w, 3) predicted for an image with ``intrinsics``;
-    ``config`` and ``overrides`` as for solve_pnp."""
+    ``config``, ``prior_c2w`` and ``overrides`` as for solve_pnp."""
     points, pixels = grid_correspondences(coords, stride)
-    return solve_pnp(pixels, points, intrinsics, config, **overrides)
+    return solve_pnp(pixels, points, intrinsics, config, prior_c2w, **overrides)

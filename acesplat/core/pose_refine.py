@@ -19,6 +19,8 @@ CUTOFF = 10.0
 """Residuals beyond this multiple of the current scale get weight zero (clear outliers)."""
 MIN_SUPPORT = 12
 """Fewer weighted correspondences than this: the refinement stops and keeps what it has."""
+STEP_TOL = 1e-9
+"""A step turning less than this (rad) and moving less than this relative to the translation ends its scale."""
 
 
 def cauchy_weights(residuals: np.ndarray, scale: float) -> np.ndarray:
@@ -50,6 +52,54 @@ def reprojection(
     return Xc, res, e
 
 
+def _project(
+    points: np.ndarray, pixels: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Normalised camera coordinates x/z, y/z, inverse depths (N,), pixel residuals du, dv (N,) stacked (2, N) and
+    squared residual norms (N,) (inf behind the camera) of world points (N, 3) under world-to-camera (R, t)."""
+    Xc = points @ R.T + t
+    z = Xc[:, 2]
+    front = z > 1e-9
+    iz = 1.0 / np.where(front, z, 1.0)
+    xn, yn = Xc[:, 0] * iz, Xc[:, 1] * iz
+    res = np.empty((2, len(z)))
+    np.subtract(K[0, 0] * xn + K[0, 2], pixels[:, 0], out=res[0])
+    np.subtract(K[1, 1] * yn + K[1, 2], pixels[:, 1], out=res[1])
+    e2 = res[0] * res[0] + res[1] * res[1]
+    e2[~front] = np.inf
+    return xn, yn, iz, res, e2
+
+
+def _cost2(e2: np.ndarray, scale: float) -> float:
+    """cauchy_cost from squared residual norms (N,)."""
+    return float(0.5 * scale * scale * np.sum(np.log1p(np.minimum(e2, (CUTOFF * scale) ** 2) / (scale * scale))))
+
+
+def _normal_equations(
+    xn: np.ndarray, yn: np.ndarray, iz: np.ndarray, res: np.ndarray, w: np.ndarray, fx: float, fy: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted Gauss-Newton H (6, 6) and gradient g (6,) for the update Xc -> exp([w]x) Xc + v (rotation about the
+    camera): du/dXc = fx (1/z, 0, -x/z^2), dv/dXc = fy (0, 1/z, -y/z^2); dXc/dw = -[Xc]x, dXc/dv = I."""
+    m = len(xn)
+    J = np.empty((6, 2, m))  # one contiguous row per pose parameter: residual u then v
+    xy = xn * yn
+    np.multiply(-fx, xy, out=J[0, 0])
+    np.multiply(fx, 1.0 + xn * xn, out=J[1, 0])
+    np.multiply(-fx, yn, out=J[2, 0])
+    np.multiply(fx, iz, out=J[3, 0])
+    J[4, 0] = 0.0
+    np.multiply(-fx * xn, iz, out=J[5, 0])
+    np.multiply(-fy, 1.0 + yn * yn, out=J[0, 1])
+    np.multiply(fy, xy, out=J[1, 1])
+    np.multiply(fy, xn, out=J[2, 1])
+    J[3, 1] = 0.0
+    np.multiply(fy, iz, out=J[4, 1])
+    np.multiply(-fy * yn, iz, out=J[5, 1])
+    J = J.reshape(6, 2 * m)
+    Jw = J * np.concatenate([w, w])
+    return Jw @ J.T, Jw @ res.reshape(-1)
+
+
 def refine_pose_robust(
     pixels: np.ndarray,
     points: np.ndarray,
@@ -62,7 +112,8 @@ def refine_pose_robust(
     """World-to-camera (rvec (3,), tvec (3,)) refined on pixels (N, 2) and points (N, 3) of a pinhole K (3, 3).
 
     Damped Gauss-Newton steps on the Cauchy cost; a step that raises the cost is not taken (the
-    damping grows instead), so the result is never worse than the start under the final scale.
+    damping grows instead), so the result is never worse than the start under the final scale. A scale
+    ends early once a step moves the pose by less than STEP_TOL.
     """
     pixels = np.asarray(pixels, np.float64).reshape(-1, 2)
     points = np.asarray(points, np.float64).reshape(-1, 3)
@@ -72,59 +123,44 @@ def refine_pose_robust(
     t = np.asarray(tvec, np.float64).reshape(3).copy()
     fx, fy = K[0, 0], K[1, 1]
 
-    def jacobian(Xc: np.ndarray) -> np.ndarray:
-        """d(residual)/d(w, v) (N, 2, 6) for the update Xc -> exp([w]x) Xc + v (rotation about the camera)."""
-        x, y, z = Xc[:, 0], Xc[:, 1], np.maximum(Xc[:, 2], 1e-9)
-        iz, iz2 = 1.0 / z, 1.0 / (z * z)
-        J = np.empty((len(Xc), 2, 6))
-        # du/dXc = fx (1/z, 0, -x/z^2), dv/dXc = fy (0, 1/z, -y/z^2); dXc/dw = -[Xc]x, dXc/dv = I.
-        J[:, 0, 0] = -fx * x * y * iz2
-        J[:, 0, 1] = fx * (1.0 + x * x * iz2)
-        J[:, 0, 2] = -fx * y * iz
-        J[:, 0, 3] = fx * iz
-        J[:, 0, 4] = 0.0
-        J[:, 0, 5] = -fx * x * iz2
-        J[:, 1, 0] = -fy * (1.0 + y * y * iz2)
-        J[:, 1, 1] = fy * x * y * iz2
-        J[:, 1, 2] = fy * x * iz
-        J[:, 1, 3] = 0.0
-        J[:, 1, 4] = fy * iz
-        J[:, 1, 5] = -fy * y * iz2
-        return J
-
     for s in scales:
         # Each scale works on the correspondences within its cutoff at the pose it starts from: the
         # gross outliers leave once, so later steps cost a fraction of the first.
-        Xc, res, e = reprojection(points, pixels, K, R, t)
-        near = e < CUTOFF * s
+        cut2 = (CUTOFF * s) ** 2
+        xn, yn, iz, res, e2 = _project(points, pixels, K, R, t)
+        near = e2 < cut2
         if np.count_nonzero(near) < MIN_SUPPORT:
             break
         pts, pix = points[near], pixels[near]
-        Xc, res, e = Xc[near], res[near], e[near]
+        xn, yn, iz, res, e2 = xn[near], yn[near], iz[near], res[:, near], e2[near]
         damping = 1e-4
-        cost = cauchy_cost(e, s)
+        cost = _cost2(e2, s)
         for _ in range(steps_per_scale):
-            w = cauchy_weights(e, s)
-            keep = w > 0
-            if np.count_nonzero(keep) < MIN_SUPPORT:
+            keep = e2 < cut2  # cauchy_weights is zero exactly beyond the cutoff
+            kept = np.count_nonzero(keep)
+            if kept < MIN_SUPPORT:
                 break
-            J = jacobian(Xc[keep]).reshape(-1, 6)
-            w2 = np.repeat(w[keep], 2)
-            H = J.T @ (J * w2[:, None])
-            g = J.T @ (w2 * res[keep].reshape(-1))
+            if kept == len(e2):
+                H, g = _normal_equations(xn, yn, iz, res, 1.0 / (1.0 + e2 / (s * s)), fx, fy)
+            else:
+                w = 1.0 / (1.0 + e2[keep] / (s * s))
+                H, g = _normal_equations(xn[keep], yn[keep], iz[keep], res[:, keep], w, fx, fy)
             for _attempt in range(4):
                 step = cv2.solve(
                     H + damping * np.diag(np.diag(H) + 1e-12), -g.reshape(6, 1), flags=cv2.DECOMP_CHOLESKY
                 )[1].reshape(6)
                 dR = cv2.Rodrigues(step[:3].reshape(3, 1))[0]
                 R_new, t_new = dR @ R, dR @ t + step[3:]
-                Xc_new, res_new, e_new = reprojection(pts, pix, K, R_new, t_new)
-                cost_new = cauchy_cost(e_new, s)
+                proj = _project(pts, pix, K, R_new, t_new)
+                cost_new = _cost2(proj[4], s)
                 if cost_new <= cost:
                     damping = max(damping / 10.0, 1e-7)
                     break
                 damping *= 10.0
             else:
                 break
-            R, t, Xc, res, e, cost = R_new, t_new, Xc_new, res_new, e_new, cost_new
+            R, t, cost = R_new, t_new, cost_new
+            xn, yn, iz, res, e2 = proj
+            if np.abs(step[:3]).max() < STEP_TOL and np.abs(step[3:]).max() < STEP_TOL * (1.0 + np.abs(t).max()):
+                break
     return cv2.Rodrigues(R)[0].reshape(3), t
