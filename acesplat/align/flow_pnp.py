@@ -7,7 +7,8 @@ estimated pose (``align_to_render``: the edge refiner's keyframes). Either way t
 carries them to where the query shows them (forward-backward checked), PnP-RANSAC (+ LM) on the (3D point, query
 pixel) pairs gives the pose, and guards keep the start pose when there are too few points or inliers or the
 correction is too large to be a refinement. The thresholds are an ``AlignConfig``; ``KEYFRAME_ALIGN`` and
-``RENDER_ALIGN`` are the two references' settings (bench/herz_gap.md, bench/refine.md; costs in bench/align.md).
+``RENDER_ALIGN`` are the two references' settings (bench/herz_gap.md, bench/refine.md; costs in bench/align.md),
+``TRACK_ALIGN`` the edge tracker's cheap per-frame one (edge/tracking.py; bench/tracking.md).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import numpy as np
 from acesplat.core.camera import Intrinsics
 from acesplat.core.config import knob
 from acesplat.core.geometry import invert_pose, make_pose, pose_error
+from acesplat.core.pose_covariance import pose_covariance
 
 FLOW_PRESETS = {
     "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
@@ -96,6 +98,21 @@ RENDER_ALIGN = replace(
     rounds=1,
 )
 """The map rendered at the estimate (bench/refine.md): no forward-backward check, RANSAC alone, one round."""
+TRACK_ALIGN = replace(
+    KEYFRAME_ALIGN,
+    sample_step_px=4,
+    flow_preset="fast",
+    ransac_iterations=50,
+    min_points=200,
+    max_shift_m=0.1,
+    rounds=2,
+    max_pairs=2000,
+    converged_m=0.003,
+    converged_deg=0.15,
+)
+"""Every frame while tracking (edge/tracking.py), against one keyframe from the predicted pose: a coarse sample grid,
+at most 2000 pairs, two rounds with an early exit, a prediction off by more than 10 cm is not refined
+(bench/tracking.md)."""
 
 
 @dataclass(frozen=True)
@@ -106,7 +123,8 @@ class Alignment:
     too few inliers); 'too_far' (the correction exceeded max_shift_*: the start pose was wrong, not imprecise);
     keyframes only: 'disagrees' (the refined pose lost the SCR correspondences' inliers); renders only: 'unlike'
     (the render does not resemble the image, or covers too little of it, to trust a flow between them).
-    points: pairs found (last round); inliers: PnP's among those it was given; mse: a render's against the image.
+    points: pairs found (last round); inliers: PnP's among those it was given; mse: a render's against the image;
+    covariance (6, 6): of an aligned pose, from the last round's inliers (acesplat.core.pose_covariance), else None.
     """
 
     pose: np.ndarray
@@ -116,6 +134,7 @@ class Alignment:
     shift_m: float = 0.0
     shift_deg: float = 0.0
     mse: float = float("nan")
+    covariance: np.ndarray | None = None
 
 
 def dis_flow(cfg: AlignConfig) -> cv2.DISOpticalFlow:
@@ -219,6 +238,7 @@ def refine_pose(
         raise ValueError(f"pose must be a finite (4, 4) camera-to-world, got shape {start.shape}")
     K = intrinsics.K
     pose, points, inliers = start, 0, 0
+    used: tuple[np.ndarray, np.ndarray] | None = None
     for r in range(cfg.rounds if rounds is None else rounds):
         X, uv, err = pairs(pose, r)
         points = len(X)
@@ -244,8 +264,9 @@ def refine_pose(
         inliers = 0 if inl is None else len(inl)
         if not ok or inliers < max(cfg.min_points, cfg.min_inlier_ratio * len(X)):
             return Alignment(start, "no_fit", points, inliers)
+        idx = inl[:, 0]
+        used = X[idx], uv[idx]
         if cfg.refine_lm:
-            idx = inl[:, 0]
             rvec, tvec = cv2.solvePnPRefineLM(X[idx], uv[idx], K, None, rvec, tvec)
         if not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
             return Alignment(start, "no_fit", points, inliers)
@@ -258,7 +279,8 @@ def refine_pose(
             if st < cfg.converged_m and sr < cfg.converged_deg:
                 break
     dt, dr = pose_error(pose, start)
-    return Alignment(pose, "aligned", points, inliers, dt, dr)
+    cov = pose_covariance(used[0], used[1], intrinsics, pose) if used is not None else None
+    return Alignment(pose, "aligned", points, inliers, dt, dr, covariance=cov)
 
 
 def gray8(rgb: np.ndarray) -> np.ndarray:
