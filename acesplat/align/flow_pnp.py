@@ -47,6 +47,9 @@ class AlignConfig:
     max_fb_error_px: float | None = knob(
         0.5, "Forward-backward flow disagreement above this marks an occlusion or mismatch (None: no check)."
     )
+    max_photo_diff: float | None = knob(
+        None, "A pair whose gray levels (8-bit) differ by more than this is no match (a blank or covered query; None)."
+    )
     reproj_px: float = knob(1.0, "PnP-RANSAC inlier threshold in query pixels (flow errors are sub-pixel).")
     ransac_iterations: int = knob(200, "PnP-RANSAC iterations.")
     refine_lm: bool = knob(True, "Refine the RANSAC pose by Levenberg-Marquardt on its inliers.")
@@ -74,6 +77,8 @@ class AlignConfig:
     def __post_init__(self) -> None:
         if self.sample_step_px < 1 or self.ransac_iterations < 1 or self.rounds < 1 or self.min_points < 4:
             raise ValueError(f"sample_step_px, ransac_iterations, rounds must be >= 1 and min_points >= 4: {self}")
+        if self.max_photo_diff is not None and not self.max_photo_diff > 0:
+            raise ValueError(f"max_photo_diff must be > 0 or None, got {self.max_photo_diff}")
         if self.max_fb_error_px is not None and not self.max_fb_error_px > 0:
             raise ValueError(f"max_fb_error_px must be > 0 or None, got {self.max_fb_error_px}")
         if not (self.reproj_px > 0 and 0 <= self.min_inlier_ratio <= 1 and 0 < self.first_flow_scale <= 1):
@@ -101,6 +106,7 @@ RENDER_ALIGN = replace(
 TRACK_ALIGN = replace(
     KEYFRAME_ALIGN,
     sample_step_px=4,
+    max_photo_diff=30.0,
     flow_preset="fast",
     ransac_iterations=50,
     min_points=200,
@@ -111,8 +117,8 @@ TRACK_ALIGN = replace(
     converged_deg=0.15,
 )
 """Every frame while tracking (edge/tracking.py), against one keyframe from the predicted pose: a coarse sample grid,
-at most 2000 pairs, two rounds with an early exit, a prediction off by more than 10 cm is not refined
-(bench/tracking.md)."""
+pairs whose gray levels differ are dropped (a blank frame is no match), at most 2000 pairs, two rounds with an early
+exit; a prediction off by more than 10 cm is not refined (bench/tracking.md)."""
 
 
 @dataclass(frozen=True)
@@ -197,19 +203,25 @@ def flow_to_query(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Where ``query`` (H, W) uint8 shows the pixels ``at`` (M, 2) of ``ref`` (H, W) uint8: seen (M, 2), the
     forward-backward check's verdict keep (M,) bool (the seen pixel inside the query and the flow back within
-    ``cfg.max_fb_error_px``; all True without the check) and its error (M,) px (0 without the check).
+    ``cfg.max_fb_error_px``; all True without the check; with ``cfg.max_photo_diff`` also the two gray levels
+    alike) and its error (M,) px (0 without the check).
     ``scale`` < 1 computes the flow on downscaled images (coarse and cheaper)."""
     if ref.shape != query.shape or ref.ndim != 2:
         raise ValueError(f"reference {ref.shape} and query {query.shape} must be the same (H, W)")
     fwd, s = _flow(ref, query, flow, scale)
     seen = at + _flow_at(fwd, s, at)
+    like = np.ones(len(at), bool)
+    if cfg.max_photo_diff is not None:  # a textureless query flows nowhere, consistently: the gray levels tell
+        a = bilinear(ref[..., None].astype(np.float32), at[:, 0], at[:, 1])[:, 0]
+        b = bilinear(query[..., None].astype(np.float32), seen[:, 0], seen[:, 1])[:, 0]
+        like = np.abs(a - b) <= cfg.max_photo_diff
     if cfg.max_fb_error_px is None:
-        return seen, np.ones(len(at), bool), np.zeros(len(at))
+        return seen, like, np.zeros(len(at))
     h, w = query.shape
     bwd, s = _flow(query, ref, flow, scale)
     back = seen + _flow_at(bwd, s, seen)
     err = np.linalg.norm(back - at, axis=1)
-    keep = err < cfg.max_fb_error_px
+    keep = like & (err < cfg.max_fb_error_px)
     keep &= (seen[:, 0] >= 0) & (seen[:, 0] <= w - 1) & (seen[:, 1] >= 0) & (seen[:, 1] <= h - 1)
     return seen, keep, err
 
