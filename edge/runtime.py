@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from acesplat.align.keyframe_align import Keyframe, align_scr_pose, align_to_keyframes, scene_depth
+from acesplat.align.keyframe_align import Keyframe, align_scr_pose, scene_depth
 from acesplat.align.keyframe_set import bundle_keyframes
 from acesplat.core.bundle import ROLE_KEYFRAMES, Bundle
 from acesplat.core.camera import Intrinsics
@@ -34,7 +34,7 @@ from acesplat.core.pose_refine import reprojection
 from edge.frame_prep import FramePrep
 from edge.inference import ScrSession, SessionSettings
 from edge.sources import SourceFrame
-from edge.tracking import Plan, Tracker, TrackingConfig, frame_keyframe
+from edge.tracking import Plan, Tracker, TrackingConfig, frame_keyframe, track_to_keyframes
 
 STAGES = ("capture", "preprocess", "inference", "pnp", "align", "total")
 
@@ -291,7 +291,7 @@ class EdgeLocalizer:
         else:
             refs = [self._anchor] if self._anchor is not None else []
         anchor = grid_correspondences(p.coords, self.stride) if p.coords is not None else None
-        return align_to_keyframes(p.gray, p.intr, start, refs, anchor=anchor, cfg=cfg.align)
+        return track_to_keyframes(p.gray, p.intr, start, refs, cfg.align, anchor)
 
     def _outcome(
         self,

@@ -14,12 +14,23 @@ tracked (the history is then kept: frames stay SCR until the motion slows). A re
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from acesplat.align.flow_pnp import KEYFRAME_ALIGN, TRACK_ALIGN, AlignConfig
-from acesplat.align.keyframe_align import Keyframe
+from acesplat.align.flow_pnp import (
+    KEYFRAME_ALIGN,
+    TRACK_ALIGN,
+    AlignConfig,
+    Alignment,
+    dis_flow,
+    flow_to_query,
+    gradient,
+    refine_pose,
+    sample_grid,
+)
+from acesplat.align.keyframe_align import Keyframe, _depth_at, anchor_inliers, resample_to
 from acesplat.core.camera import Intrinsics
 from acesplat.core.config import knob
 from acesplat.core.geometry import invert_pose, pose_error
@@ -151,3 +162,48 @@ def frame_keyframe(
     Xc, _, err = reprojection(np.where(finite[:, None], X, 0.0), uv, intrinsics.K, w2c[:3, :3], w2c[:3, 3])
     depth = np.where(finite & (err < threshold_px), Xc[:, 2], 0.0).reshape(h, w).astype(np.float32)
     return Keyframe(gray, intrinsics, np.asarray(T_c2w, np.float64), depth, stride)
+
+
+def track_to_keyframes(
+    gray: np.ndarray,
+    intrinsics: Intrinsics,
+    start_c2w: np.ndarray,
+    keyframes: Sequence[Keyframe],
+    cfg: AlignConfig = TRACK_ALIGN,
+    anchor: tuple[np.ndarray, np.ndarray] | None = None,
+) -> Alignment:
+    """The query ``gray`` (H, W) uint8 with ``intrinsics`` aligned to ``keyframes`` from ``start_c2w`` (4, 4): the
+    keyframes' textured pixels with depth carried by flow straight to the query (no warp to the start pose: between
+    frames the views differ by centimetres, which DIS's pyramid spans), one PnP under ``cfg``'s guards, so the start
+    pose seeds PnP and bounds the correction. ``anchor`` (points (N, 3), pixels (N, 2)): the SCR correspondences the
+    aligned pose must keep (``cfg.min_anchor_kept``), as acesplat.align.keyframe_align.align_to_keyframes."""
+    if gray.ndim != 2 or gray.dtype != np.uint8 or gray.shape != (intrinsics.height, intrinsics.width):
+        raise ValueError(f"query must be (H, W) uint8 matching its intrinsics, got {gray.shape} {gray.dtype}")
+    start = np.asarray(start_c2w, np.float64)
+    if not keyframes:
+        return Alignment(start, "few_points")
+    flow = dis_flow(cfg)
+    Xs, uvs, errs = [], [], []
+    for kf in keyframes:
+        h, w = kf.gray.shape
+        query = resample_to(gray, intrinsics, kf.intrinsics)
+        ys, xs = sample_grid(h, w, cfg.sample_step_px)
+        u, v = xs.ravel().astype(np.float64), ys.ravel().astype(np.float64)
+        textured = gradient(kf.gray)[ys.ravel(), xs.ravel()] > cfg.min_gradient
+        z = _depth_at(kf, u, v)
+        use = textured & (z > 0) & np.isfinite(z)
+        at = np.stack([u[use], v[use]], axis=1)
+        seen, keep, err = flow_to_query(kf.gray, query, at, flow, cfg, cfg.first_flow_scale)
+        X = kf.intrinsics.unproject(at[keep], z[use][keep]) @ kf.c2w[:3, :3].T + kf.c2w[:3, 3]
+        H = intrinsics.K @ np.linalg.inv(kf.intrinsics.K)  # back to the query's own pixels
+        uvh = np.c_[seen[keep], np.ones(int(keep.sum()))] @ H.T
+        Xs.append(X)
+        uvs.append(uvh[:, :2] / uvh[:, 2:3])
+        errs.append(err[keep])
+    X, uv, err = np.concatenate(Xs), np.concatenate(uvs), np.concatenate(errs)
+    al = refine_pose(start, intrinsics, lambda _pose, _r: (X, uv, err), cfg, rounds=1)
+    if al.status != "aligned" or anchor is None:
+        return al
+    if anchor_inliers(anchor, intrinsics, al.pose) < cfg.min_anchor_kept * anchor_inliers(anchor, intrinsics, start):
+        return Alignment(start, "disagrees", al.points, al.inliers, al.shift_m, al.shift_deg)
+    return al

@@ -111,14 +111,12 @@ TRACK_ALIGN = replace(
     ransac_iterations=50,
     min_points=200,
     max_shift_m=0.1,
-    rounds=2,
-    max_pairs=2000,
-    converged_m=0.003,
-    converged_deg=0.15,
+    rounds=1,
+    max_pairs=1000,
 )
 """Every frame while tracking (edge/tracking.py), against one keyframe from the predicted pose: a coarse sample grid,
-pairs whose gray levels differ are dropped (a blank frame is no match), at most 2000 pairs, two rounds with an early
-exit; a prediction off by more than 10 cm is not refined (bench/tracking.md)."""
+pairs whose gray levels differ are dropped (a blank frame is no match), at most 1000 pairs, one round; a prediction
+off by more than 10 cm is not refined (bench/tracking.md)."""
 
 
 @dataclass(frozen=True)

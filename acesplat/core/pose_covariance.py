@@ -16,37 +16,31 @@ MIN_POINTS = 4
 """Fewer correspondences than this do not determine a pose (no covariance)."""
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    """[v]x (N, 3, 3) of vectors (N, 3)."""
-    z = np.zeros(len(v))
-    return np.stack(
-        [
-            np.stack([z, -v[:, 2], v[:, 1]], axis=1),
-            np.stack([v[:, 2], z, -v[:, 0]], axis=1),
-            np.stack([-v[:, 1], v[:, 0], z], axis=1),
-        ],
-        axis=1,
-    )
-
-
 def projection_jacobian(points: np.ndarray, intrinsics: Intrinsics, T_c2w: np.ndarray) -> np.ndarray:
     """d(pixel)/d(dc, w) (N, 2, 6) of world points (N, 3) seen by the camera-to-world ``T_c2w`` (4, 4), for the
     perturbation c -> c + dc, R -> exp([w]x) R (world frame)."""
     X = np.asarray(points, np.float64).reshape(-1, 3)
     T = np.asarray(T_c2w, np.float64)
     R, c = T[:3, :3], T[:3, 3]
-    d = X - c
-    Xc = d @ R  # R^T (X - c) per row
-    z = Xc[:, 2]
-    K = intrinsics.K
-    du = np.zeros((len(X), 2, 3))
-    du[:, 0, 0] = K[0, 0] / z
-    du[:, 0, 2] = -K[0, 0] * Xc[:, 0] / z**2
-    du[:, 1, 1] = K[1, 1] / z
-    du[:, 1, 2] = -K[1, 1] * Xc[:, 1] / z**2
-    # Xc' = R^T exp(-[w]x) (X - c - dc) ~ Xc - R^T dc + R^T [X - c]x w
-    dXc = np.concatenate([np.broadcast_to(-R.T, (len(X), 3, 3)), R.T[None] @ _skew(d)], axis=2)
-    return du @ dXc
+    Xc = (X - c) @ R  # R^T (X - c) per row
+    x, y, z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
+    fx, fy = intrinsics.fx, intrinsics.fy
+    # Xc' = R^T exp(-[w]x) (X - c - dc) ~ Xc - R^T dc + [Xc]x R^T w  (R^T [a]x = [R^T a]x R^T): the camera-frame
+    # Jacobian of (dc', w') = (R^T dc, R^T w), then rotated back to the world
+    Jc = np.zeros((len(X), 2, 6))
+    Jc[:, 0, 0] = -fx / z
+    Jc[:, 0, 2] = fx * x / z**2
+    Jc[:, 1, 1] = -fy / z
+    Jc[:, 1, 2] = fy * y / z**2
+    Jc[:, 0, 3] = fx * x * y / z**2
+    Jc[:, 0, 4] = -fx * (1.0 + x * x / z**2)
+    Jc[:, 0, 5] = fx * y / z
+    Jc[:, 1, 3] = fy * (1.0 + y * y / z**2)
+    Jc[:, 1, 4] = -fy * x * y / z**2
+    Jc[:, 1, 5] = -fy * x / z
+    B = np.zeros((6, 6))
+    B[:3, :3] = B[3:, 3:] = R.T
+    return Jc @ B
 
 
 def pose_covariance(
