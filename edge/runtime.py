@@ -257,12 +257,13 @@ class EdgeLocalizer:
         res = solve_from_grid(p.coords, p.intr, stride=self.stride, config=pnp)
         res = gate_result(res, p.coords, p.intr, pnp, self.stride, self.gate, self.previous)
         self.previous = res.T_c2w if res.localized else None
-        t3 = time.perf_counter()
-        times["pnp"] = (t3 - t2) * 1000.0
-        status = None
         cov = None
         if res.localized and res.T_c2w is not None:
             cov = grid_covariance(p.coords, p.intr, self.stride, res.T_c2w, pnp.threshold_px)
+        t3 = time.perf_counter()
+        times["pnp"] = (t3 - t2) * 1000.0
+        status = None
+        if res.localized and res.T_c2w is not None:
             if self.keyframes is not None:
                 al = align_scr_pose(p.gray, p.intr, p.coords, self.stride, res.T_c2w, self.keyframes.near)
                 res, status = replace(res, T_c2w=al.pose), al.status

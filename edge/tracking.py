@@ -164,6 +164,45 @@ def frame_keyframe(
     return Keyframe(gray, intrinsics, np.asarray(T_c2w, np.float64), depth, stride)
 
 
+_REFERENCE_CACHE: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+CACHED_REFERENCES = 16
+"""Keyframes whose sampled points are kept between frames (tracking returns to the same few)."""
+CANDIDATES_PER_PAIR = 1.5
+"""Textured reference pixels flowed per pair PnP may get (cfg.max_pairs): thinned before the flow, not after."""
+
+
+def _reference_points(kf: Keyframe, cfg: AlignConfig) -> tuple[np.ndarray, np.ndarray]:
+    """A keyframe's textured pixels with depth (M, 2) on ``cfg``'s sample grid, evenly thinned to
+    CANDIDATES_PER_PAIR x ``cfg.max_pairs``, and their world points (M, 3); cached per keyframe."""
+    key = (
+        kf.c2w.tobytes(),
+        hash(kf.gray.tobytes()),
+        kf.gray.shape,
+        kf.intrinsics,
+        cfg.sample_step_px,
+        cfg.min_gradient,
+        cfg.max_pairs,
+    )
+    hit = _REFERENCE_CACHE.get(key)
+    if hit is not None:
+        return hit
+    h, w = kf.gray.shape
+    ys, xs = sample_grid(h, w, cfg.sample_step_px)
+    u, v = xs.ravel().astype(np.float64), ys.ravel().astype(np.float64)
+    textured = gradient(kf.gray)[ys.ravel(), xs.ravel()] > cfg.min_gradient
+    z = _depth_at(kf, u, v)
+    use = np.flatnonzero(textured & (z > 0) & np.isfinite(z))
+    cap = int(CANDIDATES_PER_PAIR * cfg.max_pairs)
+    if cfg.max_pairs and len(use) > cap:
+        use = use[np.unique(np.linspace(0, len(use) - 1, cap).round().astype(np.int64))]
+    at = np.stack([u[use], v[use]], axis=1)
+    X = kf.intrinsics.unproject(at, z[use]) @ kf.c2w[:3, :3].T + kf.c2w[:3, 3]
+    if len(_REFERENCE_CACHE) >= CACHED_REFERENCES:
+        _REFERENCE_CACHE.pop(next(iter(_REFERENCE_CACHE)))
+    _REFERENCE_CACHE[key] = (at, X)
+    return at, X
+
+
 def track_to_keyframes(
     gray: np.ndarray,
     intrinsics: Intrinsics,
@@ -185,19 +224,12 @@ def track_to_keyframes(
     flow = dis_flow(cfg)
     Xs, uvs, errs = [], [], []
     for kf in keyframes:
-        h, w = kf.gray.shape
         query = resample_to(gray, intrinsics, kf.intrinsics)
-        ys, xs = sample_grid(h, w, cfg.sample_step_px)
-        u, v = xs.ravel().astype(np.float64), ys.ravel().astype(np.float64)
-        textured = gradient(kf.gray)[ys.ravel(), xs.ravel()] > cfg.min_gradient
-        z = _depth_at(kf, u, v)
-        use = textured & (z > 0) & np.isfinite(z)
-        at = np.stack([u[use], v[use]], axis=1)
+        at, X = _reference_points(kf, cfg)
         seen, keep, err = flow_to_query(kf.gray, query, at, flow, cfg, cfg.first_flow_scale)
-        X = kf.intrinsics.unproject(at[keep], z[use][keep]) @ kf.c2w[:3, :3].T + kf.c2w[:3, 3]
         H = intrinsics.K @ np.linalg.inv(kf.intrinsics.K)  # back to the query's own pixels
         uvh = np.c_[seen[keep], np.ones(int(keep.sum()))] @ H.T
-        Xs.append(X)
+        Xs.append(X[keep])
         uvs.append(uvh[:, :2] / uvh[:, 2:3])
         errs.append(err[keep])
     X, uv, err = np.concatenate(Xs), np.concatenate(uvs), np.concatenate(errs)

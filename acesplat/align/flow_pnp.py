@@ -108,6 +108,7 @@ TRACK_ALIGN = replace(
     sample_step_px=4,
     max_photo_diff=30.0,
     flow_preset="fast",
+    first_flow_scale=0.5,
     ransac_iterations=50,
     min_points=200,
     max_shift_m=0.1,
@@ -115,8 +116,8 @@ TRACK_ALIGN = replace(
     max_pairs=1000,
 )
 """Every frame while tracking (edge/tracking.py), against one keyframe from the predicted pose: a coarse sample grid,
-pairs whose gray levels differ are dropped (a blank frame is no match), at most 1000 pairs, one round; a prediction
-off by more than 10 cm is not refined (bench/tracking.md)."""
+pairs whose gray levels differ are dropped (a blank frame is no match), flow at half size, at most 1000 pairs, one
+round; a prediction off by more than 10 cm is not refined (bench/tracking.md)."""
 
 
 @dataclass(frozen=True)
