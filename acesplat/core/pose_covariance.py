@@ -40,7 +40,7 @@ def projection_jacobian(points: np.ndarray, intrinsics: Intrinsics, T_c2w: np.nd
     Jc[:, 1, 5] = -fy * x / z
     B = np.zeros((6, 6))
     B[:3, :3] = B[3:, 3:] = R.T
-    return Jc @ B
+    return np.einsum("nij,jk->nik", Jc, B)  # einsum, not BLAS: a thread pool for a 6x6 product costs more
 
 
 def pose_covariance(
@@ -80,7 +80,7 @@ def pose_covariance(
         var = float(np.sum((proj - uv) ** 2)) / dof
     else:
         var = float(sigma_px) ** 2
-    H = J.T @ J
+    H = np.einsum("ni,nj->ij", J, J)
     if not np.all(np.isfinite(H)) or np.linalg.cond(H) > 1e15:
         return None
     cov = var * np.linalg.inv(H)
