@@ -49,6 +49,8 @@ def outcome_line(out: FrameOutcome) -> dict:
             "state": TrackingState(rec.state).name,
             "ms": {k: round(v, 3) for k, v in out.times_ms.items()},
             "alignment": out.alignment,
+            "mode": out.mode,
+            "reset_counter": rec.reset_counter,
         }
     )
 

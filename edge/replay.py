@@ -32,12 +32,21 @@ def frame_result(o: FrameOutcome) -> FrameResult:
 
 
 def summarize(outcomes: Sequence[FrameOutcome], stats: RunStats | None = None) -> dict:
-    """The replay JSON: accuracy_summary keys, timing_ms per stage, and the loop's counters."""
+    """The replay JSON: accuracy_summary keys, timing_ms per stage, how the poses were made (tracked, scr,
+    reanchors: edge.tracking.MODES; resets; fallbacks from tracking to SCR and their reasons), the loop's counters."""
     s = accuracy_summary([frame_result(o) for o in outcomes])
     s["timing_ms"] = timing_summary(outcomes)
     tried = [o.alignment for o in outcomes if o.alignment is not None]
     if tried:
         s["keyframe_alignment"] = {k: tried.count(k) for k in sorted(set(tried))}
+    modes = [o.mode for o in outcomes]
+    s["tracked"] = modes.count("tracked")
+    s["scr"] = modes.count("scr")
+    s["reanchors"] = modes.count("reanchor")
+    s["resets"] = sum(o.reset for o in outcomes)
+    fell = [o.fallback for o in outcomes if o.fallback is not None]
+    s["fallbacks"] = len(fell)
+    s["fallback_reasons"] = {k: fell.count(k) for k in sorted(set(fell))}
     if stats is not None:
         s["skipped"] = stats.skipped
         s["skipped_frames"] = stats.skipped_frames
@@ -48,8 +57,9 @@ def summarize(outcomes: Sequence[FrameOutcome], stats: RunStats | None = None) -
 def replay_split(
     localizer: EdgeLocalizer, scene: str | Path, split: str = TEST, progress: Callable[[int, int], None] | None = None
 ) -> dict:
-    """Localize every frame of ``scene``/``split`` as fast as possible and compare with its poses (the summary
-    also names precision, input size, provider, onnxruntime version and CPU ISA: edge.inference.runtime_info)."""
+    """Localize every frame of ``scene``/``split`` in order (a sequence: the localizer tracks between frames when
+    it was made with tracking) as fast as possible and compare with its poses (the summary also names precision,
+    input size, provider, onnxruntime version, CPU ISA (edge.inference.runtime_info) and whether it tracked)."""
     source = ReplaySource(split_folder(scene, split, need_poses=True))
     n = len(source)
     outcomes: list[FrameOutcome] = []
@@ -63,5 +73,6 @@ def replay_split(
     out = summarize(outcomes, stats)
     out["precision"] = localizer.precision
     out["input_size"] = list(localizer.input_size)
+    out["tracking_enabled"] = localizer.tracker is not None
     out.update(runtime_info(localizer.session.provider))
     return out

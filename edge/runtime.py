@@ -1,9 +1,13 @@
 """Per-frame localization on the edge: prepare, infer, PnP, gate; with a timing for every stage.
 
 Stages (milliseconds): capture (source read and decode), preprocess (gray, undistort, crop,
-resize), inference (onnxruntime), pnp (RANSAC + LM + gate), align (with --align: the pose refined against
-the bundle's keyframes, acesplat.align.keyframe_align; 0 otherwise) and total (from the start of the
-capture to the pose, including any wait between capture and processing).
+resize), inference (onnxruntime; 0 on a tracked frame that skips it), pnp (RANSAC + LM + gate), align (with --align:
+the pose refined against the bundle's keyframes, acesplat.align.keyframe_align; with tracking: the tracked frame's
+alignment, edge.tracking; 0 otherwise) and total (from the start of the capture to the pose, including any wait
+between capture and processing).
+
+A frame runs in two phases, ``prepare`` (preprocess, the tracker's plan, inference unless the frame is tracked) and
+``solve`` (PnP + gate or the tracked alignment, covariance, record), so a pipeline can run them on two threads.
 """
 
 from __future__ import annotations
@@ -14,18 +18,23 @@ from typing import Any
 
 import numpy as np
 
-from acesplat.align.keyframe_align import align_scr_pose
+from acesplat.align.keyframe_align import Keyframe, align_scr_pose, scene_depth
 from acesplat.align.keyframe_set import bundle_keyframes
-from acesplat.core.bundle import Bundle
+from acesplat.core.bundle import ROLE_KEYFRAMES, Bundle
 from acesplat.core.camera import Intrinsics
 from acesplat.core.config import knob, knob_default
 from acesplat.core.errors import InputError
 from acesplat.core.gate import GateConfig, gate_result
+from acesplat.core.geometry import invert_pose
+from acesplat.core.grid import grid_correspondences
 from acesplat.core.pnp import PnPConfig, PnPResult, solve_from_grid
 from acesplat.core.pose import PoseRecord, TrackingState
+from acesplat.core.pose_covariance import pose_covariance
+from acesplat.core.pose_refine import reprojection
 from edge.frame_prep import FramePrep
 from edge.inference import ScrSession, SessionSettings
 from edge.sources import SourceFrame
+from edge.tracking import Plan, Tracker, TrackingConfig, frame_keyframe, track_to_keyframes
 
 STAGES = ("capture", "preprocess", "inference", "pnp", "align", "total")
 
@@ -43,7 +52,8 @@ class FrameOutcome:
     intrinsics: Intrinsics | None = None
     """Of the prepared network input (after undistortion, crop and resize)."""
     alignment: str | None = None
-    """With --align: the keyframe alignment's status ('aligned' or why the PnP pose was kept); None if not tried."""
+    """The alignment's status ('aligned' or why the pose it started from was kept; acesplat.align.flow_pnp.Alignment)
+    with --align or tracking; None if not tried."""
     frame: SourceFrame | None = None
     """The frame as captured (image, its intrinsics and distortion)."""
     gray: np.ndarray | None = None
@@ -52,6 +62,12 @@ class FrameOutcome:
     """Scene coordinates (h, w, 3) float32 the network predicted."""
     features: np.ndarray | None = None
     """The encoder features (C, h, w) when a tap needs them and the graph outputs them, else None."""
+    mode: str = "scr"
+    """How the pose was made (edge.tracking.MODES): 'scr', 'tracked' or 'reanchor'."""
+    fallback: str | None = None
+    """Why a frame that was to be tracked went to SCR (the alignment's status, or 'too_far'); None otherwise."""
+    reset: bool = False
+    """This re-anchor jumped from the tracked prediction (the record's reset_counter incremented)."""
 
     def without_data(self) -> FrameOutcome:
         """The same outcome without the per-frame arrays (frame, gray, coords, features): what a summary keeps."""
@@ -118,6 +134,7 @@ class EdgeLocalizer:
         pace_ms: float | None = None,
         provider: str = knob_default(SessionSettings, "provider"),
         gate: GateConfig | None = None,
+        tracking: TrackingConfig | None = None,
     ) -> None:
         if pace_ms is not None and not pace_ms > 0:
             raise ValueError(f"pace must be positive, got {pace_ms} ms")
@@ -134,6 +151,16 @@ class EdgeLocalizer:
         """The last frame's camera-to-world pose if it was TRACKING (the gate's motion check), else None."""
         self.keyframes = bundle_keyframes(bundle) if align else None
         """The bundle's keyframes when poses are refined against them (InputError at start if it has none)."""
+        self.tracker = Tracker(tracking) if tracking is not None and tracking.enabled else None
+        """Tracking between frames (edge.tracking), None: every frame solved alone."""
+        self.track_keyframes = (
+            (self.keyframes if self.keyframes is not None else bundle_keyframes(bundle))
+            if self.tracker and bundle.has(ROLE_KEYFRAMES)
+            else None
+        )
+        """The keyframes tracked frames align to; None: the last frame SCR solved is the reference."""
+        self._anchor: Keyframe | None = None
+        self._depth: float | None = None
         self.pace_ms = pace_ms
         """Each frame takes at least this long from its capture start (a replay then arrives at a camera's rate)."""
         self.taps: list[FrameTap] = []
@@ -176,46 +203,153 @@ class EdgeLocalizer:
             time.sleep(max(0.0, until - time.perf_counter()))
 
     def _localize(self, frame: SourceFrame, capture_ms: float, t_start: float | None) -> FrameOutcome:
+        return self.solve(self.prepare(frame, capture_ms, t_start))
+
+    def prepare(self, frame: SourceFrame, capture_ms: float = 0.0, t_start: float | None = None) -> Prepared:
+        """The first phase of a frame: preprocess, the tracker's plan, inference (skipped on a frame to be tracked
+        unless TrackingConfig.infer_tracked or a tap needs features). The plan is made from the tracker's state now:
+        run ``solve`` of the previous frame first, or the plan is one frame old."""
         if frame.intrinsics is None:
             raise InputError(None, f"frame {frame.name or frame.frame_id} has no intrinsics: pass --intrinsics FILE")
         t_start = time.perf_counter() - capture_ms / 1000.0 if t_start is None else t_start
         t0 = time.perf_counter()
         gray, intr = self.prep(frame.image, frame.intrinsics, frame.distortion)
         t1 = time.perf_counter()
-        if self.session.has_features and any(t.needs_features for t in self.taps):
-            coords, feats = self.session.run_with_features(gray)
+        plan = self.tracker.plan() if self.tracker is not None else Plan("scr")
+        p = Prepared(frame, gray, intr, plan, t_start, {"capture": capture_ms, "preprocess": (t1 - t0) * 1000.0})
+        needs_coords = any(t.needs_features for t in self.taps)  # e.g. refinement's keyframes
+        if plan.mode != "track" or self.tracker.config.infer_tracked or needs_coords:
+            self._infer(p)
         else:
-            coords, feats = self.session.run(gray), None
+            p.times["inference"] = 0.0
+        return p
+
+    def _infer(self, p: Prepared) -> None:
+        t1 = time.perf_counter()
+        if self.session.has_features and any(t.needs_features for t in self.taps):
+            p.coords, p.features = self.session.run_with_features(p.gray)
+        else:
+            p.coords, p.features = self.session.run(p.gray), None
+        p.times["inference"] = p.times.get("inference", 0.0) + (time.perf_counter() - t1) * 1000.0
+
+    def solve(self, p: Prepared) -> FrameOutcome:
+        """The second phase: the tracked alignment, or PnP + gate (then the re-anchor's alignment), the covariance and
+        the pose record."""
+        times = {**p.times, "pnp": 0.0, "align": 0.0}
+        plan, fallback = p.plan, p.plan.reason  # 'too_far': the prediction moved more than a frame is tracked
+        mode = "scr" if plan.mode == "scr" and fallback is None else "reanchor"
+        if plan.mode == "track":
+            t0 = time.perf_counter()
+            al = self._track(p, plan.prediction)
+            times["align"] = (time.perf_counter() - t0) * 1000.0
+            if al.status == "aligned":
+                self.tracker.tracked(al.pose)
+                res = PnPResult(al.pose, al.inliers, al.points, True)
+                rec = to_record(p.frame, res, al.covariance, self.tracker.reset_counter)
+                self.previous = al.pose
+                return self._outcome(p, rec, res, times, "tracked", al.status)
+            fallback, mode = al.status, "reanchor"
+            if p.coords is None:
+                self._infer(p)
+                times["inference"] = p.times["inference"]
         t2 = time.perf_counter()
         pnp = self.pnp.config()
-        res = solve_from_grid(coords, intr, stride=self.stride, config=pnp)
-        res = gate_result(res, coords, intr, pnp, self.stride, self.gate, self.previous)
+        res = solve_from_grid(p.coords, p.intr, stride=self.stride, config=pnp)
+        res = gate_result(res, p.coords, p.intr, pnp, self.stride, self.gate, self.previous)
         self.previous = res.T_c2w if res.localized else None
+        cov = None
+        if res.localized and res.T_c2w is not None:
+            cov = grid_covariance(p.coords, p.intr, self.stride, res.T_c2w, pnp.threshold_px)
         t3 = time.perf_counter()
+        times["pnp"] = (t3 - t2) * 1000.0
         status = None
-        if self.keyframes is not None and res.localized and res.T_c2w is not None:
-            al = align_scr_pose(gray, intr, coords, self.stride, res.T_c2w, self.keyframes.near)
-            res, status = replace(res, T_c2w=al.pose), al.status
-        t4 = time.perf_counter()
-        times = {
-            "capture": capture_ms,
-            "preprocess": (t1 - t0) * 1000.0,
-            "inference": (t2 - t1) * 1000.0,
-            "pnp": (t3 - t2) * 1000.0,
-            "align": (t4 - t3) * 1000.0,
-            "total": (t4 - t_start) * 1000.0,
-        }
+        if res.localized and res.T_c2w is not None:
+            if self.keyframes is not None:
+                al = align_scr_pose(p.gray, p.intr, p.coords, self.stride, res.T_c2w, self.keyframes.near)
+                res, status = replace(res, T_c2w=al.pose), al.status
+                cov = al.covariance if al.status == "aligned" else cov
+            elif self.track_keyframes is not None:
+                al = self._track(p, res.T_c2w)
+                res, status = replace(res, T_c2w=al.pose), al.status
+                cov = al.covariance if al.status == "aligned" else cov
+        times["align"] += (time.perf_counter() - t3) * 1000.0
+        reset = False
+        if self.tracker is not None:
+            reset = self.tracker.solved(res.T_c2w if res.localized else None, plan)
+            if res.localized and self.track_keyframes is None:
+                self._anchor = frame_keyframe(p.gray, p.intr, p.coords, self.stride, res.T_c2w, pnp.threshold_px)
+            if res.localized:
+                self._depth = scene_depth(grid_correspondences(p.coords, self.stride)[0], res.T_c2w)
+        rc = self.tracker.reset_counter if self.tracker is not None else 0
+        rec = to_record(p.frame, res, cov, rc)
+        return self._outcome(p, rec, res, times, mode, status, fallback, reset)
+
+    def _track(self, p: Prepared, start: np.ndarray):
+        """The tracked alignment of the prepared frame from ``start`` (4, 4) (acesplat.align.flow_pnp.Alignment)."""
+        cfg = self.tracker.config
+        if self.track_keyframes is not None:
+            refs = self.track_keyframes.near(start, k=cfg.keyframes, depth=self._depth)
+        else:
+            refs = [self._anchor] if self._anchor is not None else []
+        anchor = grid_correspondences(p.coords, self.stride) if p.coords is not None else None
+        return track_to_keyframes(p.gray, p.intr, start, refs, cfg.align, anchor)
+
+    def _outcome(
+        self,
+        p: Prepared,
+        rec: PoseRecord,
+        res: PnPResult,
+        times: dict[str, float],
+        mode: str,
+        status: str | None,
+        fallback: str | None = None,
+        reset: bool = False,
+    ) -> FrameOutcome:
+        times["total"] = (time.perf_counter() - p.t_start) * 1000.0
+        times = {s: times[s] for s in STAGES}
+        f = p.frame
         return FrameOutcome(
-            to_record(frame, res), res, times, frame.name, frame.gt_pose, intr, status, frame, gray, coords, feats
+            rec, res, times, f.name, f.gt_pose, p.intr, status, f, p.gray, p.coords, p.features, mode, fallback, reset
         )
 
 
-def to_record(frame: SourceFrame, res: PnPResult | None) -> PoseRecord:
+@dataclass
+class Prepared:
+    """A frame after the first phase (EdgeLocalizer.prepare): the network input ``gray`` (H, W) uint8 with its
+    intrinsics, the tracker's plan, and the scene coordinates (h, w, 3) unless the frame is to be tracked."""
+
+    frame: SourceFrame
+    gray: np.ndarray
+    intr: Intrinsics
+    plan: Plan
+    t_start: float
+    times: dict[str, float]
+    coords: np.ndarray | None = None
+    features: np.ndarray | None = None
+
+
+def grid_covariance(
+    coords: np.ndarray, intrinsics: Intrinsics, stride: int, T_c2w: np.ndarray, threshold_px: float
+) -> np.ndarray | None:
+    """The pose covariance (6, 6) from the SCR grid's inliers under ``T_c2w`` (acesplat.core.pose_covariance)."""
+    points, pixels = grid_correspondences(coords, stride)
+    finite = np.all(np.isfinite(points), axis=1)
+    points, pixels = points[finite], pixels[finite]
+    w2c = invert_pose(T_c2w)
+    _, _, err = reprojection(points, pixels, intrinsics.K, w2c[:3, :3], w2c[:3, 3])
+    inl = err < threshold_px
+    return pose_covariance(points[inl], pixels[inl], intrinsics, T_c2w)
+
+
+def to_record(
+    frame: SourceFrame, res: PnPResult | None, covariance: np.ndarray | None = None, reset_counter: int = 0
+) -> PoseRecord:
     """PoseRecord for the bridge and the logs; a frame that failed the gate is LOST (its pose, if any, is still
-    given)."""
+    given); ``covariance`` (6, 6) only travels with a TRACKING pose."""
     ts_us = int(round(frame.timestamp * 1e6))
     if res is None or res.T_c2w is None:
         T = np.full((4, 4), np.nan)
-        return PoseRecord(ts_us, T, 0, TrackingState.LOST, 0.0, frame.frame_id)
+        return PoseRecord(ts_us, T, 0, TrackingState.LOST, 0.0, frame.frame_id, reset_counter=reset_counter)
     state = TrackingState.TRACKING if res.localized else TrackingState.LOST
-    return PoseRecord(ts_us, res.T_c2w, res.inliers, state, float(res.inlier_ratio), frame.frame_id)
+    cov = covariance if res.localized else None
+    return PoseRecord(ts_us, res.T_c2w, res.inliers, state, float(res.inlier_ratio), frame.frame_id, cov, reset_counter)

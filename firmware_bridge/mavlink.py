@@ -24,7 +24,7 @@ from acesplat.core.config import knob, knob_default
 from acesplat.core.errors import InputError
 from acesplat.core.geometry import matrix_to_quat
 from acesplat.core.pose import PoseRecord, TrackingState
-from firmware_bridge.ned import CameraMount, matrix_to_euler, ned_converter
+from firmware_bridge.ned import CameraMount, matrix_to_euler, ned_converter, world_rotation
 from firmware_bridge.protocol import RuntimeState
 
 log = logging.getLogger(__name__)
@@ -46,8 +46,9 @@ def load_dialect() -> Any:
 class MavlinkConfig:
     """How poses become MAVLink messages.
 
-    ``pos_std_m``/``ang_std_rad`` fill the covariance diagonal; None sends "unknown" (NaN) so the
-    autopilot's own noise parameters (EKF2_EVP_NOISE/EKF2_EVA_NOISE, VISO_POS_M_NSE/VISO_YAW_M_NSE) apply.
+    A record's own covariance (PoseRecord.covariance) is sent when it has one; otherwise ``pos_std_m``/``ang_std_rad``
+    fill the covariance diagonal, and None sends "unknown" (NaN) so the autopilot's own noise parameters
+    (EKF2_EVP_NOISE/EKF2_EVA_NOISE, VISO_POS_M_NSE/VISO_YAW_M_NSE) apply.
     """
 
     message: str = knob("vision_position_estimate", "MAVLink message: vision_position_estimate or odometry.")
@@ -100,6 +101,48 @@ def covariance(pos_std_m: float | None, ang_std_rad: float | None) -> list[float
     return cov
 
 
+def upper_triangle(cov: np.ndarray) -> list[float]:
+    """The 21 row-major upper-triangle entries of a (6, 6) matrix (MAVLink's covariance layout)."""
+    cov = np.asarray(cov, np.float64)
+    if cov.shape != (6, 6):
+        raise ValueError(f"covariance must be (6, 6), got {cov.shape}")
+    return [float(cov[i, j]) for i in range(6) for j in range(i, 6)]
+
+
+def euler_rates(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """d(roll, pitch, yaw)/dw (3, 3) for a body -> NED rotation turned on the left, R -> exp([w]x) R (w in NED);
+    singular at pitch = +-90 deg (the Euler angles' gimbal lock)."""
+    cp, sp, cy, sy = math.cos(pitch), math.sin(pitch), math.cos(yaw), math.sin(yaw)
+    # w = E (d roll, d pitch, d yaw) for Z-Y-X Euler angles, E's columns the three axes in NED
+    E = np.array([[cy * cp, -sy, 0.0], [sy * cp, cy, 0.0], [-sp, 0.0, 1.0]])
+    return np.linalg.inv(E)
+
+
+def ned_covariance(
+    cov_world: np.ndarray, T_c2w: np.ndarray, mount: CameraMount, world_frame: str | np.ndarray
+) -> np.ndarray:
+    """A PoseRecord's covariance (6, 6) (camera centre in the world (m^2), then the left rotation vector (rad^2))
+    as MAVLink's (6, 6) of the body pose in local NED: x y z (m^2) then roll pitch yaw (rad^2)."""
+    A = world_rotation(world_frame)
+    T = np.asarray(T_c2w, np.float64)
+    R_ned_body = A @ T[:3, :3] @ mount.R_body_cam.T
+    # body origin in the camera frame: -R_body_cam^T t_body_cam; a left turn w moves it by -[R lever]x w
+    lever = T[:3, :3] @ (-mount.R_body_cam.T @ mount.t_body_cam)
+    skew = np.array([[0.0, -lever[2], lever[1]], [lever[2], 0.0, -lever[0]], [-lever[1], lever[0], 0.0]])
+    G = np.zeros((6, 6))
+    G[:3, :3] = A
+    G[:3, 3:] = -A @ skew
+    G[3:, 3:] = euler_rates(*matrix_to_euler(R_ned_body)) @ A
+    out = G @ np.asarray(cov_world, np.float64) @ G.T
+    return 0.5 * (out + out.T)
+
+
+def odometry_quality(rec: PoseRecord) -> int:
+    """ODOMETRY ``quality`` (1 worst .. 100 best; 0 is "unknown") of a TRACKING pose from its inliers: the record's
+    inlier ratio (SCR's PnP or the tracked alignment's) in percent, at least 1."""
+    return max(1, int(round(min(max(float(rec.quality), 0.0), 1.0) * 100)))
+
+
 class MavlinkEncoder:
     """Turns pose records into MAVLink 2 packets (one instance per link: it owns the packet sequence)."""
 
@@ -111,6 +154,7 @@ class MavlinkEncoder:
         self._cov = covariance(self.config.pos_std_m, self.config.ang_std_rad)
         self._nan_cov = covariance(None, None)
         self._lost = False
+        self._record_resets: int | None = None
         self.reset_counter = 0
 
     def pose(self, rec: PoseRecord) -> bytes | None:
@@ -118,17 +162,22 @@ class MavlinkEncoder:
         if rec.state != TrackingState.TRACKING or not np.all(np.isfinite(rec.T_c2w)):
             self._lost = True
             return None
-        if self._lost:  # relocalized after a loss: the pose may jump, tell the EKF
+        # relocalized after a loss, or the pose source re-anchored with a jump: tell the EKF
+        jumped = self._record_resets is not None and rec.reset_counter != self._record_resets
+        if self._lost or jumped:
             self.reset_counter = (self.reset_counter + 1) & 0xFF
             self._lost = False
+        self._record_resets = rec.reset_counter
+        cov = self._cov
+        if rec.covariance is not None and np.all(np.isfinite(rec.covariance)):
+            c = ned_covariance(rec.covariance, rec.T_c2w, self.config.mount, self.config.world_frame)
+            cov = upper_triangle(c)
         T = self._to_ned(np.asarray(rec.T_c2w, dtype=np.float64))
         x, y, z = T[:3, 3].tolist()
         usec = max(int(rec.timestamp_us), 0)
         if self.config.message == "vision_position_estimate":
             roll, pitch, yaw = matrix_to_euler(T[:3, :3])
-            msg = self._mav.vision_position_estimate_encode(
-                usec, x, y, z, roll, pitch, yaw, self._cov, self.reset_counter
-            )
+            msg = self._mav.vision_position_estimate_encode(usec, x, y, z, roll, pitch, yaw, cov, self.reset_counter)
         else:
             nan = math.nan
             msg = self._mav.odometry_encode(
@@ -145,11 +194,11 @@ class MavlinkEncoder:
                 nan,
                 nan,
                 nan,
-                self._cov,
+                cov,
                 self._nan_cov,
                 self.reset_counter,
                 self._m.MAV_ESTIMATOR_TYPE_VISION,
-                int(round(min(max(float(rec.quality), 0.0), 1.0) * 100)),
+                odometry_quality(rec),
             )
         return msg.pack(self._mav)
 

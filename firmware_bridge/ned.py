@@ -120,6 +120,11 @@ class CameraMount:
         return make_pose(self.R_body_cam, self.t_body_cam)
 
 
+def world_rotation(world_frame: str | np.ndarray = "enu") -> np.ndarray:
+    """R_ned_world (3, 3) of a map frame: a preset name (WORLD_FRAMES) or a rotation."""
+    return _rotation(world_frame, WORLD_FRAMES, "world frame")
+
+
 def ned_converter(mount: CameraMount, world_frame: str | np.ndarray = "enu") -> Callable[[np.ndarray], np.ndarray]:
     """``body_pose_ned`` with its two constant factors computed once (the MAVLink encoder runs it per pose)."""
     A = make_pose(_rotation(world_frame, WORLD_FRAMES, "world frame"), np.zeros(3))

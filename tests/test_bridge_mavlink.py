@@ -223,3 +223,53 @@ except InputError as e:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert out.returncode == 0, out.stderr
     assert "pip install 'acesplat-edge[mavlink]'" in out.stdout
+
+
+def _ned_state(T_c2w: np.ndarray, mount: CameraMount) -> np.ndarray:
+    T = body_pose_ned(T_c2w, mount, "enu")
+    return np.r_[T[:3, 3], matrix_to_euler(T[:3, :3])]
+
+
+def test_record_covariance_goes_to_ned_like_sampled_poses() -> None:
+    """The record's world covariance, converted to (x y z roll pitch yaw) in NED, matches the spread of the states
+    of poses sampled from it and converted one by one (the encoder's own conversion)."""
+    import cv2
+
+    from firmware_bridge.mavlink import ned_covariance, upper_triangle
+
+    rng = np.random.default_rng(0)
+    mount = CameraMount.preset("forward", offset_m=(0.2, -0.1, 0.05), pitch_deg=-15.0)
+    T = cam_pose((c10, -s10, 0), (0, 0, -1), (s10, c10, 0), (1.0, 2.0, 1.5))
+    L = rng.normal(size=(6, 6)) * np.r_[[0.02] * 3, [0.01] * 3][:, None]
+    C = L @ L.T
+    states = []
+    for d in rng.multivariate_normal(np.zeros(6), C, 20000):
+        Td = make_pose(cv2.Rodrigues(d[3:])[0] @ T[:3, :3], T[:3, 3] + d[:3])
+        states.append(_ned_state(Td, mount))
+    states = np.array(states)
+    states[:, 3:] = (states[:, 3:] - _ned_state(T, mount)[3:] + np.pi) % (2 * np.pi) - np.pi
+    mc = np.cov(states.T)
+    got = ned_covariance(C, T, mount, "enu")
+    scale = np.sqrt(np.outer(np.diag(got), np.diag(got)))
+    np.testing.assert_allclose(got / scale, mc / scale, atol=0.03)
+    enc = MavlinkEncoder(MavlinkConfig(mount=mount, pos_std_m=1.0, ang_std_rad=1.0))
+    (msg,) = _parse(enc.pose(PoseRecord(1, T, 100, TrackingState.TRACKING, 0.8, covariance=C)))
+    np.testing.assert_allclose(msg.covariance, upper_triangle(got), rtol=1e-5, atol=1e-12)
+    (msg,) = _parse(enc.pose(PoseRecord(2, T, 100, TrackingState.TRACKING, 0.8)))  # none: the configured diagonal
+    assert msg.covariance[0] == 1.0 and msg.covariance[1] == 0.0
+    with pytest.raises(ValueError, match=r"\(6, 6\)"):
+        upper_triangle(np.eye(5))
+
+
+def test_record_reset_counter_change_bumps_the_encoders_and_quality_is_the_inlier_ratio() -> None:
+    enc = MavlinkEncoder(MavlinkConfig(message="odometry"))
+    T = CASES[0][2]
+    first = _parse(enc.pose(PoseRecord(1, T, 100, TrackingState.TRACKING, 0.0, reset_counter=4)))[0]
+    assert first.reset_counter == 0 and first.quality == 1  # a TRACKING pose is never "unknown" (0)
+    same = _parse(enc.pose(PoseRecord(2, T, 100, TrackingState.TRACKING, 0.734, reset_counter=4)))[0]
+    assert same.reset_counter == 0 and same.quality == 73
+    jumped = _parse(enc.pose(PoseRecord(3, T, 100, TrackingState.TRACKING, 0.8, reset_counter=5)))[0]
+    assert jumped.reset_counter == 1
+    assert enc.pose(PoseRecord(4, T, 0, TrackingState.LOST, 0.0, reset_counter=5)) is None
+    back = _parse(enc.pose(PoseRecord(5, T, 100, TrackingState.TRACKING, 0.8, reset_counter=6)))[0]
+    assert back.reset_counter == 2  # a loss and a jump at once: one reset

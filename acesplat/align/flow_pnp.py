@@ -7,7 +7,8 @@ estimated pose (``align_to_render``: the edge refiner's keyframes). Either way t
 carries them to where the query shows them (forward-backward checked), PnP-RANSAC (+ LM) on the (3D point, query
 pixel) pairs gives the pose, and guards keep the start pose when there are too few points or inliers or the
 correction is too large to be a refinement. The thresholds are an ``AlignConfig``; ``KEYFRAME_ALIGN`` and
-``RENDER_ALIGN`` are the two references' settings (bench/herz_gap.md, bench/refine.md; costs in bench/align.md).
+``RENDER_ALIGN`` are the two references' settings (bench/herz_gap.md, bench/refine.md; costs in bench/align.md),
+``TRACK_ALIGN`` the edge tracker's cheap per-frame one (edge/tracking.py; bench/tracking.md).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import numpy as np
 from acesplat.core.camera import Intrinsics
 from acesplat.core.config import knob
 from acesplat.core.geometry import invert_pose, make_pose, pose_error
+from acesplat.core.pose_covariance import pose_covariance
 
 FLOW_PRESETS = {
     "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
@@ -44,6 +46,9 @@ class AlignConfig:
     )
     max_fb_error_px: float | None = knob(
         0.5, "Forward-backward flow disagreement above this marks an occlusion or mismatch (None: no check)."
+    )
+    max_photo_diff: float | None = knob(
+        None, "A pair whose gray levels (8-bit) differ by more than this is no match (a blank or covered query; None)."
     )
     reproj_px: float = knob(1.0, "PnP-RANSAC inlier threshold in query pixels (flow errors are sub-pixel).")
     ransac_iterations: int = knob(200, "PnP-RANSAC iterations.")
@@ -72,6 +77,8 @@ class AlignConfig:
     def __post_init__(self) -> None:
         if self.sample_step_px < 1 or self.ransac_iterations < 1 or self.rounds < 1 or self.min_points < 4:
             raise ValueError(f"sample_step_px, ransac_iterations, rounds must be >= 1 and min_points >= 4: {self}")
+        if self.max_photo_diff is not None and not self.max_photo_diff > 0:
+            raise ValueError(f"max_photo_diff must be > 0 or None, got {self.max_photo_diff}")
         if self.max_fb_error_px is not None and not self.max_fb_error_px > 0:
             raise ValueError(f"max_fb_error_px must be > 0 or None, got {self.max_fb_error_px}")
         if not (self.reproj_px > 0 and 0 <= self.min_inlier_ratio <= 1 and 0 < self.first_flow_scale <= 1):
@@ -96,6 +103,21 @@ RENDER_ALIGN = replace(
     rounds=1,
 )
 """The map rendered at the estimate (bench/refine.md): no forward-backward check, RANSAC alone, one round."""
+TRACK_ALIGN = replace(
+    KEYFRAME_ALIGN,
+    sample_step_px=4,
+    max_photo_diff=30.0,
+    flow_preset="fast",
+    first_flow_scale=0.5,
+    ransac_iterations=50,
+    min_points=200,
+    max_shift_m=0.1,
+    rounds=1,
+    max_pairs=1000,
+)
+"""Every frame while tracking (edge/tracking.py), against one keyframe from the predicted pose: a coarse sample grid,
+pairs whose gray levels differ are dropped (a blank frame is no match), flow at half size, at most 1000 pairs, one
+round; a prediction off by more than 10 cm is not refined (bench/tracking.md)."""
 
 
 @dataclass(frozen=True)
@@ -106,7 +128,8 @@ class Alignment:
     too few inliers); 'too_far' (the correction exceeded max_shift_*: the start pose was wrong, not imprecise);
     keyframes only: 'disagrees' (the refined pose lost the SCR correspondences' inliers); renders only: 'unlike'
     (the render does not resemble the image, or covers too little of it, to trust a flow between them).
-    points: pairs found (last round); inliers: PnP's among those it was given; mse: a render's against the image.
+    points: pairs found (last round); inliers: PnP's among those it was given; mse: a render's against the image;
+    covariance (6, 6): of an aligned pose, from the last round's inliers (acesplat.core.pose_covariance), else None.
     """
 
     pose: np.ndarray
@@ -116,6 +139,7 @@ class Alignment:
     shift_m: float = 0.0
     shift_deg: float = 0.0
     mse: float = float("nan")
+    covariance: np.ndarray | None = None
 
 
 def dis_flow(cfg: AlignConfig) -> cv2.DISOpticalFlow:
@@ -178,19 +202,25 @@ def flow_to_query(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Where ``query`` (H, W) uint8 shows the pixels ``at`` (M, 2) of ``ref`` (H, W) uint8: seen (M, 2), the
     forward-backward check's verdict keep (M,) bool (the seen pixel inside the query and the flow back within
-    ``cfg.max_fb_error_px``; all True without the check) and its error (M,) px (0 without the check).
+    ``cfg.max_fb_error_px``; all True without the check; with ``cfg.max_photo_diff`` also the two gray levels
+    alike) and its error (M,) px (0 without the check).
     ``scale`` < 1 computes the flow on downscaled images (coarse and cheaper)."""
     if ref.shape != query.shape or ref.ndim != 2:
         raise ValueError(f"reference {ref.shape} and query {query.shape} must be the same (H, W)")
     fwd, s = _flow(ref, query, flow, scale)
     seen = at + _flow_at(fwd, s, at)
+    like = np.ones(len(at), bool)
+    if cfg.max_photo_diff is not None:  # a textureless query flows nowhere, consistently: the gray levels tell
+        a = bilinear(ref[..., None].astype(np.float32), at[:, 0], at[:, 1])[:, 0]
+        b = bilinear(query[..., None].astype(np.float32), seen[:, 0], seen[:, 1])[:, 0]
+        like = np.abs(a - b) <= cfg.max_photo_diff
     if cfg.max_fb_error_px is None:
-        return seen, np.ones(len(at), bool), np.zeros(len(at))
+        return seen, like, np.zeros(len(at))
     h, w = query.shape
     bwd, s = _flow(query, ref, flow, scale)
     back = seen + _flow_at(bwd, s, seen)
     err = np.linalg.norm(back - at, axis=1)
-    keep = err < cfg.max_fb_error_px
+    keep = like & (err < cfg.max_fb_error_px)
     keep &= (seen[:, 0] >= 0) & (seen[:, 0] <= w - 1) & (seen[:, 1] >= 0) & (seen[:, 1] <= h - 1)
     return seen, keep, err
 
@@ -219,6 +249,7 @@ def refine_pose(
         raise ValueError(f"pose must be a finite (4, 4) camera-to-world, got shape {start.shape}")
     K = intrinsics.K
     pose, points, inliers = start, 0, 0
+    used: tuple[np.ndarray, np.ndarray] | None = None
     for r in range(cfg.rounds if rounds is None else rounds):
         X, uv, err = pairs(pose, r)
         points = len(X)
@@ -244,8 +275,9 @@ def refine_pose(
         inliers = 0 if inl is None else len(inl)
         if not ok or inliers < max(cfg.min_points, cfg.min_inlier_ratio * len(X)):
             return Alignment(start, "no_fit", points, inliers)
+        idx = inl[:, 0]
+        used = X[idx], uv[idx]
         if cfg.refine_lm:
-            idx = inl[:, 0]
             rvec, tvec = cv2.solvePnPRefineLM(X[idx], uv[idx], K, None, rvec, tvec)
         if not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
             return Alignment(start, "no_fit", points, inliers)
@@ -258,7 +290,8 @@ def refine_pose(
             if st < cfg.converged_m and sr < cfg.converged_deg:
                 break
     dt, dr = pose_error(pose, start)
-    return Alignment(pose, "aligned", points, inliers, dt, dr)
+    cov = pose_covariance(used[0], used[1], intrinsics, pose) if used is not None else None
+    return Alignment(pose, "aligned", points, inliers, dt, dr, covariance=cov)
 
 
 def gray8(rgb: np.ndarray) -> np.ndarray:

@@ -25,14 +25,15 @@ from edge.profile import ProfileOptions
 from edge.refine.session import RefineOptions
 from edge.runtime import STAGES, EdgeLocalizer, FrameOutcome, FrameTap, PnPSettings
 from edge.sources import SourceOptions, open_source
+from edge.tracking import TrackingConfig
 from firmware_bridge.sink import SinkConfig
 
 console = Console(stderr=True)
 
 
 def open_bundle(path: Path, precisions: list[str], align: bool = False) -> Bundle:
-    """Verify the manifest and the files that will be read: the models that run, the keyframes with --align (a
-    bundle without them is refused, in one line, when EdgeLocalizer reads them)."""
+    """Verify the manifest and the files that will be read: the models that run, the keyframes with --align or
+    tracking (with --align a bundle without them is refused, in one line, when EdgeLocalizer reads them)."""
     roles = [PRECISION_ROLES[p] for p in precisions]
     if align:
         from acesplat.core.bundle import ROLE_KEYFRAMES
@@ -57,6 +58,13 @@ def _pnp(method: str | None, min_inliers: int | None) -> PnPSettings:
             raise InputError(None, f"--min-inliers must be at least 4, got {min_inliers}")
         s.min_inliers = min_inliers
     return s
+
+
+def _tracking(on: bool, reanchor_every: int) -> TrackingConfig | None:
+    """The tracking settings of --tracking/--no-tracking and --reanchor-every (None: frames solved alone)."""
+    if reanchor_every < 1:
+        raise InputError(None, f"--reanchor-every must be at least 1, got {reanchor_every}")
+    return TrackingConfig(reanchor_every=reanchor_every) if on else None
 
 
 def _warn(msg: str) -> None:
@@ -140,6 +148,8 @@ def localize_command(
     budget_ms: float = option(RefineOptions, "budget_ms", "--budget-ms"),
     save_splat: Path | None = option(RefineOptions, "save_path", "--save-splat"),
     align: bool = typer.Option(False, "--align", help=ALIGN_HELP),
+    tracking: bool = option(TrackingConfig, "enabled", "--tracking/--no-tracking"),
+    reanchor_every: int = option(TrackingConfig, "reanchor_every", "--reanchor-every"),
     foxglove: int | None = typer.Option(None, "--foxglove", metavar="PORT", help=FOXGLOVE_HELP),
     foxglove_host: str = option(FoxgloveSettings, "host", "--foxglove-host"),
     mcap: Path | None = typer.Option(None, "--mcap", metavar="PATH", help=MCAP_HELP),
@@ -147,9 +157,10 @@ def localize_command(
     """Localize frames from a live or recorded source; Ctrl-C ends with a summary."""
     check_provider(provider)
     precision = "int8" if int8 else "fp32"
-    b = open_bundle(bundle, [precision], align)
+    b = open_bundle(bundle, [precision], align or tracking)
     calib = read_calibration_file(intrinsics) if intrinsics else None
-    loc = EdgeLocalizer(b, precision, threads, _pnp(pnp, min_inliers), align=align, provider=provider)
+    track = _tracking(tracking, reanchor_every)
+    loc = EdgeLocalizer(b, precision, threads, _pnp(pnp, min_inliers), align=align, provider=provider, tracking=track)
     src = open_source(source, SourceOptions(calibration=calib, input_size=b.input_size, realtime=realtime))
     fox = _foxglove_tap(loc, foxglove, mcap, foxglove_host)
     refiner = refine_session(refine, loc, b, budget_ms, save_splat, _warn)
@@ -166,8 +177,12 @@ def localize_command(
         bridge = BridgeTap(open_sink(serial, baud, protocol, rate))
         loc.add_tap(bridge)
     out_stream = sys.stdout
+    modes = {"tracked": 0, "scr": 0, "reanchor": 0, "resets": 0, "fallbacks": 0}
 
     def on_outcome(out: FrameOutcome) -> None:
+        modes[out.mode] += 1
+        modes["resets"] += out.reset
+        modes["fallbacks"] += out.fallback is not None
         if not quiet:
             out_stream.write(frame_text(out) + "\n")
             out_stream.flush()
@@ -190,6 +205,7 @@ def localize_command(
         refine_stats = refiner.close() if refiner is not None else None
         fox_stats = fox.close() if fox is not None else None
     summary = {"bundle": str(b.root), "source": src.description, "precision": precision, **rt, **stats.as_dict()}
+    summary.update(tracking_enabled=track is not None, reanchors=modes.pop("reanchor"), **modes)
     if fox_stats is not None:
         summary["foxglove"] = fox_stats
     if refine_stats is not None:
@@ -201,7 +217,8 @@ def localize_command(
     console.print(
         f"{ended}: {stats.frames} frames in {stats.seconds:.1f} s ({summary['fps']:.1f} fps), "
         f"{stats.tracking} tracking, "
-        f"{stats.lost} lost, {stats.dropped} dropped, {stats.skipped} unreadable skipped, "
+        f"{stats.lost} lost ({modes['tracked']} poses tracked, {summary['reanchors']} re-anchors, "
+        f"{modes['resets']} resets), {stats.dropped} dropped, {stats.skipped} unreadable skipped, "
         f"{stats.disconnects} disconnects ({stats.gap_s:.1f} s without frames)"
     )
     report_json(json_out, summary)
@@ -262,17 +279,21 @@ def replay_command(
     budget_ms: float = option(RefineOptions, "budget_ms", "--budget-ms"),
     save_splat: Path | None = option(RefineOptions, "save_path", "--save-splat"),
     align: bool = typer.Option(False, "--align", help=ALIGN_HELP),
+    tracking: bool = option(TrackingConfig, "enabled", "--tracking/--no-tracking"),
+    reanchor_every: int = option(TrackingConfig, "reanchor_every", "--reanchor-every"),
     foxglove: int | None = typer.Option(None, "--foxglove", metavar="PORT", help=FOXGLOVE_HELP),
     foxglove_host: str = option(FoxgloveSettings, "host", "--foxglove-host"),
     mcap: Path | None = typer.Option(None, "--mcap", metavar="PATH", help=MCAP_HELP),
 ) -> None:
-    """Replay a posed split: `acesplat eval`'s accuracy plus per-stage timing statistics."""
+    """Replay a posed split in order, tracking between frames as on a live source (--no-tracking: each frame
+    alone): `acesplat eval`'s accuracy, per-stage timing statistics and how each pose was made."""
     from edge.replay import replay_split
 
     check_provider(provider)
     precision = "int8" if int8 else "fp32"
-    b = open_bundle(bundle, [precision], align)
-    loc = EdgeLocalizer(b, precision, threads, _pnp(pnp, None), align=align, provider=provider)
+    b = open_bundle(bundle, [precision], align or tracking)
+    track = _tracking(tracking, reanchor_every)
+    loc = EdgeLocalizer(b, precision, threads, _pnp(pnp, None), align=align, provider=provider, tracking=track)
     fox = _foxglove_tap(loc, foxglove, mcap, foxglove_host)
     refiner = refine_session(refine, loc, b, budget_ms, save_splat, _warn, evaluate=True)
     with PhaseProgress("replay ") as bar:
@@ -311,6 +332,12 @@ def replay_command(
             {precision: 1000.0 / s["timing_ms"]["total"]["mean"] if s["frames"] else 0.0},
         )
     )
+    if s["tracking_enabled"]:
+        console.print(
+            f"tracking: {s['tracked']} tracked, {s['scr']} scr, {s['reanchors']} re-anchors "
+            f"({s['fallbacks']} fallbacks from tracking: "
+            f"{', '.join(f'{k} {v}' for k, v in s['fallback_reasons'].items()) or 'none'}), {s['resets']} resets"
+        )
     if s.get("skipped"):
         console.print(f"[yellow]{s['skipped']} unreadable frames skipped[/yellow]: {', '.join(s['skipped_frames'])}")
     if "refine" in s:
