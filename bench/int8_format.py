@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -31,15 +32,17 @@ VARIANTS = [
 """(form, types, per_channel, reduce_range)."""
 
 
-def _time_ms(sess, gray: np.ndarray, runs: int) -> float:
-    for _ in range(3):
-        sess.run(gray)
-    ts = []
+def _time_ms(sessions: dict, gray: np.ndarray, runs: int) -> dict[str, float]:
+    """Median ms per session, the sessions interleaved round by round so a changing load hits them alike."""
+    for s in sessions.values():
+        s.run(gray)
+    ts: dict[str, list[float]] = {k: [] for k in sessions}
     for _ in range(runs):
-        t0 = time.perf_counter()
-        sess.run(gray)
-        ts.append((time.perf_counter() - t0) * 1000.0)
-    return statistics.median(ts)
+        for k, s in sessions.items():
+            t0 = time.perf_counter()
+            s.run(gray)
+            ts[k].append((time.perf_counter() - t0) * 1000.0)
+    return {k: statistics.median(v) for k, v in ts.items()}
 
 
 def main() -> None:
@@ -50,6 +53,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--runs", type=int, default=15)
     ap.add_argument("--calibration", type=int, default=32)
+    ap.add_argument("--frames", type=int, default=16, help="Test frames compared (evenly spaced).")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
 
@@ -75,11 +79,12 @@ def main() -> None:
     export_scr_onnx(net, size, fp32)
     train, test = read_split(args.scene, "train"), read_split(args.scene, "test")
     calib = [c.gray for c in prepare_frames(evenly(train.frames, args.calibration), size)]
-    frames = prepare_frames(test.frames, size)
+    frames = prepare_frames(evenly(test.frames, args.frames), size)
     ref = ScrSession(fp32, size, args.threads)
     refs = [ref.run(f.gray) for f in frames]
     ref_poses = [solve_from_grid(c, f.intrinsics).T_c2w for c, f in zip(refs, frames, strict=True)]
-    rows = [{"variant": "fp32", "ms": _time_ms(ref, frames[0].gray, args.runs)}]
+    rows = [{"variant": "fp32"}]
+    sessions = {"fp32": ref}
     gt = [pose_error(p, f.pose) for p, f in zip(ref_poses, frames, strict=True) if p is not None]
     rows[0]["gt_median_cm"] = 100 * float(np.median([t for t, _ in gt]))
     for form, types, pc, rr in VARIANTS:
@@ -110,11 +115,14 @@ def main() -> None:
             "pose_median_deg": float(np.median(dr)) if dr else None,
             "pose_max_deg": float(np.max(dr)) if dr else None,
             "gt_median_cm": 100 * float(np.median(gt)) if gt else None,
-            "ms": _time_ms(sess, frames[0].gray, args.runs),
             "quantize_s": q_s,
         }
         rows.append(row)
+        sessions[name] = sess
         print(json.dumps(row), flush=True)
+    ms = _time_ms(sessions, frames[0].gray, args.runs)
+    for r in rows:
+        r["ms"] = ms[r["variant"]]
     header = {
         "map": str(args.map),
         "scene": str(args.scene),
@@ -124,9 +132,12 @@ def main() -> None:
         "onnxruntime": ort.__version__,
         "threads": args.threads,
         "machine": machine_line(),
+        "command": " ".join(["python -P bench/int8_format.py", *sys.argv[1:]]),
     }
     print(json.dumps(header))
-    print("| format | coord median / p90 (cm) | pose median / max (cm) | pose median / max (deg) | GT median (cm) | ms |")
+    print(
+        "| format | coord median / p90 (cm) | pose median / max (cm) | pose median / max (deg) | GT median (cm) | ms |"
+    )
     print("|---|---|---|---|---|---|")
 
     def f(v, p=2):
