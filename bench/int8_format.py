@@ -28,6 +28,8 @@ VARIANTS = [
     ("qoperator", "u8s8", True, True),
     ("qoperator", "s8s8", True, False),
     ("qoperator", "u8u8", True, False),
+    ("qdq", "u8u8", False, False),
+    ("qdq", "u8s8", False, True),
 ]
 """(form, types, per_channel, reduce_range)."""
 
@@ -54,6 +56,7 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=15)
     ap.add_argument("--calibration", type=int, default=32)
     ap.add_argument("--frames", type=int, default=16, help="Test frames compared (evenly spaced).")
+    ap.add_argument("--only", nargs="*", default=None, help="Variants by index into VARIANTS (default: all).")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
 
@@ -87,7 +90,8 @@ def main() -> None:
     sessions = {"fp32": ref}
     gt = [pose_error(p, f.pose) for p, f in zip(ref_poses, frames, strict=True) if p is not None]
     rows[0]["gt_median_cm"] = 100 * float(np.median([t for t, _ in gt]))
-    for form, types, pc, rr in VARIANTS:
+    chosen = VARIANTS if args.only is None else [VARIANTS[int(i)] for i in args.only]
+    for form, types, pc, rr in chosen:
         name = f"{form} {types}{' per-channel' if pc else ' per-tensor'}{' reduce_range' if rr else ''}"
         path = args.work / f"{form}_{types}_{int(pc)}{int(rr)}.onnx"
         t0 = time.perf_counter()
