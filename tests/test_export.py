@@ -77,7 +77,7 @@ def test_int8_graph_is_quantized(tiny) -> None:
     ops = [n.op_type for n in g.node]
     assert ops.count("QuantizeLinear") > 5 and "DequantizeLinear" in ops
     assert [o.name for o in g.output] == ["coords", "features"]  # the quantizer keeps both outputs
-    # weights are int8 per channel, activations uint8 (U8S8)
+    # activations uint8 (U8U8 by default: ExportOptions.int8_types)
     inits = {i.name: i for i in g.initializer}
     q_types = {
         inits[n.input[2]].data_type
