@@ -108,7 +108,7 @@ class FrameTap:
 class PnPSettings:
     """The edge's PnP solver (acesplat.core.pnp.solve_from_grid)."""
 
-    method: str = knob("ransac_ap3p", "PnP method (the measured choice: bench/pnp_choice.md).")
+    method: str = knob(knob_default(PnPConfig, "method"), "PnP method (PnPConfig's: bench/pnp_speed.md).")
     min_inliers: int = knob(knob_default(PnPConfig, "min_inliers"), "Inlier floor of TRACKING (PnPConfig's).")
     iterations: int = knob(256, "RANSAC cap: a lost frame costs a third of the desktop's (bench/pnp_choice.md).")
     extra: dict = knob(reason="Further keyword arguments of solve_from_grid.", factory=dict)
@@ -254,7 +254,10 @@ class EdgeLocalizer:
                 times["inference"] = p.times["inference"]
         t2 = time.perf_counter()
         pnp = self.pnp.config()
-        res = solve_from_grid(p.coords, p.intr, stride=self.stride, config=pnp)
+        # A scheduled re-anchor starts from the prediction (RANSAC is skipped only if the prediction explains the
+        # cells: acesplat.core.pnp); a fallback or a first frame solves from scratch.
+        prior = plan.prediction if plan.mode == "reanchor" and fallback is None else None
+        res = solve_from_grid(p.coords, p.intr, stride=self.stride, config=pnp, prior_c2w=prior)
         res = gate_result(res, p.coords, p.intr, pnp, self.stride, self.gate, self.previous)
         self.previous = res.T_c2w if res.localized else None
         cov = None

@@ -15,11 +15,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from onnxruntime import __version__ as ort_version
 
 from acesplat import __version__
 from acesplat.align.keyframe_set import save_keyframes
 from acesplat.core.bundle import (
     MANIFEST_NAME,
+    ROLE_INT8_CHECK,
     ROLE_KEYFRAMES,
     ROLE_SCR_FP32,
     ROLE_SCR_INT8,
@@ -29,20 +31,23 @@ from acesplat.core.bundle import (
     write_manifest,
 )
 from acesplat.core.camera import Intrinsics
+from acesplat.core.check_frames import CheckFrames, deviation, save_check_frames
 from acesplat.core.errors import InputError
 from acesplat.core.grid import DENSE_OUTPUT_STRIDE, OUTPUT_STRIDE
+from acesplat.core.machine import cpu_isa
 from acesplat.core.preprocess import size_for_short_side
 from acesplat.core.scene import IMAGE_SUFFIXES, SceneSplit, image_size, read_split
 from acesplat.scr.mapfile import encoder_for_map, load_map
 from acesplat.scr.network import GRAY_MEAN, GRAY_STD
-from export.checks import CheckFrame, fp32_parity, localization_accuracy, prepare_frames
+from export.checks import CheckFrame, fp32_parity, localization_accuracy, onnx_coords, onnx_session, prepare_frames
 from export.onnx_graph import FEATURES_NAME, INPUT_NAME, OPSET, OUTPUT_NAME, export_scr_onnx
-from export.options import ExportOptions
+from export.options import ExportOptions, check_int8_options, int8_scheme_text
 from export.quantize import quantize_int8
 
 FP32_FILE = "scr.onnx"
 KEYFRAMES_FILE = "keyframes.npz"
 INT8_FILE = "scr.int8.onnx"
+CHECK_FILE = "int8_check.npz"
 PARITY_FRAMES = 8
 """Frames the FP32 graph is compared with torch on."""
 
@@ -107,11 +112,39 @@ def _swap_into_place(tmp: Path, out: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
+def _write_check_frames(tmp: Path, frames: list, size: tuple[int, int], stride: int) -> dict:
+    """Store ``frames`` prepared at ``size`` with their FP32 and INT8 coordinates in the bundle written at ``tmp``;
+    the INT8-vs-FP32 deviation on this machine (what `acesplat-edge check` compares the device with)."""
+    prepared = prepare_frames(frames, size)
+    fp32, int8 = onnx_session(tmp / FP32_FILE), onnx_session(tmp / INT8_FILE)
+    ref = [onnx_coords(fp32, f.gray).astype(np.float32) for f in prepared]
+    q = [onnx_coords(int8, f.gray).astype(np.float32) for f in prepared]
+    intr = [f.intrinsics for f in prepared]
+    save_check_frames(
+        tmp / CHECK_FILE,
+        CheckFrames(
+            [f.name for f in prepared],
+            np.stack([f.gray for f in prepared]),
+            np.stack([i.K for i in intr]),
+            np.stack(ref),
+            np.stack(q),
+            stride,
+        ),
+    )
+    return {
+        **deviation(ref, q, intr, stride),
+        "units": "scene units (metres) and degrees",
+        "cpu_isa": cpu_isa(),
+        "onnxruntime": ort_version,
+    }
+
+
 def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: ProgressFn | None = None) -> ExportReport:
     """Export ``map_path`` to the bundle directory ``out``; returns the manifest written."""
     t_start = time.monotonic()
     map_path, out = Path(map_path), Path(out)
     _prepare_out(out)
+    check_int8_options(opts)
     m = load_map(map_path)
     enc = encoder_for_map(m, map_path, opts.encoder_path)
     net = m.network(enc)
@@ -175,12 +208,27 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
             calib = prepare_frames(evenly(train.frames, opts.calibration_frames), size)
             if progress:
                 progress("quantize int8", 0.0, {"images": len(calib)})
-            quantize_int8(tmp / FP32_FILE, tmp / INT8_FILE, [c.gray for c in calib])
+            quantize_int8(
+                tmp / FP32_FILE,
+                tmp / INT8_FILE,
+                [c.gray for c in calib],
+                quant_format=opts.int8_format,
+                types=opts.int8_types,
+                per_channel=opts.int8_per_channel,
+                reduce_range=opts.int8_reduce_range,
+            )
             timings["quantize_int8_s"] = time.monotonic() - t0
             if progress:
                 progress("quantize int8", 1.0, {"images": len(calib)})
             files.append(describe_file(tmp, INT8_FILE, ROLE_SCR_INT8))
             checks["int8_calibration_frames"] = len(calib)
+            if opts.check_frames > 0:
+                t0 = time.monotonic()
+                checks["int8_vs_fp32"] = _write_check_frames(
+                    tmp, evenly((test or train).frames, opts.check_frames), size, stride
+                )
+                files.append(describe_file(tmp, CHECK_FILE, ROLE_INT8_CHECK))
+                timings["check_frames_s"] = time.monotonic() - t0
             if test is not None:
                 t0 = time.monotonic()
                 test_frames = prepare_frames(test.frames, size)
@@ -255,12 +303,7 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
                 "head": m.head.cfg.as_dict(),
                 "opset": OPSET,
                 "precisions": ["fp32"] + (["int8"] if opts.int8 else []),
-                "int8_scheme": (
-                    "onnxruntime static QDQ, per-channel weights, U8S8, last conv and head tail in float; "
-                    "features output dequantized from uint8"
-                )
-                if opts.int8
-                else None,
+                "int8_scheme": int8_scheme_text(opts) if opts.int8 else None,
             },
             "checks": checks,
         }

@@ -6,6 +6,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from acesplat.core.config import knob
+from acesplat.core.errors import InputError
+
+INT8_FORMATS = ("qdq", "qoperator")
+"""onnxruntime's two quantized graph forms: QuantizeLinear/DequantizeLinear pairs, or QLinear* operators."""
+INT8_TYPES = ("u8s8", "s8s8", "u8u8")
+"""Activation and weight integer types (u = uint8, s = int8), activations first."""
 
 
 @dataclass
@@ -19,6 +25,17 @@ class ExportOptions:
     calibration_frames: int = knob(
         32, "Training images that calibrate the INT8 ranges (evenly spaced); more barely moves MinMax ranges."
     )
+    int8_format: str = knob("qdq", "INT8 graph form: qdq or qoperator (bench/int8_format.md).")
+    int8_types: str = knob(
+        "u8u8", "INT8 activation/weight types: u8s8, s8s8 or u8u8 (least FP32 deviation on AVX2: bench/int8_format.md)."
+    )
+    int8_per_channel: bool = knob(True, "One INT8 weight scale per output channel (bench/int8_format.md).")
+    int8_reduce_range: bool = knob(
+        False, "7-bit weights, which cannot saturate U8S8 products on CPUs without VNNI (bench/int8_format.md)."
+    )
+    check_frames: int = knob(
+        4, "Test (else training) frames stored with their FP32 coordinates for `acesplat-edge check`."
+    )
     dense: bool = knob(
         False,
         "Coordinates every 4th pixel instead of every 8th (as `acesplat eval --dense`): "
@@ -29,3 +46,23 @@ class ExportOptions:
         "Carry the training images with their depth, so the edge can "
         "refine poses against them (acesplat-edge replay/localize --align).",
     )
+
+
+def int8_scheme_text(opts: ExportOptions) -> str:
+    """The INT8 scheme in words, as the manifest records it."""
+    return (
+        f"onnxruntime static {opts.int8_format.upper()}, "
+        f"{'per-channel' if opts.int8_per_channel else 'per-tensor'} weights, {opts.int8_types.upper()}"
+        f"{', reduce_range' if opts.int8_reduce_range else ''}, last convs and head tail in float; "
+        "features output dequantized"
+    )
+
+
+def check_int8_options(opts: ExportOptions) -> None:
+    """InputError in one line, naming the choices, when an INT8 knob has an unknown value."""
+    if opts.int8_format not in INT8_FORMATS:
+        raise InputError(None, f"--int8-format must be one of {', '.join(INT8_FORMATS)}, got {opts.int8_format!r}")
+    if opts.int8_types not in INT8_TYPES:
+        raise InputError(None, f"--int8-types must be one of {', '.join(INT8_TYPES)}, got {opts.int8_types!r}")
+    if opts.check_frames < 0:
+        raise InputError(None, f"--check-frames must be non-negative, got {opts.check_frames}")

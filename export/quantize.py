@@ -1,8 +1,6 @@
-"""Static INT8 quantization of the SCR graph with onnxruntime: QDQ, per-channel weights, U8S8.
-
-U8S8 (uint8 activations, int8 weights) in QDQ form is what onnxruntime's x86 kernels run fastest;
-S8S8 QOperator is slower (bench/export.md). The head's residual block, fc1-fc3 and its tail (homogeneous
-division, clamp, mean offset) stay in float: quantizing metric coordinates to 8 bits would cost
+"""Static INT8 quantization of the SCR graph with onnxruntime, in the scheme ExportOptions names (form, types,
+per-channel, reduce_range; the default chosen in bench/int8_format.md). The head's residual block, fc1-fc3 and its
+tail (homogeneous division, clamp, mean offset) stay in float: quantizing metric coordinates to 8 bits would cost
 centimetres by itself (FLOAT_HEAD_CONVS).
 """
 
@@ -24,7 +22,18 @@ from onnxruntime.quantization import (
 from onnxruntime.quantization.shape_inference import quant_pre_process
 
 from acesplat.core.atomic import atomic_path
+from acesplat.core.config import knob_default
 from export.onnx_graph import INPUT_NAME
+from export.options import INT8_FORMATS, INT8_TYPES, ExportOptions
+
+_FORMATS = dict(zip(INT8_FORMATS, (QuantFormat.QDQ, QuantFormat.QOperator), strict=True))
+_TYPES = dict(
+    zip(
+        INT8_TYPES,
+        ((QuantType.QUInt8, QuantType.QInt8), (QuantType.QInt8, QuantType.QInt8), (QuantType.QUInt8, QuantType.QUInt8)),
+        strict=True,
+    )
+)
 
 
 class _Images(CalibrationDataReader):
@@ -59,14 +68,24 @@ def quantize_int8(
     method: CalibrationMethod = CalibrationMethod.MinMax,
     float_tail: bool = True,
     float_convs: int = FLOAT_HEAD_CONVS,
+    quant_format: str = knob_default(ExportOptions, "int8_format"),
+    types: str = knob_default(ExportOptions, "int8_types"),
+    per_channel: bool = knob_default(ExportOptions, "int8_per_channel"),
+    reduce_range: bool = knob_default(ExportOptions, "int8_reduce_range"),
 ) -> Path:
     """Quantize the FP32 model at ``fp32_path`` using ``calibration`` grayscale images (H, W) uint8.
 
     ``float_tail=False`` quantizes the last convolution too; ``float_convs`` keeps that many trailing
-    convolutions (the head's) in float (bench/export.md).
+    convolutions (the head's) in float (bench/export.md). ``quant_format`` ('qdq' or 'qoperator'), ``types``
+    ('u8s8', 's8s8', 'u8u8': activations then weights), ``per_channel`` and ``reduce_range`` are onnxruntime's.
     """
     if not calibration:
         raise ValueError("INT8 calibration needs at least one image")
+    if quant_format not in _FORMATS:
+        raise ValueError(f"quant_format must be one of {', '.join(_FORMATS)}, got {quant_format!r}")
+    if types not in _TYPES:
+        raise ValueError(f"types must be one of {', '.join(_TYPES)}, got {types!r}")
+    act_type, weight_type = _TYPES[types]
     out_path = Path(out_path)
     with tempfile.TemporaryDirectory() as td:
         pre = Path(td) / "pre.onnx"
@@ -77,16 +96,17 @@ def quantize_int8(
                 str(pre),
                 str(tmp),
                 _Images(calibration),
-                quant_format=QuantFormat.QDQ,
-                per_channel=True,
-                activation_type=QuantType.QUInt8,
-                weight_type=QuantType.QInt8,
+                quant_format=_FORMATS[quant_format],
+                per_channel=per_channel,
+                reduce_range=reduce_range,
+                activation_type=act_type,
+                weight_type=weight_type,
                 op_types_to_quantize=["Conv", "Relu", "Add"],
                 nodes_to_quantize=_with_followers(model, conv_nodes_to_quantize(model, float_convs))
                 if float_tail
                 else None,
                 calibrate_method=method,
-                extra_options={"ActivationSymmetric": False, "WeightSymmetric": True},
+                extra_options={"ActivationSymmetric": False, "WeightSymmetric": weight_type == QuantType.QInt8},
             )
     return out_path
 

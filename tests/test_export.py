@@ -23,7 +23,7 @@ def test_manifest_describes_the_bundle(tiny) -> None:
     assert m["scr"]["normalization"]["mean"] == 0.4 and m["scr"]["normalization"]["std"] == 0.25
     assert len(m["scr"]["mean_offset"]) == 3
     assert m["scr"]["encoder"]["sha256"] == file_sha256(tiny["encoder"])  # the encoder the map was trained with
-    assert {f.role for f in b.files.values()} == {"scr_fp32", "scr_int8"}
+    assert {f.role for f in b.files.values()} == {"scr_fp32", "scr_int8", "int8_check"}
     assert m["format_version"] == 2
     assert m["scr"]["features"]["name"] == "features" and m["scr"]["features"]["shape"] == [1, 32, 8, 10]
     assert m["created_by"].startswith("acesplat-edge") and m["scene"]["name"] == "room"
@@ -77,7 +77,7 @@ def test_int8_graph_is_quantized(tiny) -> None:
     ops = [n.op_type for n in g.node]
     assert ops.count("QuantizeLinear") > 5 and "DequantizeLinear" in ops
     assert [o.name for o in g.output] == ["coords", "features"]  # the quantizer keeps both outputs
-    # weights are int8 per channel, activations uint8 (U8S8)
+    # activations uint8 (U8U8 by default: ExportOptions.int8_types)
     inits = {i.name: i for i in g.initializer}
     q_types = {
         inits[n.input[2]].data_type

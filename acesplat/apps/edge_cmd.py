@@ -1,4 +1,4 @@
-"""`acesplat-edge localize | replay | profile | record`: thin wrappers over the runtime modules."""
+"""`acesplat-edge localize | replay | profile | record | check`: thin wrappers over the runtime modules."""
 
 from __future__ import annotations
 
@@ -20,6 +20,7 @@ from acesplat.core.pose import TrackingState
 from edge.calibration import read_calibration_file
 from edge.foxglove_tap import FoxgloveSettings
 from edge.inference import SessionSettings, check_provider, default_threads, runtime_info
+from edge.int8_check import Int8CheckConfig
 from edge.loop import LoopEvent, run_loop
 from edge.profile import ProfileOptions
 from edge.refine.session import RefineOptions
@@ -153,11 +154,13 @@ def localize_command(
     foxglove: int | None = typer.Option(None, "--foxglove", metavar="PORT", help=FOXGLOVE_HELP),
     foxglove_host: str = option(FoxgloveSettings, "host", "--foxglove-host"),
     mcap: Path | None = typer.Option(None, "--mcap", metavar="PATH", help=MCAP_HELP),
+    skip_int8_check: bool = option(Int8CheckConfig, "skip", "--skip-int8-check"),
 ) -> None:
     """Localize frames from a live or recorded source; Ctrl-C ends with a summary."""
     check_provider(provider)
     precision = "int8" if int8 else "fp32"
     b = open_bundle(bundle, [precision], align or tracking)
+    int8_gate(b, int8, skip_int8_check, threads, provider)
     calib = read_calibration_file(intrinsics) if intrinsics else None
     track = _tracking(tracking, reanchor_every)
     loc = EdgeLocalizer(b, precision, threads, _pnp(pnp, min_inliers), align=align, provider=provider, tracking=track)
@@ -284,6 +287,7 @@ def replay_command(
     foxglove: int | None = typer.Option(None, "--foxglove", metavar="PORT", help=FOXGLOVE_HELP),
     foxglove_host: str = option(FoxgloveSettings, "host", "--foxglove-host"),
     mcap: Path | None = typer.Option(None, "--mcap", metavar="PATH", help=MCAP_HELP),
+    skip_int8_check: bool = option(Int8CheckConfig, "skip", "--skip-int8-check"),
 ) -> None:
     """Replay a posed split in order, tracking between frames as on a live source (--no-tracking: each frame
     alone): `acesplat eval`'s accuracy, per-stage timing statistics and how each pose was made."""
@@ -292,6 +296,7 @@ def replay_command(
     check_provider(provider)
     precision = "int8" if int8 else "fp32"
     b = open_bundle(bundle, [precision], align or tracking)
+    int8_gate(b, int8, skip_int8_check, threads, provider)
     track = _tracking(tracking, reanchor_every)
     loc = EdgeLocalizer(b, precision, threads, _pnp(pnp, None), align=align, provider=provider, tracking=track)
     fox = _foxglove_tap(loc, foxglove, mcap, foxglove_host)
@@ -456,3 +461,81 @@ def record_command(
         + (", no intrinsics (pass --intrinsics when replaying)" if stats.without_intrinsics else "")
     )
     report_json(json_out, {"out": str(out), **stats.as_dict()})
+
+
+def int8_gate(b: Bundle, int8: bool, skip: bool, threads: int | None, provider: str) -> None:
+    """With --int8: the on-device INT8 check once before the run; one line (exit 2) when INT8 deviates past the
+    bound (edge.int8_check.require_int8); a warning when skipped."""
+    if not int8:
+        return
+    if skip:
+        _warn("INT8 check skipped (--skip-int8-check): INT8 runs unverified on this CPU")
+        return
+    from edge.int8_check import require_int8
+
+    rep = require_int8(_for_check(b.root), Int8CheckConfig(), threads, provider)
+    console.print(rep.line())
+
+
+@one_line_errors
+def check_command(
+    bundle: Path = typer.Argument(..., help="Bundle directory exported with --int8."),
+    json_out: Path | None = typer.Option(None, "--json", help="Write the report here."),
+    frames: int = option(Int8CheckConfig, "frames"),
+    tolerance: float = option(Int8CheckConfig, "tolerance"),
+    slack: float = option(Int8CheckConfig, "slack"),
+    slack_deg: float = option(Int8CheckConfig, "slack_deg", "--slack-deg"),
+    threads: int | None = typer.Option(None, help="onnxruntime intra-op threads (default: all cores)."),
+    provider: str = option(SessionSettings, "provider"),
+) -> None:
+    """Verify the bundle's INT8 model on this CPU: its stored frames through FP32 and INT8, against the export's
+    figures; exit 1 when INT8 deviates past the bound."""
+    from edge.int8_check import check_int8
+
+    check_provider(provider)
+    b = _for_check(bundle)
+    cfg = Int8CheckConfig(frames=frames, tolerance=tolerance, slack=slack, slack_deg=slack_deg)
+    rep = check_int8(b, cfg, threads, provider)
+    t = Table(title=f"INT8 vs FP32, {b.root} ({len(rep.frames)} frames)")
+    for col in ("figure", "this CPU", "export", "bound"):
+        t.add_column(col, justify="right")
+    isa_export = " ".join(rep.export.get("cpu_isa") or []) or "-"
+    for key, words in (
+        ("coord_median", "coordinate median"),
+        ("coord_p90", "coordinate p90"),
+        ("pose_median_translation", "pose translation median"),
+        ("pose_max_translation", "pose translation max"),
+        ("pose_median_rotation_deg", "pose rotation median"),
+        ("pose_max_rotation_deg", "pose rotation max"),
+    ):
+        t.add_row(words, *(_check_fmt(v, key) for v in (rep.device.get(key), rep.export.get(key), rep.bounds.get(key))))
+    t.add_row(
+        "ISA / onnxruntime",
+        f"{' '.join(rep.runtime['cpu_isa']) or '-'} / {rep.runtime['onnxruntime']}",
+        f"{isa_export} / {rep.export.get('onnxruntime', '-')}",
+        "",
+    )
+    t.add_row("inference ms FP32 / INT8", f"{rep.inference_ms['fp32']:.1f} / {rep.inference_ms['int8']:.1f}", "", "")
+    t.add_row("FP32 vs export's FP32 (median)", _check_fmt(rep.fp32_vs_export["coord_median"], "coord"), "", "")
+    Console().print(t)
+    console.print(rep.line())
+    for f in rep.failures:
+        console.print(f"[red]  {f}[/red]")
+    report_json(json_out, rep.as_dict())
+    if not rep.passed:
+        raise typer.Exit(1)
+
+
+def _for_check(path: Path) -> Bundle:
+    """The bundle with both models and its check frames verified (open_bundle's checks)."""
+    from acesplat.core.bundle import ROLE_INT8_CHECK, ROLE_SCR_FP32, ROLE_SCR_INT8
+
+    b = load_bundle(path, verify=True, roles=[ROLE_SCR_FP32, ROLE_SCR_INT8, ROLE_INT8_CHECK])
+    b.scr_model("int8")
+    return b
+
+
+def _check_fmt(v: float | None, key: str) -> str:
+    if v is None:
+        return "-"
+    return f"{v:.3f} deg" if key.endswith("_deg") else f"{100 * v:.2f} cm"

@@ -42,6 +42,17 @@ def checks_table(manifest: dict) -> Table:
             "FP32 ONNX vs torch: encoder features max |diff| / max |feature|",
             f"{_fmt(par['features_max_abs_diff'])} / {_fmt(par['features_max_abs'])}",
         )
+    dev = checks.get("int8_vs_fp32")
+    if dev:
+        t.add_row(
+            f"INT8 vs FP32 on {dev['frames']} check frames: coordinate median / p90 (cm)",
+            f"{100 * dev['coord_median']:.2f} / {100 * dev['coord_p90']:.2f}",
+        )
+        if dev.get("pose_median_translation") is not None:
+            t.add_row(
+                "  pose median (cm / deg)",
+                f"{100 * dev['pose_median_translation']:.2f} / {dev['pose_median_rotation_deg']:.3f}",
+            )
     acc = checks.get("test_split")
     if acc:
         for prec in ("fp32", "int8"):
@@ -87,6 +98,11 @@ def export_command(
     ),
     dense: bool = option(ExportOptions, "dense"),
     keyframes: bool = option(ExportOptions, "keyframes"),
+    int8_format: str = option(ExportOptions, "int8_format"),
+    int8_types: str = option(ExportOptions, "int8_types"),
+    int8_per_channel: bool = option(ExportOptions, "int8_per_channel", "--int8-per-channel/--int8-per-tensor"),
+    int8_reduce_range: bool = option(ExportOptions, "int8_reduce_range"),
+    check_frames: int = option(ExportOptions, "check_frames"),
 ) -> None:
     """Export a map to an ONNX bundle (FP32, optionally INT8) that checks itself."""
     import torch
@@ -104,6 +120,11 @@ def export_command(
         scene_path=scene,
         dense=dense,
         keyframes=keyframes,
+        int8_format=int8_format,
+        int8_types=int8_types,
+        int8_per_channel=int8_per_channel,
+        int8_reduce_range=int8_reduce_range,
+        check_frames=check_frames,
     )
     with PhaseProgress() as bar:
         rep = export_bundle(map_path, out, opts, bar)

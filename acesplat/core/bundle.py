@@ -37,6 +37,8 @@ ROLE_SCR_FP32 = "scr_fp32"
 ROLE_SCR_INT8 = "scr_int8"
 ROLE_KEYFRAMES = "keyframes"
 """Mapping images with their poses and depth (acesplat.align.keyframe_set), for pose refinement."""
+ROLE_INT8_CHECK = "int8_check"
+"""A few prepared frames with their FP32 coordinates (acesplat.core.check_frames), for the device's INT8 check."""
 PRECISION_ROLES = {"fp32": ROLE_SCR_FP32, "int8": ROLE_SCR_INT8}
 
 

@@ -40,9 +40,7 @@ torch-vs-ONNX parity, replays and tests compare solutions, not random draws."""
 class PnPConfig:
     """The PnP solver's settings, shared by desktop evaluation, the edge runtime and the benchmarks."""
 
-    method: str = knob(
-        "ransac_ap3p", "PnP-RANSAC solver (one of PNP_METHODS; bench/pnp_choice.md, batch_p3p: bench/pnp_speed.md)."
-    )
+    method: str = knob("batch_p3p", "PnP-RANSAC solver (one of PNP_METHODS; bench/pnp_speed.md, bench/pnp_choice.md).")
     threshold_px: float = knob(10.0, "Inlier threshold in pixels of the network input image (ACE's 10 px).")
     min_inliers: int = knob(
         50, "Inliers a pose needs at least; the tracking gate (acesplat.core.gate) then decides TRACKING."

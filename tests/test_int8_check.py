@@ -1,0 +1,193 @@
+"""The on-device INT8 check: check frames stored at export, the deviation figures, the bound, and the commands."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from acesplat.core.camera import Intrinsics
+from acesplat.core.check_frames import CheckFrames, deviation, load_check_frames, save_check_frames
+from acesplat.core.errors import InputError
+from edge.int8_check import Int8CheckConfig, bound_for, judge
+
+
+def _frames(n: int = 2, h: int = 16, w: int = 24, stride: int = 8) -> CheckFrames:
+    rng = np.random.default_rng(0)
+    K = np.stack([Intrinsics.from_focal(20.0, w, h).K] * n)
+    coords = rng.normal(size=(n, h // stride, w // stride, 3)).astype(np.float32)
+    return CheckFrames(
+        [f"f{i}" for i in range(n)], rng.integers(0, 256, (n, h, w), dtype=np.uint8), K, coords, coords + 0.01, stride
+    )
+
+
+def test_check_frames_round_trip(tmp_path: Path) -> None:
+    f = _frames()
+    save_check_frames(tmp_path / "c.npz", f)
+    g = load_check_frames(tmp_path / "c.npz")
+    assert g.names == f.names and g.stride == f.stride
+    for k in ("gray", "K", "coords", "int8_coords"):
+        np.testing.assert_array_equal(getattr(g, k), getattr(f, k))
+
+
+def test_check_frames_bad_file_names_it(tmp_path: Path) -> None:
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(InputError, match="junk.npz"):
+        load_check_frames(tmp_path / "junk.npz")
+    f = _frames()
+    np.savez(tmp_path / "short.npz", names=np.array(f.names), gray=f.gray, K=f.K, coords=f.coords[:, :1],
+             int8_coords=f.int8_coords, stride=np.int64(8))  # fmt: skip
+    with pytest.raises(InputError, match="short.npz: coords must be"):
+        load_check_frames(tmp_path / "short.npz")
+
+
+def _grid_of_plane(intr: Intrinsics, T_c2w: np.ndarray, stride: int = 8) -> np.ndarray:
+    """Scene coordinates (h, w, 3) of a fronto-parallel plane 3 m away, seen from ``T_c2w``, at the cell centres."""
+    h, w = intr.height // stride, intr.width // stride
+    u, v = np.meshgrid(np.arange(w) * stride + stride / 2, np.arange(h) * stride + stride / 2)
+    depth = 3.0 + 0.5 * np.sin(u / 17.0) * np.cos(v / 13.0)
+    cam = np.stack([(u - intr.cx) / intr.fx * depth, (v - intr.cy) / intr.fy * depth, depth], axis=-1)
+    return (cam @ T_c2w[:3, :3].T + T_c2w[:3, 3]).astype(np.float32)
+
+
+def test_deviation_of_a_shifted_grid_is_the_shift() -> None:
+    """Every coordinate moved by the same vector c: coordinate deviation |c| everywhere, and the PnP pose moves by c
+    (a rigid translation of the scene), rotation unchanged."""
+    intr = Intrinsics.from_focal(200.0, 320, 240)
+    T = np.eye(4)
+    T[:3, 3] = [0.1, -0.2, 0.3]
+    a = _grid_of_plane(intr, T)
+    c = np.array([0.03, -0.04, 0.0], dtype=np.float32)  # |c| = 5 cm
+    d = deviation([a, a], [a + c, a + c], [intr, intr], 8)
+    assert d["coord_median"] == pytest.approx(0.05, abs=1e-6) and d["coord_p90"] == pytest.approx(0.05, abs=1e-6)
+    assert d["pose_frames"] == 2
+    assert d["pose_median_translation"] == pytest.approx(0.05, abs=2e-3)
+    assert d["pose_median_rotation_deg"] < 0.05
+    same = deviation([a], [a], [intr], 8)
+    assert same["coord_median"] == 0.0 and same["pose_median_translation"] < 1e-6
+
+
+def test_bound_is_tolerance_times_export_plus_slack() -> None:
+    cfg = Int8CheckConfig(tolerance=1.5, slack=0.01, slack_deg=0.1)
+    assert bound_for(0.04, 0.01, cfg) == pytest.approx(0.07)
+    assert bound_for(None, 0.01, cfg) is None
+    export = {"coord_median": 0.02, "coord_p90": 0.1, "pose_median_translation": 0.04,
+              "pose_median_rotation_deg": 0.2, "pose_frames": 4, "frames": 4}  # fmt: skip
+    ok = {**export, "coord_median": 0.039}  # bound 0.04
+    bounds, failures = judge(ok, export, cfg)
+    assert bounds["coord_median"] == pytest.approx(0.04) and bounds["pose_median_rotation_deg"] == pytest.approx(0.4)
+    assert failures == []
+    _, failures = judge({**export, "coord_median": 0.041}, export, cfg)
+    assert len(failures) == 1 and failures[0].startswith("coordinate median 4.10 cm > 4.00 cm")
+    _, failures = judge({**export, "pose_frames": 3}, export, cfg)
+    assert failures and "3 of 4 frames" in failures[0]
+
+
+# ----------------------------------------------------------------------------------- on the tiny bundle
+def test_export_stores_check_frames_and_figures(tiny) -> None:
+    from acesplat.core.bundle import ROLE_INT8_CHECK, load_bundle
+    from acesplat.core.check_frames import bundle_check_frames
+
+    b = load_bundle(tiny["bundle"])
+    frames = bundle_check_frames(b)
+    assert len(frames) == 4 and frames.gray.shape[1:] == b.input_size and b.has(ROLE_INT8_CHECK)
+    dev = tiny["manifest"]["checks"]["int8_vs_fp32"]
+    assert dev["frames"] == 4 and dev["coord_median"] > 0 and dev["cpu_isa"] is not None
+    # the manifest's figures are the stored coordinates' deviation
+    intr = [frames.intrinsics(i) for i in range(4)]
+    again = deviation(list(frames.coords), list(frames.int8_coords), intr, b.output_stride)
+    assert again["coord_median"] == pytest.approx(dev["coord_median"], rel=1e-6)
+
+
+def test_check_passes_on_the_export_machine(tiny) -> None:
+    from acesplat.core.bundle import load_bundle
+    from edge.int8_check import check_int8
+
+    rep = check_int8(load_bundle(tiny["bundle"]), Int8CheckConfig(frames=2), threads=1)
+    assert rep.passed, rep.failures
+    assert rep.fp32_vs_export["coord_max"] < 1e-3  # the same FP32 graph on the same CPU
+    assert len(rep.frames) == 2 and rep.runtime["onnxruntime"]
+    assert "INT8 check passed on 2 frames (ISA" in rep.line()
+
+
+def _perturbed_bundle(tiny, dst: Path) -> Path:
+    """A copy of the tiny bundle whose INT8 model's weights are scrambled and whose manifest lists the new hash:
+    an intact bundle with a bad INT8 model."""
+    import onnx
+    from onnx import numpy_helper
+
+    from acesplat.core.bundle import ROLE_SCR_INT8, describe_file, load_bundle, write_manifest
+
+    shutil.copytree(tiny["bundle"], dst)
+    model = onnx.load(str(dst / "scr.int8.onnx"))
+    rng = np.random.default_rng(1)
+    for init in model.graph.initializer:
+        w = numpy_helper.to_array(init)
+        if w.dtype in (np.int8, np.uint8) and w.size > 64:
+            init.CopyFrom(numpy_helper.from_array(rng.permutation(w.ravel()).reshape(w.shape), init.name))
+    onnx.save(model, str(dst / "scr.int8.onnx"))
+    b = load_bundle(dst, verify=False)
+    files = [describe_file(dst, f.path, f.role) if f.role == ROLE_SCR_INT8 else f for f in b.files.values()]
+    write_manifest(dst, b.manifest, files, version=b.format_version)
+    return dst
+
+
+def test_a_perturbed_int8_model_fails_the_check_and_is_refused(tiny, tmp_path: Path) -> None:
+    from acesplat.apps.edge_cli import app
+
+    bad = _perturbed_bundle(tiny, tmp_path / "bad")
+    r = CliRunner().invoke(app, ["check", str(bad), "--json", str(tmp_path / "c.json"), "--threads", "1"])
+    assert r.exit_code == 1, r.output
+    rep = json.loads((tmp_path / "c.json").read_text())
+    assert rep["passed"] is False and rep["failures"]
+    r = CliRunner().invoke(app, ["replay", str(bad), str(tiny["scene"]), "--int8", "--threads", "1",
+                                 "--json", str(tmp_path / "r.json")])  # fmt: skip
+    assert r.exit_code == 2
+    lines = [x for x in r.output.splitlines() if x.startswith("error:")]
+    assert len(lines) == 1 and "scr.int8.onnx: INT8 deviates from FP32 on this CPU" in lines[0]
+    assert "--skip-int8-check" in lines[0]
+    assert not (tmp_path / "r.json").exists()  # nothing written
+    r = CliRunner().invoke(app, ["localize", str(bad), "--source", f"replay:{tiny['scene']}/test", "--int8",
+                                 "--frames", "1", "--threads", "1", "--quiet"])  # fmt: skip
+    assert r.exit_code == 2 and "INT8 deviates from FP32" in r.output
+    r = CliRunner().invoke(app, ["replay", str(bad), str(tiny["scene"]), "--int8", "--threads", "1",
+                                 "--skip-int8-check"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+
+
+def test_check_command_passes_and_replay_int8_runs_the_check(tiny, tmp_path: Path) -> None:
+    from acesplat.apps.edge_cli import app
+
+    r = CliRunner().invoke(app, ["check", str(tiny["bundle"]), "--frames", "2", "--threads", "1"])
+    assert r.exit_code == 0, r.output
+    assert "INT8 check passed on 2 frames" in r.output and "onnxruntime" in r.output
+    r = CliRunner().invoke(app, ["check", str(tiny["bundle"]), "--frames", "0"])
+    assert r.exit_code == 2 and "--frames must be positive" in r.output
+
+
+def test_a_bundle_without_check_frames_is_refused_for_int8(tiny, tmp_path: Path) -> None:
+    from acesplat.apps.edge_cli import app
+    from acesplat.core.bundle import ROLE_INT8_CHECK, load_bundle, write_manifest
+
+    old = tmp_path / "old"
+    shutil.copytree(tiny["bundle"], old)
+    b = load_bundle(old, verify=False)
+    (old / b.files[ROLE_INT8_CHECK].path).unlink()
+    write_manifest(old, b.manifest, [f for f in b.files.values() if f.role != ROLE_INT8_CHECK])
+    r = CliRunner().invoke(app, ["replay", str(old), str(tiny["scene"]), "--int8", "--threads", "1"])
+    assert r.exit_code == 2 and "no INT8 check frames" in r.output and "re-export" in r.output
+    r = CliRunner().invoke(app, ["check", str(old)])
+    assert r.exit_code == 2
+
+
+def test_unknown_int8_types_are_refused_in_one_line(tiny, tmp_path: Path) -> None:
+    from acesplat.apps.cli import app
+
+    r = CliRunner().invoke(app, ["export", str(tiny["map"]), "-o", str(tmp_path / "b"), "--int8", "--int8-types",
+                                 "s8u8"])  # fmt: skip
+    assert r.exit_code == 2 and "--int8-types must be one of u8s8, s8s8, u8u8" in r.output
+    assert not (tmp_path / "b").exists()
