@@ -77,7 +77,7 @@ class RefineConfig:
     align_tiles: int = knob(3, "The pose alignment's render is split into this many tiles a side.")
     align_max_m: float = knob(RENDER_ALIGN.max_shift_m, "Largest pose correction the alignment may make (m).")
     align_max_deg: float = knob(RENDER_ALIGN.max_shift_deg, "Largest pose correction the alignment may make (deg).")
-    guard_max_side: int = knob(48, "Longer side of the held views the guard renders.")
+    guard_max_side: int = knob(48, "Longer side of the guarded views' renders (from the full-resolution frame).")
     held_tolerance: float = knob(HELD_TOLERANCE, "Relative error increase a held view may take in one batch.")
     view_tolerance_db: float = knob(
         0.05, "PSNR a guarded view may end below its PSNR under the loaded map (dB); also what a report calls harm."
@@ -234,7 +234,7 @@ class Refiner:
         """The map as loaded: the floor every guarded view is held to."""
         self.cap = max(cfg.cap, len(self.loaded))
         """The configured cap limits growth only: a loaded map above it is never pruned to fit."""
-        self.store = GaussianStore(self.loaded.copy(), self.cap)
+        self.store = GaussianStore(self.loaded, self.cap)  # copies into its own arrays
         self.cfg = cfg
         self.clock = clock
         self.scr_seeder = lambda kf, need, n, deg, rng: scr_seeder(kf, need, n, deg, rng, cfg.seed_spacing)
@@ -603,8 +603,7 @@ class Refiner:
             return "rolled_back_keyframe"
         # The keyframe joins the guarded views at the commit, so it must end within the bound of the loaded map too.
         t0 = clock()
-        small_rgb, small_k = downsample(kf.rgb, kf.k, cfg.guard_max_side)
-        kv = HeldView(np.array(kf.pose, np.float64), small_k, small_rgb, kf.name)
+        kv = _guard_view(kf, cfg.guard_max_side)
         yield from self._loaded_error(kv)
         kv.mse = yield from self._error_after(kv, kept, is_active)
         work.kf_view = kv
@@ -614,7 +613,7 @@ class Refiner:
             rep.ms["guard"] = 1000.0 * guard_s
             return "rolled_back_view"
         for hv in self.held:
-            # Each held-view render is tiled like the keyframe's, so its pieces fit in frames' windows.
+            # Each held-view render is a piece of its own at guard size, so the checks spread over frames' windows.
             t0 = clock()
             if hv.version != self.version or hv.mse is None:  # its error under the current map
                 idx = np.flatnonzero(frustum_mask(self.map.means, self.map.log_scales, hv.pose, hv.k))
@@ -680,8 +679,7 @@ class Refiner:
         self.version += 1
         kv = work.kf_view
         if kv is None:  # a batch committed without the guard (not the refiner's own path)
-            small_rgb, small_k = downsample(kf.rgb, kf.k, cfg.guard_max_side)
-            kv = HeldView(np.array(kf.pose, np.float64), small_k, small_rgb, kf.name)
+            kv = _guard_view(kf, cfg.guard_max_side)
         if rep.capped == 0:  # the guard rendered exactly this map: its 'after' errors are current
             for hv, after in zip(self.held, rep.held_after):
                 hv.mse, hv.version = after, self.version
@@ -787,6 +785,14 @@ def _align_image(kf: Keyframe, side: int) -> tuple[Intrinsics, np.ndarray]:
         return k, kf.detail
     w, h = max(1, int(round(k.width * s))), max(1, int(round(k.height * s)))
     return k.resized(w, h), cv2.resize(kf.detail, (w, h), interpolation=cv2.INTER_AREA)
+
+
+def _guard_view(kf: Keyframe, max_side: int) -> HeldView:
+    """The keyframe as a guarded view: its full-resolution image (its refinement-size one when it has no other)
+    brought to longer side ``max_side`` at most, so the guard sees the detail the crop steps fit."""
+    rgb, k = (kf.detail, kf.k_detail) if kf.detail is not None and kf.k_detail is not None else (kf.rgb, kf.k)
+    small_rgb, small_k = downsample(rgb, k, max_side)
+    return HeldView(np.array(kf.pose, np.float64), small_k, np.ascontiguousarray(small_rgb, np.float32), kf.name)
 
 
 def random_crop(k: Intrinsics, image: np.ndarray, side: int, rng: np.random.Generator) -> tuple[Intrinsics, np.ndarray]:
