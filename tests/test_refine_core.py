@@ -18,7 +18,7 @@ from acesplat.splatcore.prune import cap_keep, transparent
 from edge.refine.adam import LearningRates, RowAdam
 from edge.refine.coverage import analyse_render, frustum_mask, projected_coverage
 from edge.refine.deadline import CostEstimate, Deadline
-from edge.refine.guard import held_verdict
+from edge.refine.guard import harmed_views, held_verdict, loaded_bound, psnr
 from edge.refine.keyframes import KeyframePolicy, KeyframeSelector, keyframe_decision
 from edge.refine.persist import SplatSaver
 
@@ -208,6 +208,34 @@ def test_held_verdict() -> None:
     assert not held_verdict(1.0, 0.5, [0.1, 0.1], [0.14, 0.1], tolerance=0.3)  # one held view 40% worse
     assert not held_verdict(0.1, 0.09, [0.1], [0.12], tolerance=0.3)  # the sum rose
     assert held_verdict(1.0, 0.9, [], [])
+
+
+def test_harmed_views_hold_each_view_to_the_loaded_map_not_the_average() -> None:
+    loaded = [0.010, 0.020, 0.040]
+    after = [0.005, 0.010, 0.041]  # mean PSNR rises by 2 dB, the third view falls by 0.1 dB
+    assert np.mean([psnr(m) for m in after]) > np.mean([psnr(m) for m in loaded]) + 1.0
+    assert harmed_views(after, loaded, tolerance_db=0.05) == [2]
+    assert harmed_views(after, loaded, tolerance_db=0.2) == []  # 0.1 dB is within a 0.2 dB tolerance
+    assert harmed_views(loaded, loaded, tolerance_db=0.0) == []
+    # the bound is the loaded error made tolerance_db of PSNR worse
+    assert psnr(loaded_bound(0.01, 0.5)) == pytest.approx(psnr(0.01) - 0.5, abs=1e-6)
+    with pytest.raises(ValueError, match="after"):
+        harmed_views([0.1], [0.1, 0.2], 0.05)
+    with pytest.raises(ValueError, match="tolerance"):
+        loaded_bound(0.1, -1.0)
+
+
+def test_harm_report_fails_a_run_when_any_view_falls() -> None:
+    from edge.refine.session import harm_report
+
+    r = harm_report(np.array([20.0, 25.0, 30.0]), np.array([23.0, 28.0, 29.9]), 0.05)
+    assert r["failed"] and r["views_harmed"] == 1 and r["harmed"][0]["view"] == 2
+    assert r["psnr_worst_change_db"] == pytest.approx(-0.1)
+    r = harm_report(np.array([20.0, np.inf]), np.array([20.02, np.inf]), 0.05)
+    assert not r["failed"] and r["harmed"] == [] and r["psnr_worst_change_db"] == 0.0
+    assert not harm_report(np.array([20.0]), np.array([19.97]), 0.05)["failed"]  # within the tolerance
+    with pytest.raises(ValueError, match="matching"):
+        harm_report(np.zeros(2), np.zeros(3), 0.05)
 
 
 # ----------------------------------------------------------------------------------- prune and cap

@@ -451,3 +451,28 @@ def test_a_session_that_fails_to_start_gives_the_thread_settings_back(bundle_wit
         RefineSession(loc.input_size, bundle_gaussians(b), opts, seeder=BrokenSeeder())
     after = blas_threads()
     assert {k: after[k] for k in before_blas} == before_blas and get_num_threads() == before_raster
+
+
+def test_replay_whose_refinement_lowers_a_views_psnr_fails(tiny, bundle_with_gaussians, tmp_path, monkeypatch) -> None:
+    """A refined map that renders worse than the loaded one (here its colours inverted at the end) fails the run:
+    the JSON says so, a line says so, the exit code is 1, and the JSON is still written."""
+    from edge.refine.refiner import Refiner
+
+    real = Refiner.snapshot
+
+    def spoiled(self):
+        g = real(self)
+        g.sh[:, 0] = -g.sh[:, 0]
+        return g
+
+    monkeypatch.setattr(Refiner, "snapshot", spoiled)
+    out = tmp_path / "r.json"
+    r = CliRunner().invoke(
+        app,
+        ["replay", str(bundle_with_gaussians), str(tiny["scene"]), "--refine", "--threads", "1", "--json", str(out)],
+    )
+    assert r.exit_code == 1, r.output
+    ref = json.loads(out.read_text())["refine"]
+    assert ref["failed"] and ref["views_harmed"] >= 1 and ref["psnr_worst_change_db"] < -ref["harm_tolerance_db"]
+    assert ref["harmed"][0]["psnr_after"] < ref["harmed"][0]["psnr_before"]
+    assert "refine FAILED: PSNR fell on" in r.output

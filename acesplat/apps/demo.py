@@ -3,8 +3,9 @@
 synth -> map (Stage 1) -> eval -> splat (a short Stage 2) -> export (FP32 + INT8 SCR graphs, the Gaussians and
 their initializer) -> edge replay with each precision -> the INT8 replay paced at one frame per refinement budget,
 without and then with refinement (PSNR before/after on the test views, localization latency with vs without, and
-frame | before | after render images of the views refinement changed most, in WORKDIR/refine_renders/). Each
-stage calls the same library functions as its own command, so the demo cannot drift from them.
+frame | before | after render images of the views refinement changed most either way, in WORKDIR/refine_renders/;
+a test view refinement left worse than the map as loaded fails the demo, exit 1). Each stage calls the same library
+functions as its own command, so the demo cannot drift from them.
 """
 
 from __future__ import annotations
@@ -31,6 +32,9 @@ DEFAULT_REFINE_BUDGET_MS = 200.0
 """Per-frame budget of the refinement replay: room for refinement beside INT8 localization (bench/refine.md)."""
 RENDER_PAIRS = 3
 """Before/after render images the demo writes (the test views whose PSNR refinement changed most)."""
+SPLAT_MAX_GAUSSIANS = 60_000
+"""Stage 2 cap of the demo's short budget: fewer Gaussians train more iterations in 1.5 minutes (bench/refine.md).
+Refinement takes a map of any size (its cap limits growth only)."""
 REFINE_PRECISION = "int8"
 """The refinement replay runs the INT8 SCR graph, the edge's fast path: more of the budget is left for refinement."""
 
@@ -109,15 +113,11 @@ def _stage_splat(
 
     from acesplat.splat.pipeline import SplatConfig
     from acesplat.splat.run import run_splat
-    from edge.refine.refiner import RefineConfig
 
-    # Capped at what the edge refines: measured on the demo scene (1.5 min, 2 busy cores), the 200k default cap
-    # gave 203 iterations and test PSNR 23.8 dB and a 71 ms render per refinement step; 60k gave 295 iterations,
-    # 25.4 dB and 16 ms.
     cfg = SplatConfig(
         minutes=minutes,
         iterations=iterations,
-        max_gaussians=RefineConfig().cap,
+        max_gaussians=SPLAT_MAX_GAUSSIANS,
         head_iterations=None if iterations is None else iterations // 5,
     )
     splat_dir = work / "splat"
@@ -263,6 +263,11 @@ def results_table(summary: dict) -> Table:
                 f"{im['path']} (frame | before | after: {im['psnr_before']:.2f} -> {im['psnr_after']:.2f} dB)",
                 "",
             )
+        from acesplat.apps.refine_cmd import harm_line
+
+        harm = harm_line(r["refine"])
+        if harm is not None:
+            t.add_row("[red]refinement FAILED[/red]", f"[red]{harm}[/red]", "")
     if "seconds" in summary:
         t.add_row("total", "", f"{summary['seconds']:.1f}")
     return t
@@ -339,6 +344,9 @@ def demo_command(
     for im in summary["replay_refine"].get("renders", []):  # full paths (the table may shorten them)
         console.print(f"before/after render (frame | before | after): {im['path']}", soft_wrap=True)
     report_json(json_out if json_out else workdir / "demo.json", summary)
+    from acesplat.apps.refine_cmd import exit_if_harmed
+
+    exit_if_harmed(summary["replay_refine"]["refine"], lambda line: console.print(f"[red]{line}[/red]", soft_wrap=True))
 
 
 def _parse_frames(text: str | None) -> tuple[int, int] | None:

@@ -11,7 +11,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from acesplat.apps.refine_cmd import refine_line, refine_session
+from acesplat.apps.refine_cmd import exit_if_harmed, refine_line, refine_session
 from acesplat.apps.support import PhaseProgress, one_line_errors, option, report_json
 from acesplat.core.bundle import PRECISION_ROLES, Bundle, load_bundle
 from acesplat.core.errors import InputError
@@ -348,6 +348,8 @@ def replay_command(
     if "refine" in s:
         console.print(refine_line(s["refine"]))
     report_json(json_out, s)
+    if "refine" in s:
+        exit_if_harmed(s["refine"], lambda line: console.print(f"[red]{line}[/red]", soft_wrap=True))
 
 
 @one_line_errors

@@ -1,12 +1,19 @@
-"""What the edge commands call for --refine: start a session from the flags, and its one summary line."""
+"""What the edge commands call for --refine: start a session from the flags, its one summary line, and the verdict
+on a run that harmed the map."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
 
+import typer
+
 from acesplat.core.errors import InputError
 from edge.refine.session import RefineOptions, RefineSession, start_refinement
+
+HARMED_EXIT = 1
+"""Exit code of a run whose refinement left an evaluated view worse than the loaded map (its outputs are written
+first); bad input stays 2."""
 
 
 def refine_session(
@@ -43,3 +50,24 @@ def refine_line(r: dict) -> str:
         "refinement work per frame "
         f"window p50 {t['window']['p50']:.1f} p95 {t['window']['p95']:.1f} ms"
     )
+
+
+def harm_line(r: dict) -> str | None:
+    """The line saying a refinement run harmed the map (an evaluated view's PSNR fell below the loaded map's by more
+    than the tolerance; edge/refine/session.py's harm_report), or None when no view fell."""
+    if not r.get("failed"):
+        return None
+    w = r["harmed"][0]
+    return (
+        f"refine FAILED: PSNR fell on {r['views_harmed']} of {r['psnr_views']} views by more than "
+        f"{r['harm_tolerance_db']:g} dB against the map as loaded (worst: view {w['view']}, "
+        f"{w['psnr_before']:.2f} -> {w['psnr_after']:.2f} dB)"
+    )
+
+
+def exit_if_harmed(r: dict, print_line: Callable[[str], None]) -> None:
+    """Print the failure line and exit with HARMED_EXIT when the run harmed the map; nothing otherwise."""
+    line = harm_line(r)
+    if line is not None:
+        print_line(line)
+        raise typer.Exit(HARMED_EXIT)

@@ -2,9 +2,12 @@
 
 - Non-finite gradients: the step is skipped and counted (no parameter or moment sees a NaN).
 - Photometric guard: a keyframe's batch of changes is committed only if it lowers the error on the
-  keyframe itself and does not raise it on a few earlier keyframes held for the purpose. A keyframe
+  keyframe itself and does not raise it much on the earlier keyframes held for the purpose. A keyframe
   whose pose is wrong can fit itself, but only by breaking the views that saw the same surfaces
   from the right place, so its batch is rolled back.
+- The map as loaded is the floor: every guarded view (the held keyframes and the keyframe itself) must
+  end within a small tolerance of its error under the loaded map or below it, view by view (an average
+  can rise while one view falls), so no guarded view ever ends worse than it started.
 """
 
 from __future__ import annotations
@@ -64,6 +67,8 @@ class HeldView:
     name: str = ""
     mse: float | None = None
     version: int = -1
+    loaded_mse: float | None = None
+    """Its error under the map as loaded (None: not rendered yet)."""
 
 
 def downsample(rgb: np.ndarray, k: Intrinsics, max_side: int) -> tuple[np.ndarray, Intrinsics]:
@@ -77,7 +82,7 @@ def downsample(rgb: np.ndarray, k: Intrinsics, max_side: int) -> tuple[np.ndarra
 
 
 class HeldViews:
-    """The last ``capacity`` committed keyframes (guard resolution)."""
+    """The last ``capacity`` committed keyframes (guard resolution); older ones leave the guard."""
 
     def __init__(self, capacity: int) -> None:
         self.views: deque[HeldView] = deque(maxlen=max(0, capacity))
@@ -102,3 +107,19 @@ def held_verdict(
         raise ValueError(f"{len(before)} errors before but {len(after)} after")
     each = all(a <= b * (1.0 + tolerance) + 1e-12 for b, a in zip(before, after))
     return each and (kf_after + sum(after) < kf_before + sum(before))
+
+
+def loaded_bound(loaded_mse: float, tolerance_db: float) -> float:
+    """The largest error a guarded view may end with: its error under the loaded map, ``tolerance_db`` dB of PSNR
+    worse at most."""
+    if not tolerance_db >= 0:
+        raise ValueError(f"tolerance must be >= 0 dB, got {tolerance_db}")
+    return float(loaded_mse) * 10.0 ** (tolerance_db / 10.0) + 1e-12
+
+
+def harmed_views(after: list[float], loaded: list[float], tolerance_db: float) -> list[int]:
+    """Indices of the views whose error ``after`` exceeds their error under the loaded map (``loaded``, same order)
+    by more than ``tolerance_db`` dB of PSNR: one view falling is a harm whatever the others gain."""
+    if len(after) != len(loaded):
+        raise ValueError(f"{len(after)} errors after but {len(loaded)} under the loaded map")
+    return [i for i, (a, lo) in enumerate(zip(after, loaded)) if a > loaded_bound(lo, tolerance_db)]

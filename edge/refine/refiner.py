@@ -35,7 +35,17 @@ from acesplat.splatcore.prune import PRUNE_OPACITY, transparent
 from edge.refine.adam import LearningRates, RowAdam
 from edge.refine.coverage import ALPHA_MIN, RenderAnalysis, analyse_render, frustum_mask
 from edge.refine.deadline import Clock, CostEstimate, Deadline
-from edge.refine.guard import HELD_TOLERANCE, HeldView, HeldViews, all_finite, downsample, held_verdict, view_mse
+from edge.refine.guard import (
+    HELD_TOLERANCE,
+    HeldView,
+    HeldViews,
+    all_finite,
+    downsample,
+    harmed_views,
+    held_verdict,
+    loaded_bound,
+    view_mse,
+)
 from edge.refine.seeding import seed_from_scr
 from edge.refine.store import GaussianStore
 
@@ -55,20 +65,23 @@ POSE_CHECK_MIN_HISTORY = 3
 class RefineConfig:
     """What one keyframe's batch may do, and the priors of its time estimates."""
 
-    cap: int = knob(60_000, "Hard cap on the map's Gaussian count.")
+    cap: int = knob(60_000, "Most Gaussians refinement may grow the map to; a larger loaded map keeps all of its own.")
     max_new: int = knob(1500, "New Gaussians per keyframe at most.")
     seed_spacing: int = knob(2, "Pixels between seeded Gaussians (refinement resolution).")
     max_steps: int = knob(30, "Optimisation steps per keyframe at most (the deadline usually stops it first).")
     crop_side: int = knob(80, "Longer side of the full-resolution crops the steps fit (bench/refine.md).")
-    held: int = knob(2, "Earlier keyframes the photometric guard checks.")
+    held: int = knob(16, "Earlier committed keyframes the photometric guard checks (bench/refine.md).")
     tiles: int = knob(2, "Keyframe renders are split into tiles x tiles pieces, each fitting one frame's window.")
     align: bool = knob(True, "Correct each keyframe's pose against the map before using it (acesplat.align.flow_pnp).")
     align_side: int = knob(160, "Longer side of the pose alignment's render (bench/refine.md).")
     align_tiles: int = knob(3, "The pose alignment's render is split into this many tiles a side.")
     align_max_m: float = knob(RENDER_ALIGN.max_shift_m, "Largest pose correction the alignment may make (m).")
     align_max_deg: float = knob(RENDER_ALIGN.max_shift_deg, "Largest pose correction the alignment may make (deg).")
-    guard_max_side: int = knob(48, "Longer side of the held views the guard renders.")
-    held_tolerance: float = knob(HELD_TOLERANCE, "Relative error increase a held view may take.")
+    guard_max_side: int = knob(48, "Longer side of the guarded views' renders (from the full-resolution frame).")
+    held_tolerance: float = knob(HELD_TOLERANCE, "Relative error increase a held view may take in one batch.")
+    view_tolerance_db: float = knob(
+        0.05, "PSNR a guarded view may end below its PSNR under the loaded map (dB); also what a report calls harm."
+    )
     alpha_min: float = knob(ALPHA_MIN, "Alpha at which a pixel counts as covered by the map.")
     error_max: float = knob(float("inf"), "Also seed covered pixels whose error exceeds this (off: bench/refine.md).")
     prune_opacity: float = knob(PRUNE_OPACITY, "Gaussians below this opacity after a batch are removed.")
@@ -88,6 +101,7 @@ class RefineConfig:
             or self.tiles < 1
             or self.align_tiles < 1
             or self.crop_side < 4
+            or not self.view_tolerance_db >= 0
         ):
             raise ValueError(f"invalid RefineConfig {self}")
 
@@ -134,7 +148,8 @@ def scr_seeder(
 class BatchReport:
     """What one keyframe's batch did. ``outcome``: committed, rolled_back_pose (the map disagrees with the
     keyframe where it covers it: a wrong pose), rolled_back_keyframe (no gain on the keyframe),
-    rolled_back_held (an earlier keyframe got worse), no_time (could not start), empty."""
+    rolled_back_held (an earlier keyframe got worse), rolled_back_view (a guarded view, the keyframe or a held
+    one, would end worse than under the loaded map), no_time (could not start), empty."""
 
     name: str
     outcome: str
@@ -148,6 +163,11 @@ class BatchReport:
     mse_after: float = float("nan")
     held_before: list[float] = field(default_factory=list)
     held_after: list[float] = field(default_factory=list)
+    held_loaded: list[float] = field(default_factory=list)
+    """The held views' errors under the loaded map (same order as ``held_before``)."""
+    kf_loaded_mse: float = float("nan")
+    """The keyframe's error at guard resolution under the loaded map, and after the batch (``kf_guard_mse``)."""
+    kf_guard_mse: float = float("nan")
     coverage: float = float("nan")
     seeded_by: str = ""
     covered_mse: float = float("nan")
@@ -196,6 +216,8 @@ class _Work:
     gone: np.ndarray | None = None
     """(len(best),) bool: pruned as transparent."""
     kept: Gaussians | None = None
+    kf_view: HeldView | None = None
+    """The keyframe at guard resolution, as the guard checked it (it joins the held views at the commit)."""
 
 
 class Refiner:
@@ -208,7 +230,11 @@ class Refiner:
         seeder: Callable | None = None,
         clock: Clock = time.perf_counter,
     ) -> None:
-        self.store = GaussianStore(gaussians.astype(np.float32), cfg.cap)
+        self.loaded = gaussians.astype(np.float32).copy()
+        """The map as loaded: the floor every guarded view is held to."""
+        self.cap = max(cfg.cap, len(self.loaded))
+        """The configured cap limits growth only: a loaded map above it is never pruned to fit."""
+        self.store = GaussianStore(self.loaded, self.cap)  # copies into its own arrays
         self.cfg = cfg
         self.clock = clock
         self.scr_seeder = lambda kf, need, n, deg, rng: scr_seeder(kf, need, n, deg, rng, cfg.seed_spacing)
@@ -249,6 +275,7 @@ class Refiner:
             "gaussians_added": 0,
             "pruned": 0,
             "capped": 0,
+            "rolled_back_view": 0,
         }
 
     # ------------------------------------------------------------------------------------------
@@ -378,6 +405,7 @@ class Refiner:
                 else:
                     rep.outcome = rollback
                     self.totals["rolled_back"] += 1
+                    self.totals["rolled_back_view"] += rollback == "rolled_back_view"
                     self._count(rep)
         rep.ms["total"] = 1000.0 * (self.clock() - t_start)
         return rep
@@ -459,7 +487,7 @@ class Refiner:
         """New Gaussians where the map is missing or wrong: the primary seeder (the ONNX initializer: adapter + head)
         only when it fits, else the SCR seeder."""
         cfg, clock, kf = self.cfg, self.clock, view.kf
-        room = max(0, min(cfg.max_new, cfg.cap))
+        room = max(0, min(cfg.max_new, self.cap - self.count()))
         new = Gaussians.empty(self.map.sh_degree)
         if room and view.an.need.any():  # nothing to seed: no piece (an empty run would spoil the seeders' estimates)
             primary = self.seeder is not self.scr_seeder and (
@@ -551,9 +579,10 @@ class Refiner:
         work.kept = work.best.subset(~work.gone)
 
     def _guard(self, view: _View, work: _Work, rep: BatchReport):
-        """None to commit, else the rollback's outcome: the keyframe must gain, the held keyframes must not lose. Each
-        check is its own piece of work, so a batch can spread them over several frames' windows. Fills
-        ``rep.mse_after`` and the held views' errors."""
+        """None to commit, else the rollback's outcome: the keyframe must gain, the held keyframes must not lose much,
+        and no guarded view (the keyframe at guard resolution, each held keyframe) may end worse than under the
+        loaded map (``RefineConfig.view_tolerance_db``), view by view. Each check is its own piece of work, so a
+        batch can spread them over several frames' windows. Fills ``rep.mse_after`` and the guarded views' errors."""
         cfg, clock, kf, kept = self.cfg, self.clock, view.kf, work.kept
         is_active = np.zeros(len(self.map), bool)
         is_active[work.active_idx] = True
@@ -569,35 +598,69 @@ class Refiner:
             kf_after = float(np.mean((c_after - kf.rgb) ** 2))
             guard_s += clock() - t0
         rep.mse_after = kf_after
-        ok_kf = kf_after < kf_before
-        ok_held = True
-        if ok_kf:
-            for hv in self.held:
-                # Each held-view render is tiled like the keyframe's, so its pieces fit in frames' windows.
-                if hv.version != self.version or hv.mse is None:  # its error under the current map
-                    t0 = clock()
-                    idx = np.flatnonzero(frustum_mask(self.map.means, self.map.log_scales, hv.pose, hv.k))
-                    c, _, _, _ = yield from self._render_tiles(self.map, hv.pose, hv.k, 0.0, idx)
-                    hv.mse, hv.version = float(np.mean((c - hv.target) ** 2)), self.version
-                    guard_s += clock() - t0
-                rep.held_before.append(hv.mse)
-                mine = frustum_mask(kept.means, kept.log_scales, hv.pose, hv.k) if len(kept) else np.zeros(0, bool)
-                if mine.any():  # the map after the commit, as this view sees it
-                    t0 = clock()
-                    rest = np.flatnonzero(frustum_mask(self.map.means, self.map.log_scales, hv.pose, hv.k) & ~is_active)
-                    g = concat_gaussians([self.map.subset(rest), kept.subset(mine)])
-                    c, _, _, _ = yield from self._render_tiles(g, hv.pose, hv.k, 0.0)
-                    rep.held_after.append(float(np.mean((c - hv.target) ** 2)))
-                    guard_s += clock() - t0
-                else:  # nothing the batch changed can reach this view
-                    rep.held_after.append(hv.mse)
-                if rep.held_after[-1] > rep.held_before[-1] * (1.0 + cfg.held_tolerance):
-                    break  # this held view got too much worse: no need to look at the others
-            ok_held = held_verdict(kf_before, kf_after, rep.held_before, rep.held_after, cfg.held_tolerance)
+        if not kf_after < kf_before:
+            rep.ms["guard"] = 1000.0 * guard_s
+            return "rolled_back_keyframe"
+        # The keyframe joins the guarded views at the commit, so it must end within the bound of the loaded map too.
+        t0 = clock()
+        kv = _guard_view(kf, cfg.guard_max_side)
+        yield from self._loaded_error(kv)
+        kv.mse = yield from self._error_after(kv, kept, is_active)
+        work.kf_view = kv
+        rep.kf_loaded_mse, rep.kf_guard_mse = kv.loaded_mse, kv.mse
+        guard_s += clock() - t0
+        if kv.mse > loaded_bound(kv.loaded_mse, cfg.view_tolerance_db):
+            rep.ms["guard"] = 1000.0 * guard_s
+            return "rolled_back_view"
+        for hv in self.held:
+            # Each held-view render is a piece of its own at guard size, so the checks spread over frames' windows.
+            t0 = clock()
+            if hv.version != self.version or hv.mse is None:  # its error under the current map
+                idx = np.flatnonzero(frustum_mask(self.map.means, self.map.log_scales, hv.pose, hv.k))
+                c, _, _, _ = yield from self._guard_render(self.map, hv, idx)
+                hv.mse, hv.version = float(np.mean((c - hv.target) ** 2)), self.version
+            yield from self._loaded_error(hv)
+            rep.held_before.append(hv.mse)
+            rep.held_loaded.append(hv.loaded_mse)
+            rep.held_after.append((yield from self._error_after(hv, kept, is_active)))
+            guard_s += clock() - t0
+            if rep.held_after[-1] > rep.held_before[-1] * (1.0 + cfg.held_tolerance) or harmed_views(
+                rep.held_after[-1:], rep.held_loaded[-1:], cfg.view_tolerance_db
+            ):
+                break  # this held view got too much worse: no need to look at the others
         rep.ms["guard"] = 1000.0 * guard_s
-        if ok_kf and ok_held:
-            return None
-        return "rolled_back_keyframe" if not ok_kf else "rolled_back_held"
+        if harmed_views(rep.held_after, rep.held_loaded, cfg.view_tolerance_db):
+            return "rolled_back_view"
+        if not held_verdict(kf_before, kf_after, rep.held_before, rep.held_after, cfg.held_tolerance):
+            return "rolled_back_held"
+        return None
+
+    def _loaded_error(self, hv: HeldView):
+        """Fill ``hv.loaded_mse`` (its error under the map as loaded) if not known yet: one tiled render."""
+        if hv.loaded_mse is not None:
+            return
+        idx = np.flatnonzero(frustum_mask(self.loaded.means, self.loaded.log_scales, hv.pose, hv.k))
+        c, _, _, _ = yield from self._guard_render(self.loaded, hv, idx)
+        hv.loaded_mse = float(np.mean((c - hv.target) ** 2))
+
+    def _error_after(self, hv: HeldView, kept: Gaussians, is_active: np.ndarray):
+        """The error of guarded view ``hv`` under the map as the commit would leave it: the map's rows the batch did not
+        touch plus its ``kept`` ones (``is_active`` (M,) marks the touched rows); no render when nothing the batch
+        changed can reach the view (its current error stands)."""
+        mine = frustum_mask(kept.means, kept.log_scales, hv.pose, hv.k) if len(kept) else np.zeros(0, bool)
+        touched = bool(is_active.any()) and bool(
+            np.any(frustum_mask(self.map.means[is_active], self.map.log_scales[is_active], hv.pose, hv.k))
+        )
+        if not mine.any() and not touched and hv.mse is not None and hv.version == self.version:
+            return hv.mse
+        rest = np.flatnonzero(frustum_mask(self.map.means, self.map.log_scales, hv.pose, hv.k) & ~is_active)
+        g = concat_gaussians([self.map.subset(rest), kept.subset(mine)])
+        c, _, _, _ = yield from self._guard_render(g, hv)
+        return float(np.mean((c - hv.target) ** 2))
+
+    def _guard_render(self, g: Gaussians, hv: HeldView, idx: np.ndarray | None = None):
+        """``g`` (its rows ``idx`` when given) rendered from guarded view ``hv``: one piece at guard size."""
+        return (yield from self._render_tiles(g, hv.pose, hv.k, 0.0, idx, tiles=1, cost=self.guard_view_cost))
 
     def _commit(self, view: _View, work: _Work, rep: BatchReport):
         """The batch's rows replace theirs, new ones join, pruned ones leave, the cap holds; the keyframe becomes a
@@ -614,11 +677,16 @@ class Refiner:
         rep.capped = self.store.enforce()
         rep.added = len(added)
         self.version += 1
+        kv = work.kf_view
+        if kv is None:  # a batch committed without the guard (not the refiner's own path)
+            kv = _guard_view(kf, cfg.guard_max_side)
         if rep.capped == 0:  # the guard rendered exactly this map: its 'after' errors are current
             for hv, after in zip(self.held, rep.held_after):
                 hv.mse, hv.version = after, self.version
-        small_rgb, small_k = downsample(kf.rgb, kf.k, cfg.guard_max_side)
-        self.held.add(HeldView(np.array(kf.pose, np.float64), small_k, small_rgb, kf.name))
+            kv.version = self.version
+        else:
+            kv.mse = None
+        self.held.add(kv)
         rep.outcome = "committed"
         self.commit_cost.record(clock() - t0)
         if np.isfinite(rep.covered_mse):
@@ -696,10 +764,10 @@ class Refiner:
         return color, alpha, seen, depth
 
     def guard_reserve(self, kf_pixels: int) -> float:
-        """Time kept for the guard (one tiled render per held view, two when its cached error is stale) and the
-        commit."""
-        renders = sum(1 if (h.version == self.version and h.mse is not None) else 2 for h in self.held)
-        return renders * self.kf_check_reserve() + self.commit_cost.predict()
+        """Time kept for the guard (renders at guard size: the keyframe under the loaded map and after; one per held
+        view, one more when its cached error is stale, one more when its loaded error is unknown) and the commit."""
+        renders = 2 + sum(1 + (h.version != self.version or h.mse is None) + (h.loaded_mse is None) for h in self.held)
+        return renders * self.guard_view_cost.predict() + self.commit_cost.predict()
 
     def _count(self, rep: BatchReport) -> None:
         self.totals["steps"] += rep.steps
@@ -717,6 +785,14 @@ def _align_image(kf: Keyframe, side: int) -> tuple[Intrinsics, np.ndarray]:
         return k, kf.detail
     w, h = max(1, int(round(k.width * s))), max(1, int(round(k.height * s)))
     return k.resized(w, h), cv2.resize(kf.detail, (w, h), interpolation=cv2.INTER_AREA)
+
+
+def _guard_view(kf: Keyframe, max_side: int) -> HeldView:
+    """The keyframe as a guarded view: its full-resolution image (its refinement-size one when it has no other)
+    brought to longer side ``max_side`` at most, so the guard sees the detail the crop steps fit."""
+    rgb, k = (kf.detail, kf.k_detail) if kf.detail is not None and kf.k_detail is not None else (kf.rgb, kf.k)
+    small_rgb, small_k = downsample(rgb, k, max_side)
+    return HeldView(np.array(kf.pose, np.float64), small_k, np.ascontiguousarray(small_rgb, np.float32), kf.name)
 
 
 def random_crop(k: Intrinsics, image: np.ndarray, side: int, rng: np.random.Generator) -> tuple[Intrinsics, np.ndarray]:

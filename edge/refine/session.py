@@ -36,6 +36,8 @@ from edge.refine.worker import NICE, Candidate, RefineWorker
 from edge.runtime import EdgeLocalizer, FrameOutcome, FrameTap
 from edge.sources import SourceFrame
 
+ROLLBACKS = ("rolled_back_pose", "rolled_back_keyframe", "rolled_back_held", "rolled_back_view")
+"""The outcomes of a batch that was not committed (edge.refine.refiner.BatchReport), counted in the report."""
 PARK_TIMEOUT_S = 1.0
 """Longest a paced localization waits for the worker's running piece (pieces are predicted to end in their window;
 this bounds a misprediction)."""
@@ -160,6 +162,8 @@ class RefineSession(FrameTap):
         """With ``evaluate``: (ground-truth pose (4, 4), intrinsics, RGB (H, W, 3) in [0, 1]) of each frame."""
         self._closed = False
         self.summary: dict | None = None
+        self.view_psnr: list[tuple[float, float]] | None = None
+        """After ``close`` with ``evaluate``: (PSNR under the loaded map, under the refined map) of each view."""
         self.seeder_name = "scr" if seeder is None else "custom"
 
     def before_frame(self, frame: SourceFrame) -> None:
@@ -252,13 +256,14 @@ class RefineSession(FrameTap):
             "keyframes_committed": t["committed"],
             "keyframes_rolled_back": t["rolled_back"],
             "keyframes_no_time": t["no_time"],
+            "rollbacks": {k: sum(r.outcome == k for r in reps) for k in ROLLBACKS},
             "selection": dict(self.worker.selector.counts),
             "gaussians_initial": len(self.initial),
             "gaussians_added": t["gaussians_added"],
             "gaussians_pruned": t["pruned"],
             "gaussians_capped": t["capped"],
             "gaussians_final": self.refiner.count(),
-            "gaussian_cap": self.opts.config.cap,
+            "gaussian_cap": self.refiner.cap,
             "steps": t["steps"],
             "seeded_by": {k: sum(r.seeded_by == k for r in reps) for k in ("primary", "scr")},
             "nonfinite_skipped": t["nonfinite_skipped"],
@@ -291,30 +296,57 @@ class RefineSession(FrameTap):
             s["save"] = self.saver.as_dict()
         if self.views:
             bg = np.asarray(self.opts.config.background, np.float64)
-            before = [psnr(view_mse(self.initial, p, k, rgb, bg)) for p, k, rgb in self.views]
             final = self.refiner.snapshot()
-            after = [psnr(view_mse(final, p, k, rgb, bg)) for p, k, rgb in self.views]
+            self.view_psnr = [
+                (psnr(view_mse(self.initial, p, k, rgb, bg)), psnr(view_mse(final, p, k, rgb, bg)))
+                for p, k, rgb in self.views
+            ]
+            before, after = (np.array(v, np.float64) for v in zip(*self.view_psnr))
             s["psnr_before"] = float(np.mean(before))
             s["psnr_after"] = float(np.mean(after))
             s["psnr_views"] = len(self.views)
             s["psnr_size"] = [self.views[0][1].height, self.views[0][1].width]
+            s.update(harm_report(before, after, self.opts.config.view_tolerance_db))
         self.summary = s
         return s
 
 
+def harm_report(before: np.ndarray, after: np.ndarray, tolerance_db: float) -> dict:
+    """The per-view verdict of a refinement run: ``before``/``after`` (V,) PSNR (dB) of each evaluated view under the
+    loaded and the refined map. A view whose PSNR fell more than ``tolerance_db`` is harmed, and one harmed view
+    fails the run whatever the average did. Keys: failed, views_harmed, psnr_worst_change_db (None without views),
+    harm_tolerance_db, harmed (up to 20 of them, worst first: view index, psnr_before, psnr_after)."""
+    before, after = np.asarray(before, np.float64), np.asarray(after, np.float64)
+    if before.shape != after.shape or before.ndim != 1:
+        raise ValueError(f"per-view PSNR before {before.shape} and after {after.shape} must be matching (V,)")
+    with np.errstate(invalid="ignore"):  # inf - inf: a view rendered exactly before and after did not change
+        change = np.where(before == after, 0.0, after - before)
+    harmed = np.flatnonzero(change < -tolerance_db)
+    worst = harmed[np.argsort(change[harmed])]
+    return {
+        "failed": bool(harmed.size),
+        "views_harmed": int(harmed.size),
+        "psnr_worst_change_db": float(change.min()) if change.size else None,
+        "harm_tolerance_db": float(tolerance_db),
+        "harmed": [
+            {"view": int(i), "psnr_before": float(before[i]), "psnr_after": float(after[i])} for i in worst[:20]
+        ],
+    }
+
+
 def write_before_after(session: RefineSession, out_dir: Path, count: int = 3) -> list[dict]:
     """PNG triptychs (captured frame | map before refinement | map after), rendered from ground-truth poses of the
-    evaluated views: the ``count`` views whose PSNR changed most, either way. Returns one record per file."""
+    evaluated views (after ``close``): the ``count`` views whose PSNR changed most, either way, so a view the
+    refinement harmed is shown, not hidden. Returns one record per file."""
     from acesplat.core.atomic import write_bytes
 
     if not session.views or count <= 0:
         return []
+    if session.view_psnr is None:
+        raise ValueError("write_before_after needs a closed session")
     bg = np.asarray(session.opts.config.background, np.float64)
     final = session.refiner.snapshot()
-    rows = []
-    for i, (pose, k, rgb) in enumerate(session.views):
-        before, after = psnr(view_mse(session.initial, pose, k, rgb, bg)), psnr(view_mse(final, pose, k, rgb, bg))
-        rows.append((abs(after - before), i, before, after))
+    rows = [(abs(after - before), i, before, after) for i, (before, after) in enumerate(session.view_psnr)]
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
     for _, i, before, after in sorted(rows, reverse=True)[:count]:
