@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 
@@ -68,4 +69,22 @@ def view_command(
     except KeyboardInterrupt:
         pass
     finally:
-        server.stop()
+        stop_within(server, STOP_SECONDS)
+
+
+STOP_SECONDS = 5.0
+"""Ctrl-C ends the viewer within this long even when viser's server thread does not stop (a client mid-handshake)."""
+
+
+def stop_within(server, seconds: float) -> None:
+    """Stop the viser server; if it has not stopped after ``seconds``, end the process (exit 0: the user asked)."""
+    import os
+    import threading
+
+    t = threading.Thread(target=server.stop, daemon=True)
+    t.start()
+    t.join(seconds)
+    if t.is_alive():
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
