@@ -204,11 +204,13 @@ def test_the_page_draws_the_gaussians_in_headless_chromium(tmp_path: Path) -> No
     assert red_pixels(canvas(im)) > 3000, f"{red_pixels(canvas(im))} red pixels: the Gaussians were not drawn"
 
 
-def test_the_command_prints_the_url_serves_and_stops_on_ctrl_c(tmp_path: Path) -> None:
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl_c", "sigterm"])
+def test_the_command_prints_the_url_serves_and_stops_on_a_signal(tmp_path: Path, sig: int) -> None:
     ply = tmp_path / "cube.ply"
     write_ply(ply, red_cube(300))
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    code = "from acesplat.apps.cli import main; main()"
+    # SIGINT ignored on entry, as in a background job of a non-interactive shell: the command must still stop
+    code = "import signal; signal.signal(signal.SIGINT, signal.SIG_IGN); from acesplat.apps.cli import main; main()"
     proc = subprocess.Popen(
         [sys.executable, "-P", "-c", code, "view", str(ply), "--port", "0"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path,
@@ -219,8 +221,10 @@ def test_the_command_prints_the_url_serves_and_stops_on_ctrl_c(tmp_path: Path) -
         url = line.split(" at ")[1].split()[0]
         with urllib.request.urlopen(url, timeout=30) as r:
             assert r.status == 200 and b"<html" in r.read().lower()
-        proc.send_signal(signal.SIGINT)
-        assert proc.wait(timeout=30) == 0
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=30)
+        assert proc.returncode == 0, err
+        assert "Traceback" not in err, err
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import typer
 
-from acesplat.apps.support import PhaseProgress, one_line_errors, option, report_json
+from acesplat.apps.support import PhaseProgress, one_line_errors, option, report_json, stop_on_signals
 from acesplat.core.errors import InputError
 from acesplat.core.geometry import look_at
 from acesplat.core.pose import PoseRecord, TrackingState
@@ -60,6 +60,7 @@ def monitor(
     json_out: Path | None = typer.Option(None, "--json", help="Write the counts here."),
 ) -> None:
     """Decode and print what arrives on PORT, with counts of good and rejected frames."""
+    stop_on_signals()
     _check_protocol(protocol)
     _check_seconds(seconds)
     if protocol == "frame":
@@ -145,6 +146,7 @@ def send_test(
     Commands from the microcontroller are printed and honoured: PAUSE stops the poses until RESUME,
     SET_RATE changes the send rate.
     """
+    stop_on_signals()
     _check_protocol(protocol)
     _check_seconds(seconds)
     if not (math.isfinite(rate) and 0 < rate <= MAX_RATE_HZ):

@@ -12,7 +12,7 @@ from rich.console import Console
 from rich.table import Table
 
 from acesplat.apps.refine_cmd import exit_if_harmed, refine_line, refine_session
-from acesplat.apps.support import PhaseProgress, one_line_errors, option, report_json
+from acesplat.apps.support import PhaseProgress, one_line_errors, option, report_json, stop_on_signals
 from acesplat.core.bundle import PRECISION_ROLES, Bundle, load_bundle
 from acesplat.core.errors import InputError
 from acesplat.core.geometry import matrix_to_quat
@@ -157,6 +157,7 @@ def localize_command(
     skip_int8_check: bool = option(Int8CheckConfig, "skip", "--skip-int8-check"),
 ) -> None:
     """Localize frames from a live or recorded source; Ctrl-C ends with a summary."""
+    stop_on_signals()
     check_provider(provider)
     precision = "int8" if int8 else "fp32"
     b = open_bundle(bundle, [precision], align or tracking)
@@ -291,6 +292,7 @@ def replay_command(
 ) -> None:
     """Replay a posed split in order, tracking between frames as on a live source (--no-tracking: each frame
     alone): `acesplat eval`'s accuracy, per-stage timing statistics and how each pose was made."""
+    stop_on_signals()
     from edge.replay import replay_split
 
     check_provider(provider)
@@ -440,6 +442,7 @@ def record_command(
     ),
 ) -> None:
     """Record frames, timestamps and intrinsics in a layout `--source replay:OUT` reads back."""
+    stop_on_signals()
     from acesplat.apps.support import parse_size
     from edge.record import record, record_mcap
 

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import functools
+import signal
 import sys
+import threading
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
@@ -28,6 +30,22 @@ def one_line_errors(fn: F) -> F:
             raise typer.Exit(2) from None
 
     return wrapper  # type: ignore[return-value]
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
+def stop_on_signals() -> None:
+    """Make Ctrl-C (SIGINT) and SIGTERM end a serve-until-stopped command through its cleanup.
+
+    A process started with SIGINT ignored (a background job of a non-interactive shell) would otherwise keep
+    ignoring the Ctrl-C its parent forwards, and SIGTERM (systemd, docker stop) would end it without finalizing
+    its outputs. No-op off the main thread, where Python cannot install handlers.
+    """
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGTERM, _interrupt)
 
 
 def report_json(path: Path | None, payload: dict[str, Any]) -> None:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import typer
 
-from acesplat.apps.support import CountProgress, one_line_errors, option
+from acesplat.apps.support import CountProgress, one_line_errors, option, stop_on_signals
 from acesplat.core.viewer import ViewConfig, ViewScene, check_port_free, page_url, serve, view_kind
 
 
@@ -56,6 +56,7 @@ def view_command(
     encoder: Path | None = typer.Option(None, help="A map's encoder weights if not where the map says."),
 ) -> None:
     """Serve a viser page with the Gaussians (or a map's SCR point cloud) and the mapping cameras; Ctrl-C stops."""
+    stop_on_signals()
     cfg = ViewConfig(host=host, port=port, max_points=max_points)
     check_port_free(cfg.host, cfg.port)  # before the map's predictions, which take a while
     view = load_view_scene(path, scene, encoder, cfg.max_points)
