@@ -63,7 +63,8 @@ class LatestSlot:
 
 @dataclass
 class LoopEvent:
-    """Something that is not a frame: 'skipped' (unreadable frame), 'disconnected', 'reconnected'."""
+    """Something that is not a frame: 'skipped' (unreadable frame), 'out_of_order' (a timestamp that does not move
+    forward), 'disconnected', 'reconnected'."""
 
     kind: str
     detail: str
@@ -79,6 +80,10 @@ class RunStats:
     dropped: int = 0
     skipped: int = 0
     skipped_frames: list[str] = field(default_factory=list)
+    out_of_order: int = 0
+    """Frames refused because their timestamp was earlier than the last localized frame's."""
+    repeated: int = 0
+    """Frames refused because their timestamp equalled the last localized frame's."""
     disconnects: int = 0
     reconnects: int = 0
     gap_s: float = 0.0
@@ -93,6 +98,8 @@ class RunStats:
             "dropped": self.dropped,
             "skipped": self.skipped,
             "skipped_frames": self.skipped_frames,
+            "out_of_order": self.out_of_order,
+            "repeated": self.repeated,
             "disconnects": self.disconnects,
             "reconnects": self.reconnects,
             "gap_s": self.gap_s,
@@ -194,7 +201,30 @@ def run_loop(
             if on_event:
                 on_event(e)
 
+    last_ts: list[float] = []
+
+    def in_order(frame) -> bool:
+        """Refuse a frame whose timestamp does not move forward (tracking's motion model needs time to advance)."""
+        ts = float(frame.timestamp)
+        if last_ts and ts <= last_ts[0]:
+            repeated = ts == last_ts[0]
+            if repeated:
+                stats.repeated += 1
+            else:
+                stats.out_of_order += 1
+            what = "repeated timestamp" if repeated else "out of order"
+            detail = f"{frame.name or frame.frame_id}: {what} ({ts:.6f} s after {last_ts[0]:.6f} s), not localized"
+            e = LoopEvent("out_of_order", detail, time.time())
+            localizer.notify(e)
+            if on_event:
+                on_event(e)
+            return False
+        last_ts[:] = [ts]
+        return True
+
     def process(frame, capture_ms: float, t_start: float) -> None:
+        if not in_order(frame):
+            return
         out = localizer.localize(frame, capture_ms, t_start)
         stats.frames += 1
         if out.record.state == TrackingState.TRACKING:

@@ -50,6 +50,8 @@ def summarize(outcomes: Sequence[FrameOutcome], stats: RunStats | None = None) -
     if stats is not None:
         s["skipped"] = stats.skipped
         s["skipped_frames"] = stats.skipped_frames
+        s["out_of_order"] = stats.out_of_order
+        s["repeated"] = stats.repeated
         s["interrupted"] = stats.interrupted
     return s
 

@@ -208,6 +208,8 @@ class VideoSource:
         self.calibration = calibration
         self.description = f"video:{self.path}"
         self._i = 0
+        fps = float(self.cap.get(cv2.CAP_PROP_FPS) or 0.0)
+        self._period = 1.0 / fps if fps > 0 else 1.0 / 30.0
 
     def read(self) -> SourceFrame | None:
         ok, bgr = self.cap.read()
@@ -216,6 +218,8 @@ class VideoSource:
         i = self._i
         self._i += 1
         ts = float(self.cap.get(cv2.CAP_PROP_POS_MSEC)) / 1000.0
+        if ts <= 0.0 and i > 0:  # a container without stamps: the frame index at the stream's rate
+            ts = i * self._period
         h, w = bgr.shape[:2]
         intr = self.calibration.intrinsics_for(w, h) if self.calibration else None
         dist = self.calibration.distortion if self.calibration else None

@@ -478,3 +478,41 @@ def test_taps_see_every_frame_with_its_arrays_and_the_loop_events(tiny) -> None:
     assert all(len(c[2]) == 3 and c[2][2] == 3 for c in plain.calls if c[0] == "frame")
     with_features = [c[3] for c in feats.calls if c[0] == "frame"]
     assert with_features == [loc.session.has_features] * stats.frames
+
+
+def test_out_of_order_and_repeated_timestamps_are_refused_and_counted(tiny, localizer) -> None:
+    """A frame whose timestamp does not move forward is not localized (tracking's motion model needs time to
+    advance): one event line each, counted apart in the summary, and the run goes on."""
+    from acesplat.core.scene import read_split
+
+    frames = read_split(tiny["scene"], "test").frames[:4]
+    stamps = [1.0, 2.0, 2.0, 1.5, 3.0, 4.0]  # a repeat, then one from the past
+    which = [0, 1, 1, 2, 2, 3]
+
+    class Jumbled:
+        live = False
+        description = "jumbled"
+
+        def __init__(self) -> None:
+            self.i = 0
+
+        def read(self):
+            if self.i >= len(stamps):
+                return None
+            f = frames[which[self.i]]
+            out = SourceFrame(f.load_rgb(), stamps[self.i], f.intrinsics, self.i, f"f{self.i}")
+            self.i += 1
+            return out
+
+        def reconnect(self) -> None: ...
+
+        def close(self) -> None: ...
+
+    outs, events = [], []
+    stats = run_loop(Jumbled(), localizer, outs.append, events.append)
+    assert [o.record.frame_id for o in outs] == [0, 1, 4, 5]
+    assert (stats.frames, stats.repeated, stats.out_of_order) == (4, 1, 1)
+    lines = [e.detail for e in events if e.kind == "out_of_order"]
+    assert len(lines) == 2 and "f2: repeated timestamp" in lines[0] and "f3: out of order" in lines[1]
+    d = stats.as_dict()
+    assert (d["repeated"], d["out_of_order"]) == (1, 1)

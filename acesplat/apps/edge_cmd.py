@@ -223,6 +223,7 @@ def localize_command(
         f"{stats.tracking} tracking, "
         f"{stats.lost} lost ({modes['tracked']} poses tracked, {summary['reanchors']} re-anchors, "
         f"{modes['resets']} resets), {stats.dropped} dropped, {stats.skipped} unreadable skipped, "
+        f"{stats.out_of_order + stats.repeated} out of order or repeated, "
         f"{stats.disconnects} disconnects ({stats.gap_s:.1f} s without frames)"
     )
     report_json(json_out, summary)
@@ -347,6 +348,11 @@ def replay_command(
         )
     if s.get("skipped"):
         console.print(f"[yellow]{s['skipped']} unreadable frames skipped[/yellow]: {', '.join(s['skipped_frames'])}")
+    if s.get("out_of_order") or s.get("repeated"):
+        console.print(
+            f"[yellow]{s['out_of_order']} frames out of order and {s['repeated']} with a repeated timestamp "
+            "not localized[/yellow]"
+        )
     if "refine" in s:
         console.print(refine_line(s["refine"]))
     report_json(json_out, s)
