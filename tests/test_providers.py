@@ -127,6 +127,23 @@ def test_cpu_isa_flags_and_runtime_info() -> None:
     assert runtime_info("cpu") == {"provider": "cpu", "onnxruntime": ort.__version__, "cpu_isa": isa}
 
 
+def test_an_isa_limit_in_the_environment_is_recorded_and_turns_bfloat16_off(monkeypatch) -> None:
+    from acesplat.core.machine import ISA_LIMIT_VARIABLES, bf16_units_usable, isa_limit, machine_line
+
+    for k in ISA_LIMIT_VARIABLES:
+        monkeypatch.delenv(k, raising=False)
+    assert isa_limit() == {} and bf16_units_usable()
+    monkeypatch.setenv("ATEN_CPU_CAPABILITY", "avx2")
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "AVX2")
+    assert isa_limit() == {"ATEN_CPU_CAPABILITY": "avx2", "ONEDNN_MAX_CPU_ISA": "AVX2"}
+    assert machine_info()["isa_limit"] == isa_limit() and "ATEN_CPU_CAPABILITY=avx2" in machine_line()
+    assert not bf16_units_usable()
+    monkeypatch.delenv("ATEN_CPU_CAPABILITY")
+    assert not bf16_units_usable()  # oneDNN alone capped at AVX2 has no bfloat16 kernels either
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "AVX512_CORE_AMX")
+    assert bf16_units_usable()
+
+
 # ----------------------------------------------------------------------------------- the commands
 def _cli(tiny, command: str, out: Path, *extra: str) -> list[str]:
     b = str(tiny["bundle"])

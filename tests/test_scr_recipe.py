@@ -58,6 +58,34 @@ def test_map_command_warns_and_flags_a_cut_short_map(scene, tmp_path) -> None:
     assert j["precision"] == "fp32" and isinstance(j["cpu_isa"], list)
 
 
+def test_auto_precision_is_float32_under_an_avx2_limit(monkeypatch) -> None:
+    from acesplat.scr.mapping import use_bf16
+
+    monkeypatch.setenv("ATEN_CPU_CAPABILITY", "avx2")
+    assert use_bf16("auto", "cpu") is False and use_bf16("bf16", "cpu") is True
+
+
+def test_a_small_scene_stops_buffering_after_its_passes(scene) -> None:
+    enc, _ = load_encoder(None)
+    cfg = MappingConfig(iterations=2, **{**TINY, "buffer_size": 10**6, "buffer_passes": 2})
+    res = map_scene(read_split(scene, "train"), enc, cfg)
+    # 12 training images, 2 passes, each augmented 64 x 80 view giving at most its 8 x 10 cells
+    assert 2 * 12 * 60 <= res.buffer_features <= 2 * 12 * 80 and not res.cut_short
+
+
+def test_map_command_takes_batch_and_buffer_knobs_and_records_them(scene, tmp_path, monkeypatch) -> None:
+    from acesplat.apps.cli import app
+
+    monkeypatch.setenv("ATEN_CPU_CAPABILITY", "avx2")
+    out = tmp_path / "m.json"
+    args = ["map", str(scene), "-o", str(tmp_path / "m.pt"), "--steps", "3", "--batch-size", "64"]
+    r = CliRunner().invoke(app, [*args, "--buffer-size", "500", "--buffer-passes", "3", "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    j = json.loads(out.read_text())
+    assert (j["batch_size"], j["buffer_passes"], j["buffer_features"]) == (64, 3, 500)
+    assert j["precision"] == "fp32" and j["isa_limit"]["ATEN_CPU_CAPABILITY"] == "avx2"
+
+
 def test_map_command_refuses_a_non_positive_cap(scene, tmp_path) -> None:
     from acesplat.apps.cli import app
 

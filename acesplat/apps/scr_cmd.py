@@ -32,6 +32,9 @@ def map_command(
         MappingConfig, "short_side", default=None, help="Shorter image side for the network, at most the images' own."
     ),
     head_width: int = typer.Option(knob_default(MappingConfig, "head").width, help="Width of the head's 1x1 layers."),
+    batch_size: int = option(MappingConfig, "batch_size", min=1),
+    buffer_size: int = option(MappingConfig, "buffer_size", min=1),
+    buffer_passes: int = option(MappingConfig, "buffer_passes", min=1),
     precision: str = option(MappingConfig, "precision"),
     augment: str = option(MappingConfig, "augment"),
     novel_views: int = option(MappingConfig, "novel_views"),
@@ -41,7 +44,7 @@ def map_command(
     """Train a scene-specific SCR head on the training split (Stage 1 mapping)."""
     import torch
 
-    from acesplat.core.machine import cpu_isa
+    from acesplat.core.machine import cpu_isa, isa_limit
     from acesplat.core.scene import read_split
     from acesplat.scr.augment import augment_ranges
     from acesplat.scr.encoders import load_encoder
@@ -71,6 +74,9 @@ def map_command(
         minutes=minutes,
         short_side=side,
         head=HeadConfig(width=head_width, blocks=1),
+        batch_size=batch_size,
+        buffer_size=buffer_size,
+        buffer_passes=buffer_passes,
         seed=seed,
         device=dev,
         precision=precision,
@@ -88,9 +94,12 @@ def map_command(
         "cut_short": res.cut_short,
         "minutes_cap": minutes,
         "buffer_features": res.buffer_features,
+        "batch_size": batch_size,
+        "buffer_passes": buffer_passes,
         "device": dev,
         "precision": "bf16" if bf16 else "fp32",
         "cpu_isa": cpu_isa(),
+        "isa_limit": isa_limit(),
         "augment": augment,
         "novel_views": novel_views,
         "novel_view_features": res.novel_view_features,

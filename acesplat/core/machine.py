@@ -41,6 +41,25 @@ def cpu_isa() -> list[str]:
     return [f for f in (*ISA_FLAGS, "neon") if f in found]
 
 
+ISA_LIMIT_VARIABLES = ("ATEN_CPU_CAPABILITY", "ONEDNN_MAX_CPU_ISA", "MKL_ENABLE_INSTRUCTIONS")
+"""Environment variables that make torch's own kernels, oneDNN and MKL use less of the CPU than it has (how an
+AVX2-only machine is reproduced on a bigger one)."""
+
+
+def isa_limit() -> dict[str, str]:
+    """The ISA_LIMIT_VARIABLES set in this process, e.g. {"ATEN_CPU_CAPABILITY": "avx2"}; {} when none is."""
+    return {k: os.environ[k] for k in ISA_LIMIT_VARIABLES if os.environ.get(k)}
+
+
+def bf16_units_usable() -> bool:
+    """False when an ISA limit in the environment keeps torch or oneDNN below AVX-512 (bfloat16 units unused)."""
+    lim = {k: v.lower() for k, v in isa_limit().items()}
+    capped = lim.get("ATEN_CPU_CAPABILITY") in ("default", "avx2") or lim.get("ONEDNN_MAX_CPU_ISA", "").startswith(
+        ("sse", "avx2", "avx_")
+    )
+    return not capped
+
+
 def library_versions(
     names: tuple[str, ...] = ("numpy", "opencv-python-headless", "onnxruntime", "torch", "numba"),
 ) -> dict[str, str]:
@@ -60,6 +79,7 @@ def machine_info() -> dict:
     return {
         "cpu": cpu_model(),
         "cpu_isa": cpu_isa(),
+        "isa_limit": isa_limit(),
         "cores": os.cpu_count(),
         "python": platform.python_version(),
         "platform": platform.platform(),
@@ -71,4 +91,5 @@ def machine_info() -> dict:
 def machine_line() -> str:
     m = machine_info()
     libs = ", ".join(f"{k} {v}" for k, v in m["libraries"].items())
-    return f"{m['cpu']}, {m['cores']} cores, load {m['load_average_1m']}; Python {m['python']}; {libs}"
+    lim = "".join(f", {k}={v}" for k, v in m["isa_limit"].items())
+    return f"{m['cpu']}{lim}, {m['cores']} cores, load {m['load_average_1m']}; Python {m['python']}; {libs}"

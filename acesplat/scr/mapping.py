@@ -27,6 +27,7 @@ from acesplat.core.camera import Intrinsics
 from acesplat.core.config import knob, knob_default
 from acesplat.core.errors import InputError
 from acesplat.core.grid import OUTPUT_STRIDE, cell_centers
+from acesplat.core.machine import bf16_units_usable
 from acesplat.core.preprocess import size_for_short_side, to_gray_input
 from acesplat.core.scene import SceneSplit
 from acesplat.scr.augment import augment, augment_ranges
@@ -49,9 +50,6 @@ TARGETS_TIME_FRACTION = 0.08
 """Under a wall-clock cap: at most this share of it goes to matching and triangulating targets."""
 BUFFER_TIME_FRACTION = 0.25
 """Under a wall-clock cap: targets and buffer together use at most this share of it; the rest trains the head."""
-MAX_BUFFER_PASSES = 100
-"""A scene too small to fill the buffer stops after this many augmented passes over its images (ACE stops after 10
-passes over far larger scenes; 100 lets a 20-image scene fill 1M features)."""
 ONE_CYCLE_WARMUP = 0.25
 """Share of training spent rising from lr_min to lr_max (cosine), then cosine annealing back down."""
 TARGET_WEIGHT_PX = 0.4
@@ -76,6 +74,9 @@ class MappingConfig:
     batch_size: int = knob(5120, "Buffered features per head step (ACE's batch).")
     buffer_size: int = knob(1_000_000, "Buffered features (ACE: 8M; on a CPU the head sees ~10 epochs of 1M).")
     samples_per_image: int = knob(1024, "Features taken from each augmented image (ACE's count).")
+    buffer_passes: int = knob(
+        100, "Augmented passes over the images after which a small scene's buffer stops short of buffer_size."
+    )
     lr_min: float = knob(5e-4, "Start and end of the one-cycle learning rate (ACE's range).")
     lr_max: float = knob(5e-3, "Peak of the one-cycle learning rate (ACE's range).")
     augment: str = knob(
@@ -98,6 +99,8 @@ def use_bf16(precision: str, device: str) -> bool:
         return precision == "bf16"
     if torch.device(device).type == "cuda":
         return True
+    if not bf16_units_usable():
+        return False
     return bool(torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported())
 
 
@@ -210,7 +213,7 @@ def fill_buffer(
     report: dict | None = None,
 ) -> Buffer:
     """Encoder features of augmented views: feats (N, C) fp16, pixels (N, 2), view (N,), and per view
-    w2c (V, 3, 4), K (V, 3, 3); ``cfg.buffer_size`` of them, or fewer after MAX_BUFFER_PASSES over the images or
+    w2c (V, 3, 4), K (V, 3, 3); ``cfg.buffer_size`` of them, or fewer after ``cfg.buffer_passes`` over the images or
     past ``deadline`` (time.monotonic; ``report["deadline_hit"]`` then says so)."""
     ranges = augment_ranges(cfg.augment)
     builder = BufferBuilder()
@@ -220,7 +223,7 @@ def fill_buffer(
     with buffer_encoding(encoder, cfg) as encode:
         while builder.features < cfg.buffer_size:
             if not order:
-                if passes == MAX_BUFFER_PASSES:
+                if passes == cfg.buffer_passes:
                     break
                 passes += 1
                 order = list(rng.permutation(len(images)))
