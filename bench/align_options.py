@@ -35,6 +35,16 @@ OPTIONS = {
     "enough_8k": replace(KEYFRAME_ALIGN, enough_pairs=8000),
     "two_rounds": replace(KEYFRAME_ALIGN, rounds=2),
     "cap2k+early": replace(KEYFRAME_ALIGN, max_pairs=2000, converged_m=1e-3, converged_deg=0.01),
+    "enough8k_r2": replace(KEYFRAME_ALIGN, enough_pairs=8000, rounds=2),
+    "enough16k_r2": replace(KEYFRAME_ALIGN, enough_pairs=16000, rounds=2),
+    "enough16k_r2_cap5k": replace(KEYFRAME_ALIGN, enough_pairs=16000, rounds=2, max_pairs=5000, thinning="confidence"),
+    "enough16k_r2_coarse": replace(
+        KEYFRAME_ALIGN, enough_pairs=16000, rounds=2, first_flow_scale=0.5, max_pairs=5000, thinning="confidence"
+    ),
+    "enough16k_r3_coarse": replace(
+        KEYFRAME_ALIGN, enough_pairs=16000, rounds=3, first_flow_scale=0.5, max_pairs=5000, thinning="confidence"
+    ),
+    "r2_cap5k": replace(KEYFRAME_ALIGN, rounds=2, max_pairs=5000, thinning="confidence"),
 }
 
 
