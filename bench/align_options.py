@@ -19,32 +19,36 @@ from acesplat.align.flow_pnp import KEYFRAME_ALIGN
 from acesplat.align.keyframe_align import align_scr_pose
 from acesplat.core.geometry import pose_error
 from acesplat.core.grid import OUTPUT_STRIDE
+from acesplat.core.machine import cpu_isa, machine_line
 from acesplat.core.scene import read_split
 from acesplat.scr.keyframes import MapKeyframes
 from acesplat.scr.localize import Localizer
 from acesplat.scr.mapfile import encoder_for_map, load_map
 
+FULL = replace(KEYFRAME_ALIGN, rounds=3, first_flow_scale=1.0, max_pairs=0, thinning="even", enough_pairs=0)
+"""Every keyframe (4), three full-size rounds, every pair: the alignment before its cheaper defaults."""
 OPTIONS = {
-    "base": KEYFRAME_ALIGN,
-    "cap2k_even": replace(KEYFRAME_ALIGN, max_pairs=2000),
-    "cap5k_even": replace(KEYFRAME_ALIGN, max_pairs=5000),
-    "cap2k_conf": replace(KEYFRAME_ALIGN, max_pairs=2000, thinning="confidence"),
-    "dis_fast": replace(KEYFRAME_ALIGN, flow_preset="fast"),
-    "coarse_first": replace(KEYFRAME_ALIGN, first_flow_scale=0.5),
-    "early_exit": replace(KEYFRAME_ALIGN, converged_m=1e-3, converged_deg=0.01),
-    "enough_8k": replace(KEYFRAME_ALIGN, enough_pairs=8000),
-    "two_rounds": replace(KEYFRAME_ALIGN, rounds=2),
-    "cap2k+early": replace(KEYFRAME_ALIGN, max_pairs=2000, converged_m=1e-3, converged_deg=0.01),
-    "enough8k_r2": replace(KEYFRAME_ALIGN, enough_pairs=8000, rounds=2),
-    "enough16k_r2": replace(KEYFRAME_ALIGN, enough_pairs=16000, rounds=2),
-    "enough16k_r2_cap5k": replace(KEYFRAME_ALIGN, enough_pairs=16000, rounds=2, max_pairs=5000, thinning="confidence"),
+    "base": FULL,
+    "default": KEYFRAME_ALIGN,
+    "cap2k_even": replace(FULL, max_pairs=2000),
+    "cap5k_even": replace(FULL, max_pairs=5000),
+    "cap2k_conf": replace(FULL, max_pairs=2000, thinning="confidence"),
+    "dis_fast": replace(FULL, flow_preset="fast"),
+    "coarse_first": replace(FULL, first_flow_scale=0.5),
+    "early_exit": replace(FULL, converged_m=1e-3, converged_deg=0.01),
+    "enough_8k": replace(FULL, enough_pairs=8000),
+    "two_rounds": replace(FULL, rounds=2),
+    "cap2k+early": replace(FULL, max_pairs=2000, converged_m=1e-3, converged_deg=0.01),
+    "enough8k_r2": replace(FULL, enough_pairs=8000, rounds=2),
+    "enough16k_r2": replace(FULL, enough_pairs=16000, rounds=2),
+    "enough16k_r2_cap5k": replace(FULL, enough_pairs=16000, rounds=2, max_pairs=5000, thinning="confidence"),
     "enough16k_r2_coarse": replace(
-        KEYFRAME_ALIGN, enough_pairs=16000, rounds=2, first_flow_scale=0.5, max_pairs=5000, thinning="confidence"
+        FULL, enough_pairs=16000, rounds=2, first_flow_scale=0.5, max_pairs=5000, thinning="confidence"
     ),
     "enough16k_r3_coarse": replace(
-        KEYFRAME_ALIGN, enough_pairs=16000, rounds=3, first_flow_scale=0.5, max_pairs=5000, thinning="confidence"
+        FULL, enough_pairs=16000, rounds=3, first_flow_scale=0.5, max_pairs=5000, thinning="confidence"
     ),
-    "r2_cap5k": replace(KEYFRAME_ALIGN, rounds=2, max_pairs=5000, thinning="confidence"),
+    "r2_cap5k": replace(FULL, rounds=2, max_pairs=5000, thinning="confidence"),
 }
 
 
@@ -89,9 +93,16 @@ def main() -> None:
                     r["r"].append(dr)
                     r["status"].append(al.status)
     base_ms = np.array(rows["base"]["ms"])
-    out = {"frames": len(scr_err), "scr_median_cm": 100 * float(np.median([e[0] for e in scr_err]))}
+    out = {
+        "frames": len(scr_err),
+        "scr_median_cm": 100 * float(np.median([e[0] for e in scr_err])),
+        "machine": machine_line(),
+        "cpu_isa": cpu_isa(),
+    }
+    print(machine_line())
     print(f"{len(scr_err)} frames; SCR alone median {out['scr_median_cm']:.2f} cm")
-    print(f"{'option':14s} {'med cm':>7s} {'p90 cm':>7s} {'med deg':>8s} {'mean ms':>8s} {'ratio':>6s}  statuses")
+    cols = ("med cm", "p90 cm", "max cm", "med deg", "mean ms", "ratio")
+    print(f"{'option':20s} " + " ".join(f"{c:>8s}" for c in cols) + "  statuses")
     for n in names:
         r = rows[n]
         t, ms = np.array(r["t"]) * 100, np.array(r["ms"])
@@ -100,14 +111,15 @@ def main() -> None:
         out[n] = {
             "median_cm": float(np.median(t)),
             "p90_cm": float(np.percentile(t, 90)),
+            "max_cm": float(t.max()),
             "median_deg": float(np.median(r["r"])),
             "mean_ms": float(ms.mean()),
             "ms_ratio_to_base": ratio,
             "statuses": st,
         }
         print(
-            f"{n:14s} {np.median(t):7.2f} {np.percentile(t, 90):7.2f} {np.median(r['r']):8.3f} {ms.mean():8.1f} "
-            f"{ratio:6.2f}  {st}"
+            f"{n:20s} {np.median(t):8.2f} {np.percentile(t, 90):8.2f} {t.max():8.2f} {np.median(r['r']):8.3f} "
+            f"{ms.mean():8.1f} {ratio:8.2f}  {st}"
         )
     if a.json:
         with open(a.json, "w") as fh:

@@ -83,7 +83,7 @@ def test_exact_pairs_bring_a_perturbed_pose_back_and_the_guards_hold() -> None:
     for cfg in (
         KEYFRAME_ALIGN,
         RENDER_ALIGN,
-        replace(KEYFRAME_ALIGN, max_pairs=500),
+        replace(KEYFRAME_ALIGN, max_pairs=500, thinning="even"),
         replace(KEYFRAME_ALIGN, converged_m=1e-3, converged_deg=0.01),
     ):
         al = refine_pose(start, K, src, cfg)
@@ -113,13 +113,13 @@ def test_rounds_stop_early_once_converged() -> None:
     assert calls == [0]
     calls.clear()
     refine_pose(true, K, src, KEYFRAME_ALIGN)
-    assert calls == [0, 1, 2]
+    assert calls == [0, 1]
 
 
 def test_thinning_keeps_the_cap_evenly_or_the_most_confident() -> None:
     err = np.array([0.4, 0.1, 0.3, 0.0, 0.2, 0.45])
     assert thin(6, err, KEYFRAME_ALIGN).tolist() == list(range(6))
-    even = replace(KEYFRAME_ALIGN, max_pairs=300)
+    even = replace(KEYFRAME_ALIGN, max_pairs=300, thinning="even")
     assert len(thin(1000, np.zeros(1000), even)) == 300 and thin(1000, np.zeros(1000), even)[[0, -1]].tolist() == [
         0,
         999,
@@ -130,7 +130,12 @@ def test_thinning_keeps_the_cap_evenly_or_the_most_confident() -> None:
 
 
 def test_the_presets_hold_the_two_aligners_settings_and_bad_configs_are_refused() -> None:
-    assert (KEYFRAME_ALIGN.min_points, KEYFRAME_ALIGN.ransac_iterations, KEYFRAME_ALIGN.rounds) == (300, 200, 3)
+    assert (KEYFRAME_ALIGN.min_points, KEYFRAME_ALIGN.ransac_iterations, KEYFRAME_ALIGN.rounds) == (300, 200, 2)
+    assert (KEYFRAME_ALIGN.first_flow_scale, KEYFRAME_ALIGN.max_pairs, KEYFRAME_ALIGN.enough_pairs) == (
+        0.5,
+        5000,
+        16000,
+    )
     assert (KEYFRAME_ALIGN.max_fb_error_px, KEYFRAME_ALIGN.max_shift_m, KEYFRAME_ALIGN.refine_lm) == (0.5, 0.5, True)
     assert (RENDER_ALIGN.min_points, RENDER_ALIGN.ransac_iterations, RENDER_ALIGN.rounds) == (400, 100, 1)
     assert (RENDER_ALIGN.max_fb_error_px, RENDER_ALIGN.max_shift_m, RENDER_ALIGN.refine_lm) == (None, 0.15, False)

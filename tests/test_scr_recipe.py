@@ -29,6 +29,7 @@ def scene(tmp_path_factory):
 def test_the_default_recipe_is_a_step_count_with_no_clock() -> None:
     assert knob_default(MappingConfig, "minutes") is None
     assert knob_default(MappingConfig, "iterations") == 5000
+    assert (knob_default(MappingConfig, "batch_size"), knob_default(MappingConfig, "buffer_passes")) == (2560, 20)
 
 
 def test_uncapped_mapping_does_all_its_work(scene) -> None:

@@ -57,7 +57,7 @@ class AlignConfig:
     min_inlier_ratio: float = knob(0.5, "RANSAC inliers needed, as a share of the pairs PnP was given.")
     max_shift_m: float = knob(0.5, "A correction beyond this (m) means the start pose was wrong, not imprecise.")
     max_shift_deg: float = knob(3.0, "A correction beyond this (deg) means the start pose was wrong, not imprecise.")
-    rounds: int = knob(3, "Warp-flow-PnP rounds (keyframes), each from the last round's pose; a render is one round.")
+    rounds: int = knob(2, "Warp-flow-PnP rounds (keyframes), each from the last round's pose; a render is one round.")
     min_anchor_kept: float = knob(
         0.8, "Share of the SCR correspondences' inliers the refined pose must keep (keyframes; bench/herz_gap.md)."
     )
@@ -66,13 +66,13 @@ class AlignConfig:
     min_coverage: float = knob(0.5, "A render covering less of the view than this is not trusted (bench/refine.md).")
     flow_preset: str = knob("medium", "DIS optical flow preset: ultrafast, fast or medium (bench/align.md).")
     first_flow_scale: float = knob(
-        1.0, "The first round's flow runs on images scaled by this (coarse-to-fine; 1: full size; bench/align.md)."
+        0.5, "The first round's flow runs on images scaled by this (coarse-to-fine; 1: full size; bench/align.md)."
     )
-    max_pairs: int = knob(0, "PnP gets at most this many pairs, thinned (0: all; bench/align.md).")
-    thinning: str = knob("even", "How pairs beyond max_pairs are dropped: even (over the image) or confidence.")
+    max_pairs: int = knob(5000, "PnP gets at most this many pairs, thinned (0: all; bench/align.md).")
+    thinning: str = knob("confidence", "How pairs beyond max_pairs are dropped: even (over the image) or confidence.")
     converged_m: float = knob(0.0, "Stop the rounds when one moves the pose less than this (m; 0: never).")
     converged_deg: float = knob(0.0, "...and less than this (deg).")
-    enough_pairs: int = knob(0, "Keyframes are used nearest first until this many pairs (0: all; bench/align.md).")
+    enough_pairs: int = knob(16000, "Keyframes are used nearest first until this many pairs (0: all; bench/align.md).")
 
     def __post_init__(self) -> None:
         if self.sample_step_px < 1 or self.ransac_iterations < 1 or self.rounds < 1 or self.min_points < 4:
@@ -101,6 +101,9 @@ RENDER_ALIGN = replace(
     min_points=400,
     max_shift_m=0.15,
     rounds=1,
+    first_flow_scale=1.0,
+    max_pairs=0,
+    thinning="even",
 )
 """The map rendered at the estimate (bench/refine.md): no forward-backward check, RANSAC alone, one round."""
 TRACK_ALIGN = replace(
@@ -114,6 +117,7 @@ TRACK_ALIGN = replace(
     max_shift_m=0.1,
     rounds=1,
     max_pairs=1000,
+    thinning="even",
 )
 """Every frame while tracking (edge/tracking.py), against one keyframe from the predicted pose: a coarse sample grid,
 pairs whose gray levels differ are dropped (a blank frame is no match), flow at half size, at most 1000 pairs, one

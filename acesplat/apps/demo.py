@@ -25,7 +25,7 @@ from acesplat.scr.mapping import MappingConfig
 console = Console()
 
 
-DEFAULT_MAP_STEPS = 1200
+DEFAULT_MAP_STEPS = 2400
 """Stage 1 head steps of the demo: a quick map (about 5 minutes on 2 AVX2 cores); `acesplat map` runs 5000."""
 DEFAULT_SPLAT_MINUTES = 1.5
 """Stage 2 budget of the demo: enough to see the Gaussians form (the full recipe is `acesplat splat --minutes 10`)."""

@@ -5,8 +5,8 @@ ACE's recipe (Brachmann et al., CVPR 2023), readable top to bottom:
    rescale and rotation on request), each feature remembering its pixel, the (augmented) camera's
    intrinsics and world-to-camera pose, and where a triangulated keypoint falls in its cell, a target.
 2. Train the head on random batches of the buffer with the reprojection loss, the circular threshold
-   curriculum and AdamW under a one-cycle learning rate, all driven by the fraction of the wall-clock
-   budget used (so a shorter budget runs the whole schedule, not the start of it).
+   curriculum and AdamW under a one-cycle learning rate, all driven by the fraction of the recipe's head steps
+   done (or of a wall-clock cap, when one binds first, so a capped map still runs the whole schedule).
 3. On request (this project's addition, acesplat.scr.novel_views), late in training, warp the training images
    with the head's own depth to cameras between neighbouring ones and add their features, with those
    cameras' poses, to the buffer: the head then also learns the in-between views a query will come from.
@@ -71,11 +71,13 @@ class MappingConfig:
     minutes: float | None = knob(None, "Optional wall-clock cap; a map it cuts short is warned of and flagged.")
     short_side: int = knob(360, "Shorter image side for the network (ACE: 480; fewer pixels suit a CPU).")
     head: HeadConfig = knob(reason="The head's 1x1 layers.", factory=lambda: HeadConfig(width=256, blocks=1))
-    batch_size: int = knob(5120, "Buffered features per head step (ACE's batch).")
-    buffer_size: int = knob(1_000_000, "Buffered features (ACE: 8M; on a CPU the head sees ~10 epochs of 1M).")
+    batch_size: int = knob(
+        2560, "Buffered features per head step (ACE: 5120; half keeps the accuracy: bench/recipe.md)."
+    )
+    buffer_size: int = knob(1_000_000, "Buffered features (ACE: 8M; on a CPU the head sees ~13 epochs of 1M).")
     samples_per_image: int = knob(1024, "Features taken from each augmented image (ACE's count).")
     buffer_passes: int = knob(
-        100, "Augmented passes over the images after which a small scene's buffer stops short of buffer_size."
+        20, "Augmented passes over a small scene's images, then its buffer stops short (bench/recipe.md)."
     )
     lr_min: float = knob(5e-4, "Start and end of the one-cycle learning rate (ACE's range).")
     lr_max: float = knob(5e-3, "Peak of the one-cycle learning rate (ACE's range).")
