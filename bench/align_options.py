@@ -49,6 +49,10 @@ OPTIONS = {
         FULL, enough_pairs=16000, rounds=3, first_flow_scale=0.5, max_pairs=5000, thinning="confidence"
     ),
     "r2_cap5k": replace(FULL, rounds=2, max_pairs=5000, thinning="confidence"),
+    "default_16k": replace(KEYFRAME_ALIGN, enough_pairs=16000),
+    "default_32k": replace(KEYFRAME_ALIGN, enough_pairs=32000),
+    "default_32k_r3": replace(KEYFRAME_ALIGN, enough_pairs=32000, rounds=3),
+    "default_16k_r3": replace(KEYFRAME_ALIGN, enough_pairs=16000, rounds=3),
 }
 
 

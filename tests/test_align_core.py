@@ -131,11 +131,7 @@ def test_thinning_keeps_the_cap_evenly_or_the_most_confident() -> None:
 
 def test_the_presets_hold_the_two_aligners_settings_and_bad_configs_are_refused() -> None:
     assert (KEYFRAME_ALIGN.min_points, KEYFRAME_ALIGN.ransac_iterations, KEYFRAME_ALIGN.rounds) == (300, 200, 2)
-    assert (KEYFRAME_ALIGN.first_flow_scale, KEYFRAME_ALIGN.max_pairs, KEYFRAME_ALIGN.enough_pairs) == (
-        0.5,
-        5000,
-        16000,
-    )
+    assert (KEYFRAME_ALIGN.first_flow_scale, KEYFRAME_ALIGN.max_pairs, KEYFRAME_ALIGN.enough_pairs) == (0.5, 5000, 0)
     assert (KEYFRAME_ALIGN.max_fb_error_px, KEYFRAME_ALIGN.max_shift_m, KEYFRAME_ALIGN.refine_lm) == (0.5, 0.5, True)
     assert (RENDER_ALIGN.min_points, RENDER_ALIGN.ransac_iterations, RENDER_ALIGN.rounds) == (400, 100, 1)
     assert (RENDER_ALIGN.max_fb_error_px, RENDER_ALIGN.max_shift_m, RENDER_ALIGN.refine_lm) == (None, 0.15, False)

@@ -72,7 +72,7 @@ class AlignConfig:
     thinning: str = knob("confidence", "How pairs beyond max_pairs are dropped: even (over the image) or confidence.")
     converged_m: float = knob(0.0, "Stop the rounds when one moves the pose less than this (m; 0: never).")
     converged_deg: float = knob(0.0, "...and less than this (deg).")
-    enough_pairs: int = knob(16000, "Keyframes are used nearest first until this many pairs (0: all; bench/align.md).")
+    enough_pairs: int = knob(0, "Keyframes are used nearest first until this many pairs (0: all; bench/align.md).")
 
     def __post_init__(self) -> None:
         if self.sample_step_px < 1 or self.ransac_iterations < 1 or self.rounds < 1 or self.min_points < 4:
