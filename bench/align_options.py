@@ -42,12 +42,6 @@ OPTIONS = {
     "enough8k_r2": replace(FULL, enough_pairs=8000, rounds=2),
     "enough16k_r2": replace(FULL, enough_pairs=16000, rounds=2),
     "enough16k_r2_cap5k": replace(FULL, enough_pairs=16000, rounds=2, max_pairs=5000, thinning="confidence"),
-    "enough16k_r2_coarse": replace(
-        FULL, enough_pairs=16000, rounds=2, first_flow_scale=0.5, max_pairs=5000, thinning="confidence"
-    ),
-    "enough16k_r3_coarse": replace(
-        FULL, enough_pairs=16000, rounds=3, first_flow_scale=0.5, max_pairs=5000, thinning="confidence"
-    ),
     "r2_cap5k": replace(FULL, rounds=2, max_pairs=5000, thinning="confidence"),
     "default_16k": replace(KEYFRAME_ALIGN, enough_pairs=16000),
     "default_32k": replace(KEYFRAME_ALIGN, enough_pairs=32000),
@@ -103,7 +97,7 @@ def main() -> None:
         "machine": machine_line(),
         "cpu_isa": cpu_isa(),
     }
-    print(machine_line())
+    print(out["machine"])
     print(f"{len(scr_err)} frames; SCR alone median {out['scr_median_cm']:.2f} cm")
     cols = ("med cm", "p90 cm", "max cm", "med deg", "mean ms", "ratio")
     print(f"{'option':20s} " + " ".join(f"{c:>8s}" for c in cols) + "  statuses")
