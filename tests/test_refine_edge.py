@@ -74,11 +74,11 @@ def test_replay_refine_reports_psnr_gain_and_saves_the_map(tiny, bundle_with_gau
     assert ref["keyframes"] == 12 and ref["keyframes_committed"] >= 6  # measured 9 of 12
     assert ref["steps"] >= 150  # measured 300
     assert ref["psnr_after"] > ref["psnr_before"] + 8.0  # measured 10.9 -> 22.3 dB
-    assert (
-        ref["gaussians_final"]
-        == ref["gaussians_initial"] + ref["gaussians_added"] - ref["gaussians_pruned"] - ref["gaussians_capped"]
-    )
+    assert ref["gaussians_final"] == ref["gaussians_initial"] + ref["gaussians_added"] - ref["gaussians_pruned"] - ref[
+        "gaussians_capped"
+    ] + ref["witness"].get("revived", 0) - ref["witness"].get("added_removed", 0)
     assert ref["errors"] == []
+    assert ref["witness"]["witnesses"] == ref["witness"]["offered"] == 12 and not ref["failed"]
     assert len(read_ply(saved)) == ref["gaussians_final"] and ref["save"]["failures"] == 0
     assert "refine: PSNR" in r.output
 

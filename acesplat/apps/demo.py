@@ -275,6 +275,8 @@ def results_table(summary: dict) -> Table:
 
 
 def _refinement(r: dict, plain: dict | None) -> str:
+    from acesplat.apps.refine_cmd import witness_text
+
     f = r["refine"]
     tm, w = r["timing_ms"]["total"], f["timing_ms"]["window"]
     psnr = (
@@ -286,7 +288,8 @@ def _refinement(r: dict, plain: dict | None) -> str:
     init = f["calibration_ms"].get("initializer_ms")
     init_text = f"; initializer {init:.1f} ms" if init is not None else ""
     return (
-        f"{psnr}; {f['keyframes']} keyframes ({f['keyframes_committed']} kept), +{f['gaussians_added']} Gaussians, "
+        f"{psnr}; {f['keyframes']} keyframes ({f['keyframes_committed']} kept), {witness_text(f)}"
+        f"+{f['gaussians_added']} Gaussians, "
         f"{f['steps']} steps in a {f['budget_ms']:.0f} ms budget; localization total p95 {tm['p95']:.0f} ms{without}; "
         f"refinement per frame p50 {_ms(w['p50'])}, p95 {_ms(w['p95'])}; waits for a running piece p95 "
         f"{_ms(f['timing_ms']['park']['p95'])}{init_text}"

@@ -46,10 +46,19 @@ def refine_line(r: dict) -> str:
     return (
         f"refine: {psnr}{r['keyframes']} keyframes ({r['keyframes_committed']} committed, {r['keyframes_rolled_back']} "
         f"rolled back), {r['steps']} steps (p50 {t['step']['p50']:.1f} ms), {r['gaussians_initial']} -> "
-        f"{r['gaussians_final']} Gaussians (+{r['gaussians_added']}), {r['dropped']} dropped; "
+        f"{r['gaussians_final']} Gaussians (+{r['gaussians_added']}), {r['dropped']} dropped; {witness_text(r)}"
         "refinement work per frame "
         f"window p50 {t['window']['p50']:.1f} p95 {t['window']['p95']:.1f} ms"
     )
+
+
+def witness_text(r: dict) -> str:
+    """'N witnesses, M restored; ' from a refinement report (edge/refine/witness.py), '' without witnesses."""
+    w = r.get("witness") or {}
+    if not w.get("witnesses"):
+        return ""
+    back = ", the loaded map kept" if w.get("fell_back_to_loaded") else ""
+    return f"{w['witnesses']} witnesses checked, {w['harmed_before']} had lost and were restored{back}; "
 
 
 def harm_line(r: dict) -> str | None:

@@ -711,6 +711,36 @@ class Refiner:
         """A compact copy of the map (for saving and scoring)."""
         return self.store.live()
 
+    def restore_view(self, pose_c2w: np.ndarray, k: Intrinsics) -> tuple[int, int, int]:
+        """Put back what refinement changed in one view: every row of the loaded map that reaches the view, as it is
+        now or as it was loaded, returns to its loaded values (un-hidden, re-added if compacted away), and every row
+        refinement added that reaches the view is hidden. Returns (rows restored, of them brought back after
+        pruning or the cap removed them, added rows hidden)."""
+        st, n = self.store, self.store.n
+        now = frustum_mask(st.view.means, st.view.log_scales, pose_c2w, k)
+        origin = st.origin[:n]
+        was = np.flatnonzero(frustum_mask(self.loaded.means, self.loaded.log_scales, pose_c2w, k))
+        row_of = np.full(len(self.loaded), -1, np.int64)
+        has = origin >= 0
+        row_of[origin[has]] = np.flatnonzero(has)
+        src = np.union1d(origin[now & has], was)
+        rows = row_of[src]
+        kept = rows >= 0
+        st.write_rows(rows[kept], self.loaded.subset(src[kept]))
+        revived = int(st.hidden[rows[kept]].sum() + (~kept).sum())
+        st.hidden[rows[kept]] = False
+        new_rows = np.flatnonzero(now & ~has & ~st.hidden[:n])
+        st.hide(new_rows)
+        if not kept.all():
+            st.append(self.loaded.subset(src[~kept]), origin=src[~kept])
+        self.version += 1
+        return int(src.size), revived, int(new_rows.size)
+
+    def restore_all(self) -> None:
+        """The map back to exactly the map as loaded."""
+        self.store = GaussianStore(self.loaded, self.cap)
+        self.version += 1
+
     def kf_check_reserve(self) -> float:
         """Time for rendering the keyframe whole once (tile by tile): its check after crop steps or seeding."""
         return len(tile_bounds(1 << 16, 1 << 16, self.cfg.tiles)) * self.render_cost.predict()

@@ -32,6 +32,7 @@ from edge.refine.guard import psnr, render_view, view_mse
 from edge.refine.keyframes import KeyframePolicy, KeyframeSelector
 from edge.refine.persist import SplatSaver
 from edge.refine.refiner import Keyframe, RefineConfig, Refiner
+from edge.refine.witness import Witness, WitnessPool, repair
 from edge.refine.worker import NICE, Candidate, RefineWorker
 from edge.runtime import EdgeLocalizer, FrameOutcome, FrameTap
 from edge.sources import SourceFrame
@@ -56,6 +57,9 @@ class RefineOptions:
     evaluate: bool = knob(False, "Keep each frame with a ground-truth pose to report PSNR before/after (replay).")
     raster_threads: int | None = knob(1, "Rasterizer threads (None: all cores); one keeps refinement on its thread.")
     use_initializer: bool = knob(True, "Seed through the bundle's ONNX initializer when it has one.")
+    witnesses: int = knob(64, "Tracked frames kept to prove at the end that refinement lowered none (0: no check).")
+    witness_side: int = knob(320, "Longer side the witnesses are checked at: the loss shows at full size (px).")
+    witness_tolerance_db: float = knob(0.0, "PSNR a witness may lose before its view is restored (dB).")
     config: RefineConfig = knob(reason="What one keyframe's batch may do.", factory=RefineConfig)
     policy: KeyframePolicy = knob(reason="Which frames become keyframes.", factory=KeyframePolicy)
 
@@ -66,6 +70,11 @@ class RefineOptions:
             raise ValueError(f"margin must be in [0, 1), got {self.margin}")
         if self.max_side < 8:
             raise ValueError(f"refinement size must be at least 8 px, got {self.max_side}")
+        if self.witnesses < 0 or self.witness_side < 8 or not self.witness_tolerance_db >= 0:
+            raise ValueError(
+                f"witnesses must be >= 0, their side >= 8 px and their tolerance >= 0 dB, got {self.witnesses}, "
+                f"{self.witness_side}, {self.witness_tolerance_db}"
+            )
 
 
 def refine_intrinsics(k_input: Intrinsics, max_side: int) -> Intrinsics:
@@ -154,6 +163,8 @@ class RefineSession(FrameTap):
             self.refiner, KeyframeSelector(opts.policy), self.saver, clock, nice=0 if opts.pace else NICE
         )
         self.frames = 0
+        self.witness_pool = WitnessPool(opts.witnesses)
+        self.repair_report: dict | None = None
         self.wait_ms: list[float] = []
         self.park_ms: list[float] = []
         """Per frame: how long its localization waited for the worker's running piece (paced sessions)."""
@@ -196,6 +207,11 @@ class RefineSession(FrameTap):
         deadline_at = frame_end - self.opts.margin * self.opts.budget_ms / 1000.0
         rec = out.record
         tracking = rec.state == TrackingState.TRACKING
+        if tracking and self.opts.witnesses:
+            k_w = refine_intrinsics(k_input, self.opts.witness_side)
+            rgb_w = colour_at(image, intr, dist, k_input, k_w)
+            rgb_w = np.clip(np.asarray(rgb_w, np.float32) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+            self.witness_pool.add(Witness(np.array(rec.T_c2w, np.float64), k_w, rgb_w, out.name or str(rec.frame_id)))
         if tracking and rec.inliers >= self.opts.policy.min_inliers and coords is not None:
             pose = np.array(rec.T_c2w, np.float64)
             name = out.name or str(rec.frame_id)
@@ -224,20 +240,30 @@ class RefineSession(FrameTap):
         self.wait_ms.append(1000.0 * (self.clock() - t0))
         self.counts_over_time.append((self.frames, self.refiner.count()))
 
+    def _repair(self) -> bool:
+        """Undo refinement on every witness it left worse (edge/refine/witness.py); True if the map changed."""
+        if not self.witness_pool.items:
+            return False
+        self._restore_thread_limits()  # localization is over: the check may use every core
+        self.repair_report = repair(self.refiner, self.witness_pool.items, self.opts.witness_tolerance_db)
+        return bool(self.repair_report["harmed_before"])
+
     def _restore_thread_limits(self) -> None:
         if self._raster_threads_before is not None:
             from acesplat.raster import set_num_threads
 
             set_num_threads(self._raster_threads_before)
+            self._raster_threads_before = None
         for limit in reversed(self._blas_limits):
             limit.restore_original_limits()
+        self._blas_limits = []
 
     def close(self) -> dict:
         """Stop the worker (saving the map if asked) and return the ``refine`` report."""
         if self._closed:
             return self.summary or {}
         self._closed = True
-        self.worker.close()
+        self.worker.close(before_save=self._repair)
         self._restore_thread_limits()
         ws = self.worker.stats
         reps = ws.reports
@@ -291,6 +317,12 @@ class RefineSession(FrameTap):
             },
             "gaussians_over_time": [list(p) for p in self.counts_over_time],
             "errors": ws.errors[:20],
+            "witness": {
+                "offered": self.witness_pool.offered,
+                "kept": len(self.witness_pool),
+                "tolerance_db": self.opts.witness_tolerance_db,
+                **(self.repair_report or {}),
+            },
         }
         if self.saver is not None:
             s["save"] = self.saver.as_dict()

@@ -30,6 +30,9 @@ class GaussianStore:
             self._buf[p][:n] = getattr(g, p)
         self.n = n
         self.hidden = np.zeros(self._capacity(), bool)
+        self.origin = np.full(self._capacity(), -1, np.int64)
+        """Per row: its index in the map the store was made from, -1 for a row appended since."""
+        self.origin[:n] = np.arange(n)
         self.compactions = 0
 
     def _capacity(self) -> int:
@@ -55,7 +58,8 @@ class GaussianStore:
         self._buf["opacity_logits"][idx] = HIDDEN
         self.hidden[idx] = True
 
-    def append(self, g: Gaussians) -> None:
+    def append(self, g: Gaussians, origin: np.ndarray | None = None) -> None:
+        """Add the rows of ``g``; ``origin`` (M,) int their indices in the initial map (default -1: new rows)."""
         m = len(g)
         if self.n + m > self._capacity():
             new_cap = max(int((self.n + m) * GROWTH), 16)
@@ -66,9 +70,13 @@ class GaussianStore:
             hidden = np.zeros(new_cap, bool)
             hidden[: self.n] = self.hidden[: self.n]
             self.hidden = hidden
+            origins = np.full(new_cap, -1, np.int64)
+            origins[: self.n] = self.origin[: self.n]
+            self.origin = origins
         for p in PARAMS:
             self._buf[p][self.n : self.n + m] = getattr(g, p)
         self.hidden[self.n : self.n + m] = False
+        self.origin[self.n : self.n + m] = -1 if origin is None else np.asarray(origin, np.int64)
         self.n += m
 
     def enforce(self) -> int:
@@ -89,6 +97,8 @@ class GaussianStore:
         keep = np.flatnonzero(~self.hidden[: self.n])
         for p in PARAMS:
             self._buf[p][: keep.size] = self._buf[p][keep]
+        self.origin[: keep.size] = self.origin[keep]
+        self.origin[keep.size :] = -1
         self.n = keep.size
         self.hidden[:] = False
         self.compactions += 1

@@ -151,15 +151,17 @@ class RefineWorker:
         with self._cond:
             return self._cond.wait_for(lambda: self._item is None and not self._busy, timeout)
 
-    def close(self, timeout: float = 30.0) -> None:
-        """Finish the running batch, stop the thread, and save the map a last time (if saving)."""
+    def close(self, timeout: float = 30.0, before_save: Callable[[], bool] | None = None) -> None:
+        """Finish the running batch, stop the thread, run ``before_save`` (True if it changed the map), and save the
+        map a last time (if saving)."""
         with self._cond:
             self._stop = True
             if self._deadline is not None:
                 self._deadline.preempt()
             self._cond.notify_all()
         self._thread.join(timeout)
-        if self.saver is not None and self.saver.dirty:
+        changed = before_save() if before_save is not None and not self._thread.is_alive() else False
+        if self.saver is not None and (self.saver.dirty or changed):
             self.saver.save(self.refiner.snapshot())
 
     # -- the worker thread -----------------------------------------------------------------------

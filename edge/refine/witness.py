@@ -1,0 +1,126 @@
+"""Witness views: the frames a session localized, kept to prove at its end that refinement harmed none of them.
+
+The commit guard checks a keyframe's batch against the keyframe and the held keyframes at a small size. A batch
+fitted to one view can still lower the sharpness of views it never checked, most of all views that saw the same
+surfaces from nearer, and only at full resolution (bench/refine.md). So every tracked frame is a witness (a
+bounded pool that keeps the most distinct viewpoints), and :func:`repair` renders each one under the refined map
+and the map as loaded, at the witness size, and puts back what refinement changed in any witness that lost: pass
+after pass, until no witness loses, or the map as loaded when the passes run out. The map a session leaves is
+then never worse than the loaded one on any witness.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from acesplat.core.camera import Intrinsics
+from edge.refine.guard import loaded_bound, psnr, view_mse
+
+DEGREE_AS_M = 0.01
+"""Viewpoint distance of one degree of rotation, in metres of translation, when the pool picks distinct views."""
+
+
+@dataclass
+class Witness:
+    """A localized frame: ``pose`` (4, 4) camera-to-world as localized, ``rgb`` (H, W, 3) uint8 at intrinsics ``k``."""
+
+    pose: np.ndarray
+    k: Intrinsics
+    rgb: np.ndarray
+    name: str = ""
+    loaded_mse: float | None = None
+
+    def target(self) -> np.ndarray:
+        return self.rgb.astype(np.float32) * np.float32(1.0 / 255.0)
+
+
+def viewpoint_distance(a: np.ndarray, b: np.ndarray) -> float:
+    """Translation (m) plus rotation (``DEGREE_AS_M`` m a degree) between camera-to-world poses ``a``, ``b`` (4, 4)."""
+    r = a[:3, :3].T @ b[:3, :3]
+    angle = np.degrees(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0)))
+    return float(np.linalg.norm(a[:3, 3] - b[:3, 3]) + DEGREE_AS_M * angle)
+
+
+class WitnessPool:
+    """At most ``capacity`` witnesses; when full, a new one replaces the older of the two closest viewpoints, so
+    a long run keeps views spread over where it went instead of only the latest ones."""
+
+    def __init__(self, capacity: int) -> None:
+        if capacity < 0:
+            raise ValueError(f"capacity must be >= 0, got {capacity}")
+        self.capacity = capacity
+        self.items: list[Witness] = []
+        self.offered = 0
+
+    def add(self, w: Witness) -> None:
+        if np.shape(w.pose) != (4, 4) or w.rgb.shape != (w.k.height, w.k.width, 3) or w.rgb.dtype != np.uint8:
+            raise ValueError(f"witness needs a (4, 4) pose and ({w.k.height}, {w.k.width}, 3) uint8 rgb")
+        self.offered += 1
+        if self.capacity == 0:
+            return
+        self.items.append(w)
+        if len(self.items) <= self.capacity:
+            return
+        n = len(self.items)
+        best, drop = np.inf, 0
+        for i in range(n):
+            for j in range(i + 1, n):
+                d = viewpoint_distance(self.items[i].pose, self.items[j].pose)
+                if d < best:
+                    best, drop = d, i  # i < j: the older of the pair
+        del self.items[drop]
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+
+def repair(refiner, witnesses: list[Witness], tolerance_db: float, max_passes: int = 4) -> dict:
+    """Undo refinement wherever a witness lost more than ``tolerance_db`` dB of PSNR against the map as loaded
+    (``refiner.restore_view``), re-checking every witness after each pass; after ``max_passes`` passes with a loss
+    left, the map as loaded (``refiner.restore_all``). Returns the report: witnesses, harmed before the repair,
+    passes, rows restored (revived: of them, rows pruning or the cap had removed), added rows removed, whether it
+    fell back to the loaded map, worst loss before (dB), ms."""
+    t0 = time.perf_counter()
+    bg = np.asarray(refiner.cfg.background, np.float64)
+    targets = [w.target() for w in witnesses]
+    for w, t in zip(witnesses, targets):
+        if w.loaded_mse is None:
+            w.loaded_mse = view_mse(refiner.loaded, w.pose, w.k, t, bg)
+    harmed_first: int | None = None
+    worst = 0.0
+    restored = revived = removed = passes = 0
+    fell_back = False
+    while True:
+        harmed = []
+        for w, t in zip(witnesses, targets):
+            mse = view_mse(refiner.map, w.pose, w.k, t, bg)
+            if mse > loaded_bound(w.loaded_mse, tolerance_db):
+                harmed.append(w)
+                if harmed_first is None:
+                    worst = min(worst, psnr(mse) - psnr(w.loaded_mse))
+        if harmed_first is None:
+            harmed_first = len(harmed)
+        if not harmed:
+            break
+        if passes == max_passes:
+            refiner.restore_all()
+            fell_back = True
+            break
+        passes += 1
+        for w in harmed:
+            a, b, c = refiner.restore_view(w.pose, w.k)
+            restored, revived, removed = restored + a, revived + b, removed + c
+    return {
+        "witnesses": len(witnesses),
+        "harmed_before": int(harmed_first or 0),
+        "passes": passes,
+        "rows_restored": restored,
+        "revived": revived,
+        "added_removed": removed,
+        "fell_back_to_loaded": fell_back,
+        "worst_before_db": float(worst),
+        "ms": 1000.0 * (time.perf_counter() - t0),
+    }
