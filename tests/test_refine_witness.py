@@ -115,3 +115,21 @@ def test_repair_falls_back_to_the_loaded_map_when_its_passes_run_out(tmp_path_fa
     rep = repair(r, [_witness(f) for f in frames[:4]], tolerance_db=0.0, max_passes=0)
     assert rep["fell_back_to_loaded"] and rep["harmed_before"] >= 1
     np.testing.assert_array_equal(r.snapshot().sh, r.loaded.sh)
+
+
+def test_pool_matches_a_brute_force_pool_over_a_long_run() -> None:
+    """The kept distance matrix gives the same pool as recomputing every pair at every add."""
+    from acesplat.core.camera import Intrinsics
+
+    k = Intrinsics.from_focal(8.0, 8, 6)
+    img = np.zeros((6, 8, 3), np.uint8)
+    rng = np.random.default_rng(1)
+    pool, ref = WitnessPool(5), []
+    for i in range(60):
+        pose = make_pose(rodrigues_to_matrix(rng.normal(0, 0.3, 3)), rng.normal(0, 1.0, 3))
+        pool.add(Witness(pose, k, img, str(i)))
+        ref.append(pose)
+        if len(ref) > 5:
+            pairs = [(viewpoint_distance(ref[a], ref[b]), a) for a in range(len(ref)) for b in range(a + 1, len(ref))]
+            del ref[min(pairs)[1]]
+    assert [w.pose.tobytes() for w in pool.items] == [p.tobytes() for p in ref]

@@ -46,7 +46,8 @@ def viewpoint_distance(a: np.ndarray, b: np.ndarray) -> float:
 
 class WitnessPool:
     """At most ``capacity`` witnesses; when full, a new one replaces the older of the two closest viewpoints, so
-    a long run keeps views spread over where it went instead of only the latest ones."""
+    a long run keeps views spread over where it went instead of only the latest ones. The pairwise distances are
+    kept, so an add costs ``capacity`` distances, not all pairs."""
 
     def __init__(self, capacity: int) -> None:
         if capacity < 0:
@@ -54,6 +55,7 @@ class WitnessPool:
         self.capacity = capacity
         self.items: list[Witness] = []
         self.offered = 0
+        self._dist = np.full((capacity + 1, capacity + 1), np.inf)
 
     def add(self, w: Witness) -> None:
         if np.shape(w.pose) != (4, 4) or w.rgb.shape != (w.k.height, w.k.width, 3) or w.rgb.dtype != np.uint8:
@@ -61,17 +63,18 @@ class WitnessPool:
         self.offered += 1
         if self.capacity == 0:
             return
-        self.items.append(w)
-        if len(self.items) <= self.capacity:
-            return
         n = len(self.items)
-        best, drop = np.inf, 0
-        for i in range(n):
-            for j in range(i + 1, n):
-                d = viewpoint_distance(self.items[i].pose, self.items[j].pose)
-                if d < best:
-                    best, drop = d, i  # i < j: the older of the pair
+        d = [viewpoint_distance(v.pose, w.pose) for v in self.items]
+        self._dist[n, :n] = self._dist[:n, n] = d
+        self.items.append(w)
+        if n + 1 <= self.capacity:
+            return
+        i, j = np.unravel_index(int(np.argmin(self._dist)), self._dist.shape)
+        drop = int(min(i, j))  # the older of the closest pair
         del self.items[drop]
+        keep = np.delete(np.arange(n + 1), drop)
+        self._dist[:n, :n] = self._dist[np.ix_(keep, keep)]
+        self._dist[n, :] = self._dist[:, n] = np.inf
 
     def __len__(self) -> int:
         return len(self.items)
