@@ -476,3 +476,53 @@ def test_replay_whose_refinement_lowers_a_views_psnr_fails(tiny, bundle_with_gau
     assert ref["failed"] and ref["views_harmed"] >= 1 and ref["psnr_worst_change_db"] < -ref["harm_tolerance_db"]
     assert ref["harmed"][0]["psnr_after"] < ref["harmed"][0]["psnr_before"]
     assert "refine FAILED: PSNR fell on" in r.output
+
+
+def test_a_bundles_mapping_images_are_pinned_witnesses_and_no_view_ends_worse(tiny, tmp_path) -> None:
+    """A bundle exported with --keyframes lends its mapping images (grey, surveyed poses) to the end-of-session check:
+    pinned, spread over the viewpoints, and after the repair none is below the loaded map, nor any tracked frame."""
+    from export.bundle_export import ExportOptions, export_bundle
+    from export.splat_export import add_gaussians
+
+    b = tmp_path / "kf"
+    export_bundle(tiny["map"], b, ExportOptions(keyframes=True))
+    frames = read_split(tiny["scene"], "train").frames
+    g = concat_gaussians([depth_gaussians(f, 3, np.random.default_rng(0), 0.02, 0.15) for f in frames[:6:2]])
+    write_ply(tmp_path / "start.ply", g)
+    add_gaussians(b, tmp_path / "start.ply")
+
+    from acesplat.core.bundle import load_bundle
+    from edge.refine.session import RefineOptions, mapping_witnesses
+
+    ws = mapping_witnesses(load_bundle(b), 5, 40)
+    assert len(ws) == 5 and all(w.rgb.ndim == 2 and max(w.rgb.shape) == 40 for w in ws)
+    assert mapping_witnesses(load_bundle(tiny["bundle"]), 5, 40) == []  # no keyframes, no pinned witnesses
+    assert RefineOptions().pinned_witnesses > 0
+
+    out = tmp_path / "r.json"
+    r = CliRunner().invoke(
+        app,
+        ["replay", str(b), str(tiny["scene"]), "--split", "train", "--refine", "--budget-ms", "2000", "--threads", "1",
+         "--json", str(out)],
+    )  # fmt: skip
+    assert r.exit_code == 0, r.output
+    w = json.loads(out.read_text())["refine"]["witness"]
+    assert w["pinned"] == 12 and w["witnesses"] == 12 + w["kept"] and w["kept"] == 12
+    assert "witnesses checked" in r.output
+
+
+def test_a_grey_witness_is_scored_on_the_renders_grey(tmp_path_factory) -> None:
+    import cv2
+
+    from edge.refine.guard import render_view
+    from edge.refine.witness import Witness
+    from tests.refine_scene import perturbed_map, rgb01, tiny_room
+
+    fr = tiny_room(tmp_path_factory)[2]
+    g = perturbed_map(tiny_room(tmp_path_factory)[:4])
+    gray = cv2.cvtColor(fr.load_rgb(), cv2.COLOR_RGB2GRAY)
+    w = Witness(fr.pose, fr.intrinsics, gray)
+    r = render_view(g, fr.pose, fr.intrinsics, np.zeros(3))
+    ref = cv2.cvtColor(np.ascontiguousarray(r.color, np.float32), cv2.COLOR_RGB2GRAY) - gray / 255.0
+    assert w.mse(g, w.target(), np.zeros(3)) == pytest.approx(float(np.mean(ref**2)), rel=1e-4)
+    assert rgb01(fr).shape[:2] == gray.shape

@@ -133,3 +133,11 @@ def test_pool_matches_a_brute_force_pool_over_a_long_run() -> None:
             pairs = [(viewpoint_distance(ref[a], ref[b]), a) for a in range(len(ref)) for b in range(a + 1, len(ref))]
             del ref[min(pairs)[1]]
     assert [w.pose.tobytes() for w in pool.items] == [p.tobytes() for p in ref]
+
+
+def test_spread_picks_the_farthest_viewpoints_in_turn() -> None:
+    from edge.refine.witness import spread
+
+    poses = [make_pose(np.eye(3), np.array([x, 0.0, 0.0])) for x in (0.0, 0.1, 5.0, 2.3, 2.6)]
+    assert spread(poses, 3) == [0, 2, 4]  # 0, the farthest (5 m), then 2.6 (2.4 m from both; 2.3 is 2.3)
+    assert spread(poses, 10) == [0, 1, 2, 3, 4] and spread([], 3) == [] and spread(poses, 0) == []

@@ -32,7 +32,7 @@ from edge.refine.guard import psnr, render_view, view_mse
 from edge.refine.keyframes import KeyframePolicy, KeyframeSelector
 from edge.refine.persist import SplatSaver
 from edge.refine.refiner import Keyframe, RefineConfig, Refiner
-from edge.refine.witness import Witness, WitnessPool, repair
+from edge.refine.witness import Witness, WitnessPool, repair, spread
 from edge.refine.worker import NICE, Candidate, RefineWorker
 from edge.runtime import EdgeLocalizer, FrameOutcome, FrameTap
 from edge.sources import SourceFrame
@@ -60,6 +60,9 @@ class RefineOptions:
     witnesses: int = knob(64, "Tracked frames kept to prove at the end that refinement lowered none (0: no check).")
     witness_side: int = knob(320, "Longer side the witnesses are checked at: the loss shows at full size (px).")
     witness_tolerance_db: float = knob(0.0, "PSNR a witness may lose before its view is restored (dB).")
+    pinned_witnesses: int = knob(
+        32, "Mapping images (a bundle exported with --keyframes) also held as witnesses, spread over the viewpoints."
+    )
     config: RefineConfig = knob(reason="What one keyframe's batch may do.", factory=RefineConfig)
     policy: KeyframePolicy = knob(reason="Which frames become keyframes.", factory=KeyframePolicy)
 
@@ -70,7 +73,12 @@ class RefineOptions:
             raise ValueError(f"margin must be in [0, 1), got {self.margin}")
         if self.max_side < 8:
             raise ValueError(f"refinement size must be at least 8 px, got {self.max_side}")
-        if self.witnesses < 0 or self.witness_side < 8 or not self.witness_tolerance_db >= 0:
+        if (
+            self.witnesses < 0
+            or self.pinned_witnesses < 0
+            or self.witness_side < 8
+            or not self.witness_tolerance_db >= 0
+        ):
             raise ValueError(
                 f"witnesses must be >= 0, their side >= 8 px and their tolerance >= 0 dB, got {self.witnesses}, "
                 f"{self.witness_side}, {self.witness_tolerance_db}"
@@ -242,10 +250,11 @@ class RefineSession(FrameTap):
 
     def _repair(self) -> bool:
         """Undo refinement on every witness it left worse (edge/refine/witness.py); True if the map changed."""
-        if not self.witness_pool.items:
+        witnesses = self.witness_pool.all()
+        if not witnesses:
             return False
         self._restore_thread_limits()  # localization is over: the check may use every core
-        self.repair_report = repair(self.refiner, self.witness_pool.items, self.opts.witness_tolerance_db)
+        self.repair_report = repair(self.refiner, witnesses, self.opts.witness_tolerance_db)
         return bool(self.repair_report["harmed_before"])
 
     def _restore_thread_limits(self) -> None:
@@ -320,6 +329,7 @@ class RefineSession(FrameTap):
             "witness": {
                 "offered": self.witness_pool.offered,
                 "kept": len(self.witness_pool),
+                "pinned": len(self.witness_pool.pinned),
                 "tolerance_db": self.opts.witness_tolerance_db,
                 **(self.repair_report or {}),
             },
@@ -422,5 +432,27 @@ def start_refinement(
         seeder = None
     session = RefineSession(localizer.input_size, g, opts, seeder=seeder)
     session.seeder_name = "onnx_initializer" if seeder is not None else "scr"
+    for w in mapping_witnesses(bundle, opts.pinned_witnesses, opts.witness_side):
+        session.witness_pool.pin(w)
     localizer.add_tap(session)
     return session
+
+
+def mapping_witnesses(bundle: Bundle, count: int, max_side: int) -> list[Witness]:
+    """Up to ``count`` of the mapping images a bundle carries as alignment keyframes (grey, surveyed poses), spread
+    over the viewpoints and brought to longer side ``max_side``; none when it carries none."""
+    from acesplat.align.keyframe_set import bundle_keyframes
+    from acesplat.core.bundle import ROLE_KEYFRAMES
+
+    if count <= 0 or not bundle.has(ROLE_KEYFRAMES):
+        return []
+    ks = bundle_keyframes(bundle)
+    out = []
+    for i in spread(list(ks.c2w), count):
+        kf = ks.keyframe(i)
+        k = refine_intrinsics(kf.intrinsics, max_side)
+        gray = kf.gray
+        if (k.height, k.width) != gray.shape:
+            gray = cv2.resize(gray, (k.width, k.height), interpolation=cv2.INTER_AREA)
+        out.append(Witness(np.array(kf.c2w, np.float64), k, np.ascontiguousarray(gray, np.uint8), f"keyframe {i}"))
+    return out

@@ -1,12 +1,13 @@
-"""Witness views: the frames a session localized, kept to prove at its end that refinement harmed none of them.
+"""Witness views: the views a session must prove, at its end, that refinement harmed none of.
 
 The commit guard checks a keyframe's batch against the keyframe and the held keyframes at a small size. A batch
 fitted to one view can still lower the sharpness of views it never checked, most of all views that saw the same
 surfaces from nearer, and only at full resolution (bench/refine.md). So every tracked frame is a witness (a
-bounded pool that keeps the most distinct viewpoints), and :func:`repair` renders each one under the refined map
-and the map as loaded, at the witness size, and puts back what refinement changed in any witness that lost: pass
-after pass, until no witness loses, or the map as loaded when the passes run out. The map a session leaves is
-then never worse than the loaded one on any witness.
+bounded pool that keeps the most distinct viewpoints), and so are the mapping images a bundle carries as alignment
+keyframes (pinned: grey, at their surveyed poses, the views the map was made from). :func:`repair` renders each
+witness under the refined map and the map as loaded, at the witness size, and puts back what refinement changed in
+any witness that lost: pass after pass, until no witness loses, or the map as loaded when the passes run out. The
+map a session leaves is then never worse than the loaded one on any witness.
 """
 
 from __future__ import annotations
@@ -17,15 +18,18 @@ from dataclasses import dataclass
 import numpy as np
 
 from acesplat.core.camera import Intrinsics
-from edge.refine.guard import loaded_bound, psnr, view_mse
+from edge.refine.guard import loaded_bound, psnr, render_view, view_mse
 
 DEGREE_AS_M = 0.01
 """Viewpoint distance of one degree of rotation, in metres of translation, when the pool picks distinct views."""
+GRAY_WEIGHTS = np.array([0.299, 0.587, 0.114], np.float32)
+"""RGB to grey as OpenCV's COLOR_RGB2GRAY, which made the keyframes' grey images."""
 
 
 @dataclass
 class Witness:
-    """A localized frame: ``pose`` (4, 4) camera-to-world as localized, ``rgb`` (H, W, 3) uint8 at intrinsics ``k``."""
+    """A view to hold the map to: ``pose`` (4, 4) camera-to-world (as localized, or surveyed), ``rgb`` (H, W, 3)
+    uint8 at intrinsics ``k``, or (H, W) uint8 grey (then compared with the render's grey)."""
 
     pose: np.ndarray
     k: Intrinsics
@@ -35,6 +39,35 @@ class Witness:
 
     def target(self) -> np.ndarray:
         return self.rgb.astype(np.float32) * np.float32(1.0 / 255.0)
+
+    def mse(self, g, target: np.ndarray, background: np.ndarray) -> float:
+        """Mean squared error of ``g`` rendered from this view against ``target`` (its :meth:`target`)."""
+        if target.ndim == 3:
+            return view_mse(g, self.pose, self.k, target, background)
+        r = render_view(g, self.pose, self.k, background)
+        color = np.broadcast_to(np.asarray(background, np.float32), target.shape + (3,)) if r is None else r.color
+        d = np.asarray(color, np.float32) @ GRAY_WEIGHTS - target
+        return float(np.mean(d * d))
+
+
+def check_witness(w: Witness) -> None:
+    if np.shape(w.pose) != (4, 4) or w.rgb.dtype != np.uint8 or w.rgb.shape[:2] != (w.k.height, w.k.width):
+        raise ValueError(f"witness needs a (4, 4) pose and ({w.k.height}, {w.k.width}[, 3]) uint8 image")
+    if w.rgb.ndim not in (2, 3) or (w.rgb.ndim == 3 and w.rgb.shape[2] != 3):
+        raise ValueError(f"witness image must be (H, W, 3) RGB or (H, W) grey, got {w.rgb.shape}")
+
+
+def spread(poses: list[np.ndarray], n: int) -> list[int]:
+    """Indices of at most ``n`` of ``poses`` (4, 4) spread over the viewpoints: farthest-point order from the first."""
+    if not poses or n <= 0:
+        return []
+    chosen = [0]
+    d = np.array([viewpoint_distance(poses[0], p) for p in poses])
+    while len(chosen) < min(n, len(poses)):
+        i = int(np.argmax(d))
+        chosen.append(i)
+        d = np.minimum(d, [viewpoint_distance(poses[i], p) for p in poses])
+    return sorted(chosen)
 
 
 def viewpoint_distance(a: np.ndarray, b: np.ndarray) -> float:
@@ -54,12 +87,20 @@ class WitnessPool:
             raise ValueError(f"capacity must be >= 0, got {capacity}")
         self.capacity = capacity
         self.items: list[Witness] = []
+        self.pinned: list[Witness] = []
+        """Witnesses that never leave (the bundle's mapping images); not counted in ``capacity``."""
         self.offered = 0
         self._dist = np.full((capacity + 1, capacity + 1), np.inf)
 
+    def pin(self, w: Witness) -> None:
+        check_witness(w)
+        self.pinned.append(w)
+
+    def all(self) -> list[Witness]:
+        return self.pinned + self.items
+
     def add(self, w: Witness) -> None:
-        if np.shape(w.pose) != (4, 4) or w.rgb.shape != (w.k.height, w.k.width, 3) or w.rgb.dtype != np.uint8:
-            raise ValueError(f"witness needs a (4, 4) pose and ({w.k.height}, {w.k.width}, 3) uint8 rgb")
+        check_witness(w)
         self.offered += 1
         if self.capacity == 0:
             return
@@ -91,7 +132,7 @@ def repair(refiner, witnesses: list[Witness], tolerance_db: float, max_passes: i
     targets = [w.target() for w in witnesses]
     for w, t in zip(witnesses, targets):
         if w.loaded_mse is None:
-            w.loaded_mse = view_mse(refiner.loaded, w.pose, w.k, t, bg)
+            w.loaded_mse = w.mse(refiner.loaded, t, bg)
     harmed_first: int | None = None
     worst = 0.0
     restored = revived = removed = passes = 0
@@ -99,7 +140,7 @@ def repair(refiner, witnesses: list[Witness], tolerance_db: float, max_passes: i
     while True:
         harmed = []
         for w, t in zip(witnesses, targets):
-            mse = view_mse(refiner.map, w.pose, w.k, t, bg)
+            mse = w.mse(refiner.map, t, bg)
             if mse > loaded_bound(w.loaded_mse, tolerance_db):
                 harmed.append(w)
                 if harmed_first is None:
