@@ -141,3 +141,24 @@ def test_spread_picks_the_farthest_viewpoints_in_turn() -> None:
     poses = [make_pose(np.eye(3), np.array([x, 0.0, 0.0])) for x in (0.0, 0.1, 5.0, 2.3, 2.6)]
     assert spread(poses, 3) == [0, 2, 4]  # 0, the farthest (5 m), then 2.6 (2.4 m from both; 2.3 is 2.3)
     assert spread(poses, 10) == [0, 1, 2, 3, 4] and spread([], 3) == [] and spread(poses, 0) == []
+
+
+def test_changed_rows_by_hand_and_an_unchanged_map_renders_no_witness(tmp_path_factory) -> None:
+    from edge.refine.witness import changed_rows
+
+    frames = tiny_room(tmp_path_factory)
+    g = perturbed_map(frames[:2])
+    r = Refiner(g, RefineConfig())
+    rep = repair(r, [_witness(f) for f in frames[:4]], tolerance_db=0.0)
+    assert rep["rendered"] == 0 and rep["harmed_before"] == 0 and rep["passes"] == 0
+    st = r.store
+    st.view.sh[3, 0, 0] += 0.5
+    st.hide(np.array([5, 9]))
+    st.compact()  # rows 5 and 9 are gone
+    st.append(_rows(2))
+    ch, lost = changed_rows(r)
+    expect = np.zeros(st.n, bool)
+    expect[3] = True
+    expect[-2:] = True
+    np.testing.assert_array_equal(ch, expect)
+    assert lost.tolist() == [3, 5, 9]

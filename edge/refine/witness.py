@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from acesplat.core.camera import Intrinsics
+from edge.refine.coverage import frustum_mask
 from edge.refine.guard import loaded_bound, psnr, render_view, view_mse
 
 DEGREE_AS_M = 0.01
@@ -121,26 +122,56 @@ class WitnessPool:
         return len(self.items)
 
 
+def changed_rows(refiner) -> tuple[np.ndarray, np.ndarray]:
+    """What refinement changed: (M,) bool over the store's rows (a row added and live, or a loaded row whose values
+    differ or that is hidden), and the indices of loaded rows that changed, were hidden or are gone."""
+    st, loaded = refiner.store, refiner.loaded
+    n = st.n
+    origin, hidden = st.origin[:n], st.hidden[:n]
+    has = origin >= 0
+    changed = ~has & ~hidden
+    rows, src = np.flatnonzero(has), origin[has]
+    diff = hidden[rows].copy()
+    for p in ("means", "log_scales", "quats", "opacity_logits", "sh"):
+        a, b = getattr(st.view, p)[rows], getattr(loaded, p)[src]
+        diff |= np.any((a != b).reshape(rows.size, -1), axis=1)
+    changed[rows[diff]] = True
+    present = np.zeros(len(loaded), bool)
+    present[src] = True
+    return changed, np.union1d(src[diff], np.flatnonzero(~present))
+
+
 def repair(refiner, witnesses: list[Witness], tolerance_db: float, max_passes: int = 4) -> dict:
     """Undo refinement wherever a witness lost more than ``tolerance_db`` dB of PSNR against the map as loaded
     (``refiner.restore_view``), re-checking every witness after each pass; after ``max_passes`` passes with a loss
-    left, the map as loaded (``refiner.restore_all``). Returns the report: witnesses, harmed before the repair,
-    passes, rows restored (revived: of them, rows pruning or the cap had removed), added rows removed, whether it
-    fell back to the loaded map, worst loss before (dB), ms."""
+    left, the map as loaded (``refiner.restore_all``). A witness that no changed row reaches (as it is now or as it
+    was loaded) renders as under the loaded map and is not rendered. Returns the report: witnesses, rendered in the
+    first pass, harmed before the repair, passes, rows restored (revived: of them, rows pruning or the cap had
+    removed), added rows removed, whether it fell back to the loaded map, worst loss before (dB), ms."""
     t0 = time.perf_counter()
     bg = np.asarray(refiner.cfg.background, np.float64)
-    targets = [w.target() for w in witnesses]
-    for w, t in zip(witnesses, targets):
-        if w.loaded_mse is None:
-            w.loaded_mse = w.mse(refiner.loaded, t, bg)
     harmed_first: int | None = None
     worst = 0.0
-    restored = revived = removed = passes = 0
+    restored = revived = removed = passes = rendered = 0
     fell_back = False
     while True:
+        changed, changed_loaded = changed_rows(refiner)
+        m = refiner.map
         harmed = []
-        for w, t in zip(witnesses, targets):
-            mse = w.mse(refiner.map, t, bg)
+        for w in witnesses:
+            reach = np.any(frustum_mask(m.means[changed], m.log_scales[changed], w.pose, w.k)) or np.any(
+                frustum_mask(
+                    refiner.loaded.means[changed_loaded], refiner.loaded.log_scales[changed_loaded], w.pose, w.k
+                )
+            )
+            if not reach:
+                continue
+            t = w.target()
+            if w.loaded_mse is None:
+                w.loaded_mse = w.mse(refiner.loaded, t, bg)
+            mse = w.mse(m, t, bg)
+            if harmed_first is None:
+                rendered += 1
             if mse > loaded_bound(w.loaded_mse, tolerance_db):
                 harmed.append(w)
                 if harmed_first is None:
@@ -159,6 +190,7 @@ def repair(refiner, witnesses: list[Witness], tolerance_db: float, max_passes: i
             restored, revived, removed = restored + a, revived + b, removed + c
     return {
         "witnesses": len(witnesses),
+        "rendered": rendered,
         "harmed_before": int(harmed_first or 0),
         "passes": passes,
         "rows_restored": restored,
