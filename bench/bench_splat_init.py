@@ -43,7 +43,7 @@ from acesplat.splat.views import load_views
 
 REPO = Path(__file__).resolve().parents[1]
 HERZJESU = REPO.parent / "shared" / "data" / "herzjesu25"
-METHODS = ("scr", "sift", "random")
+METHODS = ("scr", "scr_remeasure", "sift", "random")
 RANDOM_HALF_SIDE = 3.0
 """Random start: a cube of this many scene extents around the cameras (3DGS's random start is a fixed cube)."""
 
@@ -115,13 +115,13 @@ def run_method(method: str, scene: Path, map_path: Path, args, eval_train, eval_
 
     m = load_map(map_path)
     info: dict = {}
-    if method == "scr":
+    if method in ("scr", "scr_remeasure"):
         net = m.network(encoder_for_map(m, map_path, args.encoder))
         res = splat_scene(
             frames,
             net,
             m.short_side,
-            SplatConfig(minutes=args.minutes, seed=args.seed),
+            SplatConfig(minutes=args.minutes, seed=args.seed, remeasure=method == "scr_remeasure"),
             source=map_path,
             eval_fn=curve,
             eval_every_s=args.eval_every,
@@ -129,7 +129,14 @@ def run_method(method: str, scene: Path, map_path: Path, args, eval_train, eval_
         params, views, opt = res.params, res.train_views, res.optimize
         info = {
             k: res.stats[k]
-            for k in ("gaussians_initial", "stride", "valid_cell_fraction", "prepare_seconds", "head_warmup_seconds")
+            for k in (
+                "gaussians_initial",
+                "stride",
+                "valid_cell_fraction",
+                "prepare_seconds",
+                "head_warmup_seconds",
+                "remeasured",
+            )
         }
     else:
         views = load_views(frames, m.short_side)
@@ -195,7 +202,7 @@ def plot(results: dict, path: Path, minutes: float) -> None:
 
     scenes = list(results)
     fig, axes = plt.subplots(1, len(scenes), figsize=(6 * len(scenes), 4.5), squeeze=False)
-    colours = {"scr": "tab:red", "sift": "tab:blue", "random": "tab:gray"}
+    colours = {"scr": "tab:red", "scr_remeasure": "tab:orange", "sift": "tab:blue", "random": "tab:gray"}
     for ax, name in zip(axes[0], scenes):
         for r in results[name]:
             pts = r["curve"]
