@@ -43,7 +43,7 @@ from acesplat.splat.views import load_views
 
 REPO = Path(__file__).resolve().parents[1]
 HERZJESU = REPO.parent / "shared" / "data" / "herzjesu25"
-METHODS = ("scr", "scr_remeasure", "sift", "random")
+METHODS = ("scr", "scr_remeasure", "scr_points", "sift", "random")
 RANDOM_HALF_SIDE = 3.0
 """Random start: a cube of this many scene extents around the cameras (3DGS's random start is a fixed cube)."""
 
@@ -143,7 +143,32 @@ def run_method(method: str, scene: Path, map_path: Path, args, eval_train, eval_
         poses = np.stack([v.pose for v in views])
         extent = scene_extent(poses, fallback=1.0)
         rng = np.random.default_rng(args.seed)
-        if method == "sift":
+        if method == "scr_points":
+            # The SCR coordinates (re-measured where neighbours triangulate) as a point cloud with the same 3DGS
+            # point start as SIFT's: separates what the points are worth from what the init head makes of them.
+            from acesplat.splat.remeasure import remeasure_views
+            from acesplat.splat.views import run_scr
+
+            net = m.network(encoder_for_map(m, map_path, args.encoder))
+            run_scr(views, net, keep_features=False)
+            remeasure_views(views, views, net)
+            pts_l, cols_l = [], []
+            for v in views:
+                ok = v.validity.valid
+                h, w = ok.shape
+                ys, xs = np.mgrid[0:h, 0:w]
+                pts_l.append(v.coords[ok].astype(np.float64))
+                cols_l.append(
+                    v.rgb[
+                        np.minimum(ys[ok] * 8 + 4, v.rgb.shape[0] - 1), np.minimum(xs[ok] * 8 + 4, v.rgb.shape[1] - 1)
+                    ]
+                )
+            pts, cols = np.concatenate(pts_l), np.concatenate(cols_l)
+            cap = knob_default(SplatConfig, "max_initial")
+            if len(pts) > cap:
+                keep = rng.choice(len(pts), cap, replace=False)
+                pts, cols = pts[keep], cols[keep]
+        elif method == "sift":
             pts, cols = triangulated_points(
                 [v.gray for v in views], [v.rgb for v in views], [v.intrinsics for v in views], list(poses)
             )
@@ -202,7 +227,13 @@ def plot(results: dict, path: Path, minutes: float) -> None:
 
     scenes = list(results)
     fig, axes = plt.subplots(1, len(scenes), figsize=(6 * len(scenes), 4.5), squeeze=False)
-    colours = {"scr": "tab:red", "scr_remeasure": "tab:orange", "sift": "tab:blue", "random": "tab:gray"}
+    colours = {
+        "scr": "tab:red",
+        "scr_remeasure": "tab:orange",
+        "scr_points": "tab:green",
+        "sift": "tab:blue",
+        "random": "tab:gray",
+    }
     for ax, name in zip(axes[0], scenes):
         for r in results[name]:
             pts = r["curve"]
