@@ -32,7 +32,6 @@ def splat_command(
     max_gaussians: int = option(SplatConfig, "max_gaussians"),
     reproj_px: float = option(ValidityConfig, "reproj_max_px", "--reproj-px"),
     fill: bool = option(SplatConfig, "fill"),
-    remeasure: bool = option(SplatConfig, "remeasure"),
     iterations: int | None = option(
         SplatConfig,
         "iterations",
@@ -71,7 +70,6 @@ def splat_command(
         head_iterations=None if iterations is None else iterations // 5,
         validity=ValidityConfig(reproj_max_px=reproj_px),
         fill=fill,
-        remeasure=remeasure,
         seed=seed,
     )
     from acesplat.splat.run import run_splat

@@ -72,9 +72,6 @@ class SplatConfig:
         DEPTH_TOLERANCE, "Relative depth difference under which views see the same surface (SCR depths are noisy)."
     )
     fill: bool = knob(True, "Also seed untrusted pixels, at the depth of the nearest trusted cell.")
-    remeasure: bool = knob(
-        False, "Seed at depths re-measured between neighbouring training views where they triangulate (remeasure.py)."
-    )
     cross_view: int = knob(
         CROSS_VIEW_NEIGHBOURS, "Confirm trusted cells against this many nearest views (0: own-view reprojection only)."
     )
@@ -166,17 +163,6 @@ def splat_scene(
         keep_features=True,
         progress=(lambda d, n: progress("scr", d / n, {"views": d})) if progress else None,
     )
-    remeasured = None
-    if cfg.remeasure:
-        from acesplat.splat.remeasure import remeasure_views
-
-        remeasured = remeasure_views(
-            init_views,
-            views,
-            network,
-            cfg.validity,
-            progress=(lambda d, n: progress("remeasure", d / n, {"views": d})) if progress else None,
-        )
     fractions = [v.validity.fraction for v in init_views]  # type: ignore[union-attr]
     overall = float(np.mean(fractions))
     usable = [v for v, f in zip(init_views, fractions) if f > 0]
@@ -259,7 +245,6 @@ def splat_scene(
         "train_views": [v.name for v in views],
         "init_views": len(init_views),
         "init_views_used": len(usable),
-        "remeasured": remeasured,
         "valid_cell_fraction": overall,
         "valid_cells": own_valid,
         "confirmed_cells": confirmed_cells,
