@@ -80,7 +80,7 @@ def test_replay_refine_reports_psnr_gain_and_saves_the_map(tiny, bundle_with_gau
     assert ref["errors"] == []
     assert ref["witness"]["witnesses"] == ref["witness"]["offered"] == 12 and not ref["failed"]
     assert len(read_ply(saved)) == ref["gaussians_final"] and ref["save"]["failures"] == 0
-    assert "refine: PSNR" in r.output
+    assert "refine: PSNR" in r.output and "refine: checking 12 witness views" in r.output
 
 
 def test_refine_on_a_bundle_without_gaussians_says_so_and_localizes(tiny, tmp_path) -> None:

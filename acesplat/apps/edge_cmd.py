@@ -11,7 +11,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from acesplat.apps.refine_cmd import exit_if_harmed, refine_line, refine_session
+from acesplat.apps.refine_cmd import close_session, exit_if_harmed, refine_line, refine_session
 from acesplat.apps.support import PhaseProgress, one_line_errors, option, report_json, stop_on_signals
 from acesplat.core.bundle import PRECISION_ROLES, Bundle, load_bundle
 from acesplat.core.errors import InputError
@@ -206,7 +206,7 @@ def localize_command(
         if log is not None:
             log.close()
         bridge_stats = bridge.close() if bridge is not None else None
-        refine_stats = refiner.close() if refiner is not None else None
+        refine_stats = close_session(refiner, console.print) if refiner is not None else None
         fox_stats = fox.close() if fox is not None else None
     summary = {"bundle": str(b.root), "source": src.description, "precision": precision, **rt, **stats.as_dict()}
     summary.update(tracking_enabled=track is not None, reanchors=modes.pop("reanchor"), **modes)
@@ -309,7 +309,7 @@ def replay_command(
             s = replay_split(loc, scene, split, lambda i, n: bar("localize", i / n, {"frame": i}))
         finally:
             if refiner is not None:
-                refiner.close()
+                close_session(refiner, console.print)
             fox_stats = fox.close() if fox is not None else None
     if fox_stats is not None:
         s["foxglove"] = fox_stats

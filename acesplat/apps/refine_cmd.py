@@ -35,6 +35,14 @@ def refine_session(
     return start_refinement(loc, b, opts, warn)
 
 
+def close_session(session: RefineSession, say: Callable[[str], None]) -> dict:
+    """End a refinement session, saying first that its witnesses are being checked (seconds on a large map)."""
+    n = len(session.witness_pool.all())
+    if n:
+        say(f"refine: checking {n} witness views against the map as loaded before the last save")
+    return session.close()
+
+
 def refine_line(r: dict) -> str:
     """One summary line of a refinement run (edge/refine/session.py's report)."""
     t = r["timing_ms"]
