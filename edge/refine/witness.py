@@ -18,8 +18,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from acesplat.core.camera import Intrinsics
+from acesplat.core.geometry import pose_error
 from edge.refine.coverage import frustum_mask
 from edge.refine.guard import loaded_bound, psnr, render_view, view_mse
+from edge.refine.store import PARAMS
 
 DEGREE_AS_M = 0.01
 """Viewpoint distance of one degree of rotation, in metres of translation, when the pool picks distinct views."""
@@ -73,9 +75,8 @@ def spread(poses: list[np.ndarray], n: int) -> list[int]:
 
 def viewpoint_distance(a: np.ndarray, b: np.ndarray) -> float:
     """Translation (m) plus rotation (``DEGREE_AS_M`` m a degree) between camera-to-world poses ``a``, ``b`` (4, 4)."""
-    r = a[:3, :3].T @ b[:3, :3]
-    angle = np.degrees(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0)))
-    return float(np.linalg.norm(a[:3, 3] - b[:3, 3]) + DEGREE_AS_M * angle)
+    t, r = pose_error(a, b)
+    return t + DEGREE_AS_M * r
 
 
 class WitnessPool:
@@ -132,7 +133,7 @@ def changed_rows(refiner) -> tuple[np.ndarray, np.ndarray]:
     changed = ~has & ~hidden
     rows, src = np.flatnonzero(has), origin[has]
     diff = hidden[rows].copy()
-    for p in ("means", "log_scales", "quats", "opacity_logits", "sh"):
+    for p in PARAMS:
         a, b = getattr(st.view, p)[rows], getattr(loaded, p)[src]
         diff |= np.any((a != b).reshape(rows.size, -1), axis=1)
     changed[rows[diff]] = True
