@@ -25,22 +25,29 @@ import json
 import os
 import subprocess
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from acesplat.align.keyframe_align import Keyframe
+from acesplat.align.keyframe_depth import depth_neighbours, refine_depth
 from acesplat.core.atomic import atomic_path, write_json
 from acesplat.core.config import knob_default
+from acesplat.core.geometry import transform_points
+from acesplat.core.grid import DENSE_OUTPUT_STRIDE, OUTPUT_STRIDE, cell_centers
 from acesplat.core.machine import machine_line
 from acesplat.core.scene import read_split
+from acesplat.scr.mapping import TrainingImage
+from acesplat.scr.novel_views import head_depth
 from acesplat.splat.evaluate import evaluate_views
 from acesplat.splat.optimize import OptimizeConfig, optimise_gaussians
 from acesplat.splat.params import gaussians_from_params, params_from_gaussians
 from acesplat.splat.pipeline import SplatConfig, scene_extent, splat_scene, spread
 from acesplat.splat.point_init import gaussians_from_points, random_points, triangulated_points
-from acesplat.splat.views import load_views
+from acesplat.splat.views import SplatView, load_views, run_scr
+from acesplat.splatcore.validity import cell_validity
 
 REPO = Path(__file__).resolve().parents[1]
 HERZJESU = REPO.parent / "shared" / "data" / "herzjesu25"
@@ -107,78 +114,52 @@ class Curve:
         self.paused += time.monotonic() - t_e
 
 
-# Stage 2 seeds at depths re-measured between neighbouring training views where they triangulate (the same
-# re-measurement as the pose alignment's keyframe depths, acesplat.align.keyframe_depth), for the scr_points start
-# (bench/splat_init.md; through the init head it did not help, so it is not in the library).
-from acesplat.align.keyframe_align import Keyframe  # noqa: E402
-from acesplat.align.keyframe_depth import depth_neighbours, refine_depth  # noqa: E402
-from acesplat.core.geometry import transform_points  # noqa: E402
-from acesplat.core.grid import DENSE_OUTPUT_STRIDE, OUTPUT_STRIDE, cell_centers  # noqa: E402
-from acesplat.scr.mapping import TrainingImage  # noqa: E402
-from acesplat.scr.novel_views import head_depth  # noqa: E402
-from acesplat.splat.views import SplatView  # noqa: E402
-from acesplat.splatcore.validity import ValidityConfig, cell_validity  # noqa: E402
-
 DENSE_STEP = OUTPUT_STRIDE // DENSE_OUTPUT_STRIDE
 """Cell (i, j) of the seeding grid sits on dense cell (2i, 2j): both grids put cell k at stride * k + 4 px."""
 
 
 @torch.no_grad()
-def remeasure_views(
-    seeding: Sequence[SplatView],
-    everyone: Sequence[SplatView],
-    network: torch.nn.Module,
-    validity: ValidityConfig = ValidityConfig(),
-    progress: Callable[[int, int], None] | None = None,
-) -> dict:
-    """Replace, in place, the SCR coordinates of each ``seeding`` view's cells that its neighbours among
-    ``everyone`` (the training views, exact poses) triangulate, by the triangulated point on the cell's ray, and
-    recompute the view's validity. Views need their SCR outputs (views.run_scr). Returns cells, cells re-measured,
-    and the median relative depth change of those."""
+def remeasure_views(views: Sequence[SplatView], network: torch.nn.Module) -> dict:
+    """Stage 2 seeds at depths re-measured between neighbouring training views (the same re-measurement as the pose
+    alignment's keyframe depths, acesplat.align.keyframe_depth), for the scr_points start; through the init head it
+    did not help, so it is not in the library (bench/splat_init.md).
+
+    Replaces, in place, the SCR coordinates of each view's cells that its neighbours among ``views`` (the training
+    views, exact poses) triangulate, by the triangulated point on the cell's ray, and recomputes the view's validity.
+    Views need their SCR outputs (views.run_scr). Returns cells, cells re-measured, and the median relative depth
+    change of those."""
     network.eval()
-    index = {id(v): i for i, v in enumerate(everyone)}
-    images = [TrainingImage(v.gray, v.intrinsics, v.pose) for v in everyone]
-    c2ws = np.stack([v.pose for v in everyone])
+    images = [TrainingImage(v.gray, v.intrinsics, v.pose) for v in views]
+    c2ws = np.stack([v.pose for v in views])
     cells = moved = 0
     changes: list[np.ndarray] = []
-    for n, v in enumerate(seeding):
-        if v.coords is None:
-            raise ValueError(f"view {v.name} has no SCR coordinates; run views.run_scr first")
-        i = index[id(v)]
+    for i, v in enumerate(views):
+        h, w = v.coords.shape[:2]
+        cells += h * w
         z = head_depth(network, images[i])
         known = z[z > 0]
-        if known.size:
-            nbs = depth_neighbours(c2ws, i, float(np.median(known)))
-            plain = [
-                Keyframe(
-                    images[j].gray,
-                    images[j].intrinsics,
-                    images[j].c2w,
-                    np.zeros((1, 1), np.float32),
-                    DENSE_OUTPUT_STRIDE,
-                )
-                for j in nbs
-            ]
-            kf = Keyframe(images[i].gray, images[i].intrinsics, images[i].c2w, z, DENSE_OUTPUT_STRIDE)
-            zr = refine_depth(kf, plain)
-            h, w = v.coords.shape[:2]
-            zs, zh = zr[::DENSE_STEP, ::DENSE_STEP][:h, :w], z[::DENSE_STEP, ::DENSE_STEP][:h, :w]
-            use = np.zeros((h, w), bool)
-            use[: zs.shape[0], : zs.shape[1]] = (zs != zh) & (zs > 0) & (zh > 0)
-            if use.any():
-                zz = np.zeros((h, w), np.float64)
-                zz[: zs.shape[0], : zs.shape[1]] = zs
-                uv = cell_centers(h, w).reshape(h, w, 2)[use]
-                X = transform_points(v.pose, v.intrinsics.unproject(uv, zz[use]))
-                changes.append(np.abs(zz[use] / np.pad(zh, ((0, h - zh.shape[0]), (0, w - zh.shape[1])))[use] - 1.0))
-                coords = v.coords.copy()
-                coords[use] = X.astype(coords.dtype)
-                v.coords = coords
-                v.validity = cell_validity(coords, v.pose, v.intrinsics, validity)
-            moved += int(use.sum())
-        cells += int(np.prod(v.coords.shape[:2]))
-        if progress:
-            progress(n + 1, len(seeding))
+        if not known.size:
+            continue
+        plain = [
+            Keyframe(
+                images[j].gray, images[j].intrinsics, images[j].c2w, np.zeros((1, 1), np.float32), DENSE_OUTPUT_STRIDE
+            )
+            for j in depth_neighbours(c2ws, i, float(np.median(known)))
+        ]
+        zr = refine_depth(Keyframe(images[i].gray, images[i].intrinsics, images[i].c2w, z, DENSE_OUTPUT_STRIDE), plain)
+        zs, zh = np.zeros((h, w)), np.zeros((h, w))  # on the seeding grid, 0 past the dense grid's end
+        sub_r, sub_h = zr[::DENSE_STEP, ::DENSE_STEP][:h, :w], z[::DENSE_STEP, ::DENSE_STEP][:h, :w]
+        zs[: sub_r.shape[0], : sub_r.shape[1]], zh[: sub_h.shape[0], : sub_h.shape[1]] = sub_r, sub_h
+        use = (zs != zh) & (zs > 0) & (zh > 0)
+        moved += int(use.sum())
+        if not use.any():
+            continue
+        changes.append(np.abs(zs[use] / zh[use] - 1.0))
+        uv = cell_centers(h, w).reshape(h, w, 2)[use]
+        coords = v.coords.copy()
+        coords[use] = transform_points(v.pose, v.intrinsics.unproject(uv, zs[use])).astype(coords.dtype)
+        v.coords = coords
+        v.validity = cell_validity(coords, v.pose, v.intrinsics)
     return {
         "cells": cells,
         "remeasured_cells": moved,
@@ -209,13 +190,7 @@ def run_method(method: str, scene: Path, map_path: Path, args, eval_train, eval_
         params, views, opt = res.params, res.train_views, res.optimize
         info = {
             k: res.stats[k]
-            for k in (
-                "gaussians_initial",
-                "stride",
-                "valid_cell_fraction",
-                "prepare_seconds",
-                "head_warmup_seconds",
-            )
+            for k in ("gaussians_initial", "stride", "valid_cell_fraction", "prepare_seconds", "head_warmup_seconds")
         }
     else:
         views = load_views(frames, m.short_side)
@@ -225,22 +200,15 @@ def run_method(method: str, scene: Path, map_path: Path, args, eval_train, eval_
         if method == "scr_points":
             # The SCR coordinates (re-measured where neighbours triangulate) as a point cloud with the same 3DGS
             # point start as SIFT's: separates what the points are worth from what the init head makes of them.
-            from acesplat.splat.views import run_scr
-
             net = m.network(encoder_for_map(m, map_path, args.encoder))
             run_scr(views, net, keep_features=False)
-            remeasure_views(views, views, net)
+            info["remeasured"] = remeasure_views(views, net)
             pts_l, cols_l = [], []
             for v in views:
                 ok = v.validity.valid
-                h, w = ok.shape
-                ys, xs = np.mgrid[0:h, 0:w]
+                uv = cell_centers(*ok.shape)[ok.ravel()].astype(int)  # the cell's own pixel, as the SCR sees it
                 pts_l.append(v.coords[ok].astype(np.float64))
-                cols_l.append(
-                    v.rgb[
-                        np.minimum(ys[ok] * 8 + 4, v.rgb.shape[0] - 1), np.minimum(xs[ok] * 8 + 4, v.rgb.shape[1] - 1)
-                    ]
-                )
+                cols_l.append(v.rgb[np.minimum(uv[:, 1], v.rgb.shape[0] - 1), np.minimum(uv[:, 0], v.rgb.shape[1] - 1)])
             pts, cols = np.concatenate(pts_l), np.concatenate(cols_l)
             cap = knob_default(SplatConfig, "max_initial")
             if len(pts) > cap:
@@ -258,7 +226,7 @@ def run_method(method: str, scene: Path, map_path: Path, args, eval_train, eval_
             )
         g0 = gaussians_from_points(pts, cols)
         params = params_from_gaussians(g0)
-        info = {"gaussians_initial": len(g0), "prepare_seconds": curve.clock()}
+        info.update(gaussians_initial=len(g0), prepare_seconds=curve.clock())
         remaining = max(budget - curve.clock(), 1.0)
         cfg = OptimizeConfig(
             scene_extent=extent, max_gaussians=knob_default(SplatConfig, "max_gaussians"), seed=args.seed
@@ -307,7 +275,6 @@ def plot(results: dict, path: Path, minutes: float) -> None:
     fig, axes = plt.subplots(1, len(scenes), figsize=(6 * len(scenes), 4.5), squeeze=False)
     colours = {
         "scr": "tab:red",
-        "scr_remeasure": "tab:orange",
         "scr_points": "tab:green",
         "sift": "tab:blue",
         "random": "tab:gray",
