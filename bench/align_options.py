@@ -12,6 +12,7 @@ import argparse
 import json
 import time
 from dataclasses import replace
+from functools import partial
 
 import numpy as np
 
@@ -47,7 +48,15 @@ OPTIONS = {
     "default_32k": replace(KEYFRAME_ALIGN, enough_pairs=32000),
     "default_32k_r3": replace(KEYFRAME_ALIGN, enough_pairs=32000, rounds=3),
     "default_16k_r3": replace(KEYFRAME_ALIGN, enough_pairs=16000, rounds=3),
+    "query": replace(KEYFRAME_ALIGN, warp="query"),
+    "query_r1": replace(KEYFRAME_ALIGN, warp="query", rounds=1, first_flow_scale=1.0),
+    "query_k2": replace(KEYFRAME_ALIGN, warp="query"),
+    "query_k2_r1": replace(KEYFRAME_ALIGN, warp="query", rounds=1, first_flow_scale=1.0),
+    "query_k1": replace(KEYFRAME_ALIGN, warp="query"),
+    "query_k2_half": replace(KEYFRAME_ALIGN, warp="query", rounds=1, first_flow_scale=0.5),
 }
+KEYFRAME_COUNT = {"query_k2": 2, "query_k2_r1": 2, "query_k1": 1, "query_k2_half": 2}
+"""Options that align to fewer than acesplat.align.keyframe_align.KEYFRAMES keyframes (nearest first)."""
 
 
 def main() -> None:
@@ -81,7 +90,8 @@ def main() -> None:
             k = (fi + rep) % len(names)
             for n in names[k:] + names[:k]:
                 t0 = time.perf_counter()
-                al = align_scr_pose(gray, intr, coords, OUTPUT_STRIDE, res.T_c2w, kfs.near, OPTIONS[n])
+                near = kfs.near if n not in KEYFRAME_COUNT else partial(kfs.near, k=KEYFRAME_COUNT[n])
+                al = align_scr_pose(gray, intr, coords, OUTPUT_STRIDE, res.T_c2w, near, OPTIONS[n])
                 ms = 1000.0 * (time.perf_counter() - t0)
                 dt, dr = pose_error(al.pose, f.pose)
                 r = rows[n]

@@ -51,7 +51,14 @@ from acesplat.splatcore.validity import cell_validity
 
 REPO = Path(__file__).resolve().parents[1]
 HERZJESU = REPO.parent / "shared" / "data" / "herzjesu25"
-METHODS = ("scr", "scr_points", "sift", "random")
+METHODS = ("scr", "scr_analytic", "scr_analytic_fill", "scr_points", "sift", "random")
+SCR_VARIANTS = {
+    "scr": {},
+    "scr_analytic": {"head_warmup": 0.0, "joint_head": False, "fill": False},
+    "scr_analytic_fill": {"head_warmup": 0.0, "joint_head": False},
+}
+"""SplatConfig fields of the library's SCR starts: the trained head, and its analytic start (no training, the
+fresh head's zero residuals) with or without the filled pixels."""
 RANDOM_HALF_SIDE = 3.0
 """Random start: a cube of this many scene extents around the cameras (3DGS's random start is a fixed cube)."""
 
@@ -176,13 +183,13 @@ def run_method(method: str, scene: Path, map_path: Path, args, eval_train, eval_
 
     m = load_map(map_path)
     info: dict = {}
-    if method == "scr":
+    if method in SCR_VARIANTS:
         net = m.network(encoder_for_map(m, map_path, args.encoder))
         res = splat_scene(
             frames,
             net,
             m.short_side,
-            SplatConfig(minutes=args.minutes, seed=args.seed),
+            SplatConfig(minutes=args.minutes, seed=args.seed, **SCR_VARIANTS[method]),
             source=map_path,
             eval_fn=curve,
             eval_every_s=args.eval_every,
@@ -275,6 +282,8 @@ def plot(results: dict, path: Path, minutes: float) -> None:
     fig, axes = plt.subplots(1, len(scenes), figsize=(6 * len(scenes), 4.5), squeeze=False)
     colours = {
         "scr": "tab:red",
+        "scr_analytic": "tab:orange",
+        "scr_analytic_fill": "tab:pink",
         "scr_points": "tab:green",
         "sift": "tab:blue",
         "random": "tab:gray",
@@ -283,9 +292,21 @@ def plot(results: dict, path: Path, minutes: float) -> None:
         for r in results[name]:
             pts = r["curve"]
             t = [p["seconds"] / 60 for p in pts]
-            ax.plot(t, [p["train_psnr"] for p in pts], "-", color=colours[r["method"]], label=f"{r['method']} train")
+            ax.plot(
+                t,
+                [p["train_psnr"] for p in pts],
+                "-",
+                color=colours.get(r["method"], "black"),
+                label=f"{r['method']} train",
+            )
             if pts and pts[0]["test_psnr"] is not None:
-                ax.plot(t, [p["test_psnr"] for p in pts], "--", color=colours[r["method"]], label=f"{r['method']} test")
+                ax.plot(
+                    t,
+                    [p["test_psnr"] for p in pts],
+                    "--",
+                    color=colours.get(r["method"], "black"),
+                    label=f"{r['method']} test",
+                )
         ax.set_xlim(0, minutes)
         ax.set_xlabel("wall-clock minutes (Stage 2, this start's preparation included)")
         ax.set_ylabel("PSNR (dB)")
@@ -357,7 +378,7 @@ def main() -> None:
         results[name] = [r for r in results.get(name, []) if r["method"] not in methods]
         for method in methods:
             results[name].append(run_method(method, scene, map_path, args, eval_train, eval_test, log))
-            results[name].sort(key=lambda r: METHODS.index(r["method"]))
+            results[name].sort(key=lambda r: METHODS.index(r["method"]) if r["method"] in METHODS else len(METHODS))
             write_json(
                 args.out / "bench_splat_init.json",
                 {

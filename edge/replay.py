@@ -28,7 +28,10 @@ def frame_result(o: FrameOutcome) -> FrameResult:
         t, r = pose_error(res.T_c2w, o.gt_pose)
     else:
         t, r = float("inf"), float("inf")
-    return FrameResult(o.name, bool(res is not None and res.localized), t, r, o.record.inliers, o.times_ms["total"])
+    pose = None if res is None else res.T_c2w
+    return FrameResult(
+        o.name, bool(res is not None and res.localized), t, r, o.record.inliers, o.times_ms["total"], pose
+    )
 
 
 def summarize(outcomes: Sequence[FrameOutcome], stats: RunStats | None = None) -> dict:
@@ -76,5 +79,6 @@ def replay_split(
     out["precision"] = localizer.precision
     out["input_size"] = list(localizer.input_size)
     out["tracking_enabled"] = localizer.tracker is not None
+    out["align_warp"] = localizer.align_config.warp if localizer.keyframes is not None else None
     out.update(runtime_info(localizer.session.provider))
     return out

@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from acesplat.align.flow_pnp import KEYFRAME_ALIGN, AlignConfig
 from acesplat.align.keyframe_align import Keyframe, align_scr_pose, scene_depth
 from acesplat.align.keyframe_set import bundle_keyframes
 from acesplat.core.bundle import ROLE_KEYFRAMES, Bundle
@@ -135,6 +136,7 @@ class EdgeLocalizer:
         provider: str = knob_default(SessionSettings, "provider"),
         gate: GateConfig | None = None,
         tracking: TrackingConfig | None = None,
+        align_config: AlignConfig = KEYFRAME_ALIGN,
     ) -> None:
         if pace_ms is not None and not pace_ms > 0:
             raise ValueError(f"pace must be positive, got {pace_ms} ms")
@@ -151,6 +153,8 @@ class EdgeLocalizer:
         """The last frame's camera-to-world pose if it was TRACKING (the gate's motion check), else None."""
         self.keyframes = bundle_keyframes(bundle) if align else None
         """The bundle's keyframes when poses are refined against them (InputError at start if it has none)."""
+        self.align_config = align_config
+        """How --align refines a pose against the keyframes (acesplat.align.flow_pnp.AlignConfig)."""
         self.tracker = Tracker(tracking) if tracking is not None and tracking.enabled else None
         """Tracking between frames (edge.tracking), None: every frame solved alone."""
         self.track_keyframes = (
@@ -268,7 +272,9 @@ class EdgeLocalizer:
         status = None
         if res.localized and res.T_c2w is not None:
             if self.keyframes is not None:
-                al = align_scr_pose(p.gray, p.intr, p.coords, self.stride, res.T_c2w, self.keyframes.near)
+                al = align_scr_pose(
+                    p.gray, p.intr, p.coords, self.stride, res.T_c2w, self.keyframes.near, self.align_config
+                )
                 res, status = replace(res, T_c2w=al.pose), al.status
                 cov = al.covariance if al.status == "aligned" else cov
             elif self.track_keyframes is not None:

@@ -17,6 +17,7 @@ from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import pose_error
 from acesplat.core.metrics import RECALL_THRESHOLDS
 from acesplat.core.pose import TrackingState
+from acesplat.core.scene import read_split
 from edge.loop import run_loop
 from edge.replay import replay_split, timing_summary
 from edge.runtime import STAGES, EdgeLocalizer, FrameOutcome, PnPSettings
@@ -31,7 +32,6 @@ def localizer(tiny) -> EdgeLocalizer:
 
 
 def test_replay_localizes_like_the_desktop_path(tiny, localizer) -> None:
-    from acesplat.core.scene import read_split
     from acesplat.scr.localize import Localizer, evaluate
     from acesplat.scr.mapfile import encoder_for_map, load_map
 
@@ -66,6 +66,11 @@ def test_replay_command_json_has_eval_keys_and_stage_timings(tiny, tmp_path: Pat
     assert all(set(v) == STAT_KEYS for v in s["timing_ms"].values())
     assert s["precision"] == "int8" and s["localized"] >= 3  # INT8 keeps most frames localized (measured 4)
     assert s["median_translation_m"] < 0.3  # measured 21.7 cm
+    gt = {f.name: f.pose for f in read_split(tiny["scene"], "test").frames}
+    for f in s["per_frame"]:  # each frame's pose, whose error against the true pose is the one reported
+        if f["translation_m"] is not None:
+            t, r = pose_error(np.array(f["pose_c2w"]), gt[f["name"]])
+            assert t == pytest.approx(f["translation_m"], abs=1e-9) and r == pytest.approx(f["rotation_deg"], abs=1e-6)
 
 
 def test_timing_statistics_against_hand_computed_values() -> None:

@@ -18,10 +18,12 @@ from acesplat.align.keyframe_align import (
     _depth_at,
     align_to_keyframes,
     nearest_keyframes,
+    query_depth,
     resample_to,
 )
 from acesplat.core.camera import Intrinsics
-from acesplat.core.geometry import make_pose, pose_error, rodrigues_to_matrix
+from acesplat.core.geometry import make_pose, pose_error, rodrigues_to_matrix, transform_points
+from acesplat.core.grid import cell_centers
 from acesplat.synth import default_intrinsics, make_room, make_trajectory, render_view
 from acesplat.synth.dataset import texel_density_for
 
@@ -75,6 +77,52 @@ def test_a_query_with_other_intrinsics_is_resampled_and_aligns_as_well(room) -> 
     al = align_to_keyframes(gray(rgb), other, start, kfs[:4])
     e1 = pose_error(al.pose, true_pose)
     assert al.status == "aligned" and e1[0] < 0.003 and e1[1] < 0.05, e1
+
+
+def scr_like_coords(scene, pose: np.ndarray, k: Intrinsics, noise: float, seed: int) -> np.ndarray:
+    """The query's world coordinates at the SCR cells (stride 8, cell k at 8k + 4 px) with relative depth noise, and
+    one cell in forty wildly off (as a head's outliers)."""
+    _, depth = render_view(scene, pose, k, supersample=1)
+    uv = cell_centers(k.height // 8, k.width // 8).astype(np.float64)
+    rng = np.random.default_rng(seed)
+    z = depth[uv[:, 1].astype(int), uv[:, 0].astype(int)] * (1.0 + noise * rng.standard_normal(len(uv)))
+    z[rng.random(len(uv)) < 0.025] *= 3.0
+    return transform_points(pose, k.unproject(uv, z)).reshape(k.height // 8, k.width // 8, 3)
+
+
+@pytest.mark.parametrize("other", [False, True])
+def test_the_query_depth_warp_brings_a_perturbed_pose_back_as_well(room, other: bool) -> None:
+    """With ``warp`` query the keyframes are warped by the query's noisy SCR depth (2% and outliers): the flow
+    corrects the warp, the points come from the keyframes' depth, so the pose comes back as with the exact warp;
+    also for a query with intrinsics unlike the keyframes' (no resampling on this path)."""
+    scene, K, kfs, true_pose, query = room
+    k = Intrinsics(K.fx * 1.15, K.fy * 1.15, K.cx + 12.0, K.cy - 8.0, 352, 264) if other else K
+    if other:
+        query = gray(render_view(scene, true_pose, k, supersample=1)[0])
+    coords = scr_like_coords(scene, true_pose, k, 0.02, 3)
+    start = perturb(true_pose, [0.04, -0.03, 0.02], [0.004, -0.006, 0.003])
+    cfg = replace(KEYFRAME_ALIGN, warp="query")
+    al = align_to_keyframes(query, k, start, kfs[:4], cfg=cfg, coords=(coords, 8))
+    e1 = pose_error(al.pose, true_pose)
+    assert al.status == "aligned" and al.points > 2000 and e1[0] < 0.003 and e1[1] < 0.05, (al, e1)
+    # without coordinates the keyframes' own depth warps them: the same pose, as the default path gives
+    plain = align_to_keyframes(query, k, start, kfs[:4], cfg=cfg)
+    assert plain.status == "aligned" and np.array_equal(plain.pose, align_to_keyframes(query, k, start, kfs[:4]).pose)
+
+
+def test_query_depth_is_the_camera_z_of_the_coordinates_median_filtered() -> None:
+    pose = make_pose(rodrigues_to_matrix(np.array([0.1, -0.2, 0.05])), np.array([0.3, -0.1, 0.2]))
+    k = Intrinsics(50.0, 50.0, 20.0, 16.0, 40, 32)
+    uv = cell_centers(4, 5).astype(np.float64)
+    z = np.full(20, 2.0)
+    z[7] = 9.0  # one outlier: the 3x3 median removes it
+    coords = transform_points(pose, k.unproject(uv, z)).reshape(4, 5, 3)
+    coords[0, 0] = np.nan
+    d = query_depth(coords, pose)
+    assert d.dtype == np.float32 and d.shape == (4, 5)
+    assert d[1, 2] == pytest.approx(2.0) and d[2, 2] == pytest.approx(2.0)
+    assert np.all(d[1:3, 1:4] == pytest.approx(2.0))
+    assert query_depth(coords, pose)[3, 4] == pytest.approx(2.0)
 
 
 def test_resampling_to_other_intrinsics_is_the_pinhole_homography(room) -> None:

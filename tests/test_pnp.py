@@ -83,6 +83,10 @@ def test_accuracy_summary_counts_failures_as_misses() -> None:
     assert s["median_translation_m"] == pytest.approx(0.135)
     assert s["mean_ms"] == pytest.approx(25.0)
     assert s["per_frame"][3]["translation_m"] is None
+    assert s["per_frame"][0]["pose_c2w"] is None  # no estimate recorded
+    pose = np.eye(4)
+    pose[:3, 3] = (1.0, 2.0, 3.0)
+    assert FrameResult("e", True, 0.0, 0.0, 9, 1.0, pose).as_dict()["pose_c2w"] == pose.tolist()
 
 
 def test_timing_stats_against_hand_values() -> None:

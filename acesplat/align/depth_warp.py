@@ -41,6 +41,31 @@ def forward_map(
 
     ``depth`` (h, w) holds source z-depths at the cell centres; 0 or non-finite means unknown.
     """
+    return _pixel_map(depth, intrinsics, stride, c2w_src, c2w_dst, intrinsics, with_depth=False)
+
+
+def pixel_map(
+    depth: np.ndarray,
+    intrinsics: Intrinsics,
+    stride: int,
+    c2w_src: np.ndarray,
+    c2w_dst: np.ndarray,
+    dst_intrinsics: Intrinsics,
+) -> np.ndarray:
+    """Where each source pixel lands in a destination camera with its own intrinsics, and its z-depth there:
+    (H, W, 3) float32 (x, y, z), NaN where it cannot. H x W is the source's size; ``depth`` as forward_map's."""
+    return _pixel_map(depth, intrinsics, stride, c2w_src, c2w_dst, dst_intrinsics, with_depth=True)
+
+
+def _pixel_map(
+    depth: np.ndarray,
+    intrinsics: Intrinsics,
+    stride: int,
+    c2w_src: np.ndarray,
+    c2w_dst: np.ndarray,
+    dst_intrinsics: Intrinsics,
+    with_depth: bool,
+) -> np.ndarray:
     gh, gw = depth.shape
     centres = cell_centers(gh, gw, stride)
     first = float(centres[0, 0])  # pixel of cell 0 on either axis
@@ -49,9 +74,11 @@ def forward_map(
     T = invert_pose(c2w_dst) @ c2w_src
     X_dst = X_src @ T[:3, :3].T + T[:3, 3]
     with np.errstate(divide="ignore", invalid="ignore"):
-        uv = intrinsics.project(X_dst)
+        uv = dst_intrinsics.project(X_dst)
+    if with_depth:
+        uv = np.concatenate([uv, X_dst[:, 2:3]], axis=1)
     uv[~((z > 0) & np.isfinite(z) & (X_dst[:, 2] > 1e-6))] = np.nan
-    grid = uv.reshape(gh, gw, 2)
+    grid = uv.reshape(gh, gw, uv.shape[1])
     # Two cells of linear extrapolation on every side (odd reflection), so that pixels between the outermost
     # cell centres and the image border get positions too (replicating the border would pin them there).
     pad = 2
@@ -66,7 +93,7 @@ def forward_map(
         (py - first) / stride + pad,
         cv2.INTER_LINEAR,
         borderMode=cv2.BORDER_CONSTANT,
-        borderValue=(nan, nan),
+        borderValue=(nan,) * grid.shape[2],
     )
 
 

@@ -30,6 +30,7 @@ FLOW_PRESETS = {
     "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
 }
 THINNING = ("even", "confidence")
+WARPS = ("keyframe", "query")
 COVERED_ALPHA = 0.5
 """Alpha at which a rendered pixel counts towards the render's coverage."""
 MIN_DEPTH_M = 1e-3
@@ -73,6 +74,11 @@ class AlignConfig:
     converged_m: float = knob(0.0, "Stop the rounds when one moves the pose less than this (m; 0: never).")
     converged_deg: float = knob(0.0, "...and less than this (deg).")
     enough_pairs: int = knob(0, "Keyframes are used nearest first until this many pairs (0: all; bench/align.md).")
+    warp: str = knob(
+        "keyframe",
+        "Depth that warps a keyframe to the estimate: keyframe (its own, inverted by fixed-point iteration) or query "
+        "(the query's SCR depth: one backward remap; keyframe depth without SCR coordinates; bench/align.md).",
+    )
 
     def __post_init__(self) -> None:
         if self.sample_step_px < 1 or self.ransac_iterations < 1 or self.rounds < 1 or self.min_points < 4:
@@ -83,8 +89,10 @@ class AlignConfig:
             raise ValueError(f"max_fb_error_px must be > 0 or None, got {self.max_fb_error_px}")
         if not (self.reproj_px > 0 and 0 <= self.min_inlier_ratio <= 1 and 0 < self.first_flow_scale <= 1):
             raise ValueError(f"need reproj_px > 0, min_inlier_ratio in [0, 1], first_flow_scale in (0, 1]: {self}")
-        if self.flow_preset not in FLOW_PRESETS or self.thinning not in THINNING:
-            raise ValueError(f"flow_preset must be one of {sorted(FLOW_PRESETS)}, thinning one of {THINNING}")
+        if self.flow_preset not in FLOW_PRESETS or self.thinning not in THINNING or self.warp not in WARPS:
+            raise ValueError(
+                f"flow_preset must be one of {sorted(FLOW_PRESETS)}, thinning one of {THINNING}, warp one of {WARPS}"
+            )
         if self.max_pairs and self.max_pairs < self.min_points:
             raise ValueError(f"max_pairs {self.max_pairs} is below min_points {self.min_points}")
         if self.thinning == "confidence" and self.max_fb_error_px is None:

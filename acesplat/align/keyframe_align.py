@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from acesplat.align.depth_warp import forward_map, warp_to_camera
+from acesplat.align.depth_warp import forward_map, pixel_map, warp_to_camera
 from acesplat.align.flow_pnp import (
     KEYFRAME_ALIGN,
     AlignConfig,
@@ -46,6 +46,12 @@ KEYFRAMES = 4
 """Training views used per query: one alone overlaps too little at a trajectory's ends (bench/herz_gap.md)."""
 MAX_VIEW_ANGLE_DEG = 30.0
 """A training view looking more than this away from the query shows too little of the same scene to warp."""
+QUERY_DEPTH_MEDIAN = 3
+"""Median filter (cells) over the query's SCR depth before it warps a keyframe (``warp`` query): one wrong cell
+would tear the warp around it."""
+HIDDEN_DEPTH_RATIO = 0.1
+"""With the query's depth warping (``warp`` query), a keyframe pixel whose own depth differs from the depth the query
+puts there by more than this fraction shows another surface (one of the two views does not see it)."""
 ROTATION_WEIGHT = 0.25
 """Weight of the angle between viewing directions against the baseline's parallax (baseline / depth, radians) when
 keyframes are ranked by viewpoint change: a keyframe's depth error moves its warp by the parallax only (a rotation
@@ -148,6 +154,52 @@ def keyframe_matches(
     return np.stack([u[ok], v[ok]], axis=1), z[ok], seen[ok], err[ok]
 
 
+def query_depth(coords: np.ndarray, pose_c2w: np.ndarray) -> np.ndarray:
+    """The z-depth (h, w) float32 of SCR coordinates (h, w, 3) in the camera ``pose_c2w`` (4, 4), median-filtered
+    over QUERY_DEPTH_MEDIAN cells; 0 where a coordinate is missing or behind the camera."""
+    w2c = invert_pose(pose_c2w)
+    z = coords.reshape(-1, 3).astype(np.float64) @ w2c[2, :3] + w2c[2, 3]
+    z = np.where(np.isfinite(z) & (z > 0), z, 0.0).reshape(coords.shape[:2]).astype(np.float32)
+    return cv2.medianBlur(z, QUERY_DEPTH_MEDIAN)
+
+
+def query_correspondences(
+    query: np.ndarray,
+    intrinsics: Intrinsics,
+    depth: np.ndarray,
+    stride: int,
+    pose_c2w: np.ndarray,
+    kf: Keyframe,
+    flow: cv2.DISOpticalFlow,
+    cfg: AlignConfig = KEYFRAME_ALIGN,
+    scale: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """As keyframe_correspondences, with the keyframe warped to the query's estimate ``pose_c2w`` (4, 4) by the
+    query's own ``depth`` (h, w) (cells ``stride`` px apart, query_depth): each query pixel samples the keyframe
+    where that depth puts it, so the warp is one remap and needs no inversion. The flow corrects the warp's depth
+    error; the 3D points come from the keyframe's depth at the pixels sampled. ``query`` (H, W) uint8 at its own
+    ``intrinsics`` (no resampling); pixels returned are the query's."""
+    h, w = query.shape
+    kh, kw = kf.gray.shape
+    m = pixel_map(depth, intrinsics, stride, pose_c2w, kf.c2w, kf.intrinsics)  # query pixel -> keyframe x, y, z
+    mx = np.where(np.isfinite(m[..., 0]), m[..., 0], -1.0).astype(np.float32)
+    my = np.where(np.isfinite(m[..., 1]), m[..., 1], -1.0).astype(np.float32)
+    warped = cv2.remap(kf.gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    ys, xs = (a.ravel() for a in sample_grid(h, w, cfg.sample_step_px))
+    src = m[ys, xs].astype(np.float64)
+    ok = np.isfinite(src).all(1) & (src[:, 0] >= 0) & (src[:, 0] <= kw - 1) & (src[:, 1] >= 0)
+    ok &= src[:, 1] <= kh - 1
+    ok[ok] = gradient(warped)[ys[ok], xs[ok]] > cfg.min_gradient
+    ys, xs, src = ys[ok], xs[ok], src[ok]
+    z = _depth_at(kf, src[:, 0], src[:, 1])
+    ok = (z > 0) & (np.abs(z - src[:, 2]) <= HIDDEN_DEPTH_RATIO * src[:, 2])
+    at = np.stack([xs[ok], ys[ok]], axis=1).astype(np.float64)
+    seen, keep, err = flow_to_query(warped, query, at, flow, cfg, scale)
+    uv, zk = src[ok][keep, :2], z[ok][keep]
+    X = kf.intrinsics.unproject(uv, zk) @ kf.c2w[:3, :3].T + kf.c2w[:3, 3]
+    return X, seen[keep], err[keep]
+
+
 def keyframe_correspondences(
     query: np.ndarray,
     pose_c2w: np.ndarray,
@@ -180,12 +232,14 @@ def align_to_keyframes(
     keyframes: Sequence[Keyframe],
     anchor: tuple[np.ndarray, np.ndarray] | None = None,
     cfg: AlignConfig = KEYFRAME_ALIGN,
+    coords: tuple[np.ndarray, int] | None = None,
 ) -> Alignment:
     """Refine the query's camera-to-world ``pose_c2w`` (4, 4) against ``keyframes`` (nearest first, see
     nearest_keyframes); ``gray`` (H, W) uint8 is the query at the map's resolution with ``intrinsics``.
 
     ``anchor``: the correspondences the start pose was solved from, scene points (N, 3) and pixels (N, 2) of
-    ``gray``; a refined pose that loses their inliers is refused (``cfg.min_anchor_kept``)."""
+    ``gray``; a refined pose that loses their inliers is refused (``cfg.min_anchor_kept``).
+    ``coords``: the query's SCR coordinates (h, w, 3) and their stride, for ``cfg.warp`` 'query'."""
     _check(gray, intrinsics, pose_c2w)
     start = np.asarray(pose_c2w, np.float64)
     if not keyframes:
@@ -196,6 +250,16 @@ def align_to_keyframes(
     def pairs(pose: np.ndarray, r: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         Xs, uvs, errs = [], [], []
         scale = cfg.first_flow_scale if r == 0 else 1.0
+        if cfg.warp == "query" and coords is not None:
+            depth = query_depth(coords[0], pose)
+            for kf in keyframes:
+                X, uv, err = query_correspondences(gray, intrinsics, depth, coords[1], pose, kf, flow, cfg, scale)
+                Xs.append(X)
+                uvs.append(uv)
+                errs.append(err)
+                if cfg.enough_pairs and sum(len(x) for x in Xs) >= cfg.enough_pairs:
+                    break
+            return np.concatenate(Xs), np.concatenate(uvs), np.concatenate(errs)
         for kf in keyframes:
             if kf.intrinsics not in queries:
                 queries[kf.intrinsics] = resample_to(gray, intrinsics, kf.intrinsics)
@@ -232,7 +296,7 @@ def align_scr_pose(
     One path for the desktop localizer and the edge runtime."""
     anchor = grid_correspondences(coords, stride)
     keyframes = near(pose_c2w, depth=scene_depth(anchor[0], pose_c2w))
-    return align_to_keyframes(gray, intrinsics, pose_c2w, keyframes, anchor=anchor, cfg=cfg)
+    return align_to_keyframes(gray, intrinsics, pose_c2w, keyframes, anchor=anchor, cfg=cfg, coords=(coords, stride))
 
 
 def anchor_inliers(anchor: tuple[np.ndarray, np.ndarray], intrinsics: Intrinsics, pose_c2w: np.ndarray) -> int:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import sys
 import threading
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +12,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from acesplat.align.flow_pnp import KEYFRAME_ALIGN, WARPS, AlignConfig
 from acesplat.apps.refine_cmd import close_session, exit_if_harmed, refine_line, refine_session
 from acesplat.apps.support import PhaseProgress, one_line_errors, option, report_json, stop_on_signals
 from acesplat.core.bundle import PRECISION_ROLES, Bundle, load_bundle
@@ -66,6 +68,13 @@ def _tracking(on: bool, reanchor_every: int) -> TrackingConfig | None:
     if reanchor_every < 1:
         raise InputError(None, f"--reanchor-every must be at least 1, got {reanchor_every}")
     return TrackingConfig(reanchor_every=reanchor_every) if on else None
+
+
+def _align_config(warp: str) -> AlignConfig:
+    """The keyframe alignment of --align with --align-warp's warp."""
+    if warp not in WARPS:
+        raise InputError(None, f"--align-warp must be one of {', '.join(WARPS)}, got {warp!r}")
+    return replace(KEYFRAME_ALIGN, warp=warp)
 
 
 def _warn(msg: str) -> None:
@@ -149,6 +158,7 @@ def localize_command(
     budget_ms: float = option(RefineOptions, "budget_ms", "--budget-ms"),
     save_splat: Path | None = option(RefineOptions, "save_path", "--save-splat"),
     align: bool = typer.Option(False, "--align", help=ALIGN_HELP),
+    align_warp: str = option(AlignConfig, "warp", "--align-warp"),
     tracking: bool = option(TrackingConfig, "enabled", "--tracking/--no-tracking"),
     reanchor_every: int = option(TrackingConfig, "reanchor_every", "--reanchor-every"),
     foxglove: int | None = typer.Option(None, "--foxglove", metavar="PORT", help=FOXGLOVE_HELP),
@@ -164,7 +174,16 @@ def localize_command(
     int8_gate(b, int8, skip_int8_check, threads, provider)
     calib = read_calibration_file(intrinsics) if intrinsics else None
     track = _tracking(tracking, reanchor_every)
-    loc = EdgeLocalizer(b, precision, threads, _pnp(pnp, min_inliers), align=align, provider=provider, tracking=track)
+    loc = EdgeLocalizer(
+        b,
+        precision,
+        threads,
+        _pnp(pnp, min_inliers),
+        align=align,
+        provider=provider,
+        tracking=track,
+        align_config=_align_config(align_warp),
+    )
     src = open_source(source, SourceOptions(calibration=calib, input_size=b.input_size, realtime=realtime))
     fox = _foxglove_tap(loc, foxglove, mcap, foxglove_host)
     refiner = refine_session(refine, loc, b, budget_ms, save_splat, _warn)
@@ -284,6 +303,7 @@ def replay_command(
     budget_ms: float = option(RefineOptions, "budget_ms", "--budget-ms"),
     save_splat: Path | None = option(RefineOptions, "save_path", "--save-splat"),
     align: bool = typer.Option(False, "--align", help=ALIGN_HELP),
+    align_warp: str = option(AlignConfig, "warp", "--align-warp"),
     tracking: bool = option(TrackingConfig, "enabled", "--tracking/--no-tracking"),
     reanchor_every: int = option(TrackingConfig, "reanchor_every", "--reanchor-every"),
     foxglove: int | None = typer.Option(None, "--foxglove", metavar="PORT", help=FOXGLOVE_HELP),
@@ -301,7 +321,16 @@ def replay_command(
     b = open_bundle(bundle, [precision], align or tracking)
     int8_gate(b, int8, skip_int8_check, threads, provider)
     track = _tracking(tracking, reanchor_every)
-    loc = EdgeLocalizer(b, precision, threads, _pnp(pnp, None), align=align, provider=provider, tracking=track)
+    loc = EdgeLocalizer(
+        b,
+        precision,
+        threads,
+        _pnp(pnp, None),
+        align=align,
+        provider=provider,
+        tracking=track,
+        align_config=_align_config(align_warp),
+    )
     fox = _foxglove_tap(loc, foxglove, mcap, foxglove_host)
     refiner = refine_session(refine, loc, b, budget_ms, save_splat, _warn, evaluate=True)
     with PhaseProgress("replay ") as bar:

@@ -24,6 +24,8 @@ class FrameResult:
     rotation_deg: float
     inliers: int
     ms: float
+    pose_c2w: np.ndarray | None = None
+    """The estimated camera-to-world (4, 4), when there is one: two runs over the same frames compare by it."""
 
     def as_dict(self) -> dict:
         return {
@@ -33,6 +35,7 @@ class FrameResult:
             "rotation_deg": finite_or_none(self.rotation_deg),
             "inliers": self.inliers,
             "ms": self.ms,
+            "pose_c2w": None if self.pose_c2w is None else np.asarray(self.pose_c2w, np.float64).tolist(),
         }
 
 

@@ -84,7 +84,7 @@ class MapKeyframes:
         im = self.images[i]
         return Keyframe(im.gray, im.intrinsics, im.c2w, self.depth(i), DENSE_OUTPUT_STRIDE)
 
-    def near(self, pose_c2w: np.ndarray, depth: float | None = None) -> list[Keyframe]:
-        """Up to ``k`` keyframes nearest the camera-to-world ``pose_c2w`` (4, 4) and looking the same way (by
-        viewpoint change when the scene ``depth`` in front of the query is given: nearest_keyframes)."""
-        return [self.keyframe(i) for i in nearest_keyframes(self.c2ws, pose_c2w, self.k, depth=depth)]
+    def near(self, pose_c2w: np.ndarray, depth: float | None = None, k: int | None = None) -> list[Keyframe]:
+        """Up to ``k`` (default: the set's) keyframes nearest the camera-to-world ``pose_c2w`` (4, 4) and looking the
+        same way (by viewpoint change when the scene ``depth`` in front of the query is given: nearest_keyframes)."""
+        return [self.keyframe(i) for i in nearest_keyframes(self.c2ws, pose_c2w, k or self.k, depth=depth)]

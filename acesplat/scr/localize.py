@@ -98,7 +98,7 @@ def evaluate(split: SceneSplit, localizer: Localizer, progress: Callable[[int, i
             t_err, r_err = pose_error(res.T_c2w, frame.pose)
         else:
             t_err, r_err = float("inf"), float("inf")
-        results.append(FrameResult(frame.name, res.localized, t_err, r_err, res.inliers, ms))
+        results.append(FrameResult(frame.name, res.localized, t_err, r_err, res.inliers, ms, res.T_c2w))
         estimates.append(res.T_c2w)
         if progress:
             progress(i + 1, len(split.frames))
