@@ -26,11 +26,14 @@ from acesplat.scr.keyframes import MapKeyframes
 from acesplat.scr.localize import Localizer
 from acesplat.scr.mapfile import encoder_for_map, load_map
 
-FULL = replace(KEYFRAME_ALIGN, rounds=3, first_flow_scale=1.0, max_pairs=0, thinning="even", enough_pairs=0)
+FULL = replace(
+    KEYFRAME_ALIGN, rounds=3, first_flow_scale=1.0, max_pairs=0, thinning="even", enough_pairs=0, warp="keyframe"
+)
 """Every keyframe (4), three full-size rounds, every pair: the alignment before its cheaper defaults."""
 OPTIONS = {
     "base": FULL,
     "default": KEYFRAME_ALIGN,
+    "keyframe_warp": replace(KEYFRAME_ALIGN, warp="keyframe"),
     "cap2k_even": replace(FULL, max_pairs=2000),
     "cap5k_even": replace(FULL, max_pairs=5000),
     "cap2k_conf": replace(FULL, max_pairs=2000, thinning="confidence"),
@@ -48,7 +51,6 @@ OPTIONS = {
     "default_32k": replace(KEYFRAME_ALIGN, enough_pairs=32000),
     "default_32k_r3": replace(KEYFRAME_ALIGN, enough_pairs=32000, rounds=3),
     "default_16k_r3": replace(KEYFRAME_ALIGN, enough_pairs=16000, rounds=3),
-    "query": replace(KEYFRAME_ALIGN, warp="query"),
     "query_r1": replace(KEYFRAME_ALIGN, warp="query", rounds=1, first_flow_scale=1.0),
     "query_k2": replace(KEYFRAME_ALIGN, warp="query"),
     "query_k2_r1": replace(KEYFRAME_ALIGN, warp="query", rounds=1, first_flow_scale=1.0),

@@ -187,7 +187,7 @@ def test_worker_skips_a_frame_whose_deadline_passed() -> None:
 
 @pytest.fixture(scope="module")
 def splat_bundle(tiny, tmp_path_factory) -> Path:
-    """`acesplat splat` (a few iterations) and export --splat on the tiny room."""
+    """`acesplat splat` (a few iterations, the init head trained) and export --splat on the tiny room."""
     from acesplat.apps.cli import app as desktop
 
     root = tmp_path_factory.mktemp("splat_export")
@@ -204,9 +204,14 @@ def splat_bundle(tiny, tmp_path_factory) -> Path:
             "5",
             "--max-gaussians",
             "4000",
+            "--head-warmup",
+            "0.08",
+            "--joint-head",
         ],
     )
     assert r.exit_code == 0, r.output
+    trained = json.loads((root / "splat" / "splat.json").read_text())
+    assert trained["head_warmup_steps"] == 1 and trained["head_steps"] >= 1  # 5 // 5 warm-up steps, then jointly
     b = root / "bundle"
     shutil.copytree(tiny["bundle"], b)
     from export.splat_export import export_splat

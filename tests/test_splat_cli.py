@@ -93,6 +93,7 @@ def test_splat_rises_above_the_floor_and_render_scores_it(world):
         "0",
         "--reproj-px",
         REPROJ,
+        "--fill",
         "--json",
         root / "start.json",
     )
@@ -109,6 +110,7 @@ def test_splat_rises_above_the_floor_and_render_scores_it(world):
         ITERATIONS,
         "--reproj-px",
         REPROJ,
+        "--fill",  # this world's map comes from an untrained encoder: its trusted cells seed a sixth of the pixels
         "--json",
         root / "splat.json",
     )
@@ -118,6 +120,7 @@ def test_splat_rises_above_the_floor_and_render_scores_it(world):
     for key in ("seconds", "gaussians_initial", "gaussians_final", "train_psnr"):
         assert key in after
     assert after["iterations"] == ITERATIONS and after["skipped_steps"] == 0
+    assert after["head_warmup_steps"] == 0 and after["head_steps"] == 0  # by default the head's analytic start
     assert after["train_psnr"] > PSNR_FLOOR_DB
     assert after["train_psnr"] > before["train_psnr"] + PSNR_RISE_DB
     assert before["gaussians_initial"] == before["gaussians_final"]
@@ -246,6 +249,7 @@ def test_ply_with_missing_or_extra_properties_is_one_line(world, tmp_path, chang
 def test_bad_options_are_one_line(world):
     base = ["splat", world["scene"], "--map", world["map"], "-o", world["root"] / "x", "--iterations", "1"]
     one_line_error(run(*base, "--protocol", "dense"), "protocol")
+    one_line_error(run(*base, "--head-warmup", "1.5"), "--head-warmup")
     one_line_error(run(*base, "--protocol", "sparse", "--views", "3"), "--views")
     one_line_error(run(*base, "--protocol", "sparse", "--views", "3,3"), "sparse views")
     one_line_error(run("render", world["root"] / "nothing", world["scene"]), "splat folder does not exist")

@@ -49,6 +49,9 @@ MAX_VIEW_ANGLE_DEG = 30.0
 QUERY_DEPTH_MEDIAN = 3
 """Median filter (cells) over the query's SCR depth before it warps a keyframe (``warp`` query): one wrong cell
 would tear the warp around it."""
+REWARP_STATUSES = ("few_points", "no_fit")
+"""A query-depth warp (``warp`` query) that ends so is tried again with the keyframes' own depth: the SCR depth can be
+wrong over whole regions (1 of 40 frames in bench/align.md), the keyframes' is not."""
 HIDDEN_DEPTH_RATIO = 0.1
 """With the query's depth warping (``warp`` query), a keyframe pixel whose own depth differs from the depth the query
 puts there by more than this fraction shows another surface (one of the two views does not see it)."""
@@ -275,6 +278,9 @@ def align_to_keyframes(
         return np.concatenate(Xs), np.concatenate(uvs), np.concatenate(errs)
 
     al = refine_pose(start, intrinsics, pairs, cfg)
+    if cfg.warp == "query" and coords is not None and al.status in REWARP_STATUSES:
+        # where the query's SCR depth tears the warp (too few pairs agree), the keyframes' own depth warps them
+        return align_to_keyframes(gray, intrinsics, start, keyframes, anchor, replace(cfg, warp="keyframe"))
     if al.status != "aligned" or anchor is None:
         return al
     if anchor_inliers(anchor, intrinsics, al.pose) < cfg.min_anchor_kept * anchor_inliers(anchor, intrinsics, start):

@@ -32,11 +32,13 @@ def splat_command(
     max_gaussians: int = option(SplatConfig, "max_gaussians"),
     reproj_px: float = option(ValidityConfig, "reproj_max_px", "--reproj-px"),
     fill: bool = option(SplatConfig, "fill"),
+    head_warmup: float = option(SplatConfig, "head_warmup", "--head-warmup"),
+    joint_head: bool = option(SplatConfig, "joint_head", "--joint-head/--no-joint-head"),
     iterations: int | None = option(
         SplatConfig,
         "iterations",
-        help="Fixed optimisation iterations (and 1/5 as many head warm-up steps) instead of the budget: "
-        "reproducible runs.",
+        help="Fixed optimisation iterations (and, with --head-warmup, 1/5 as many head warm-up steps) instead of the "
+        "budget: reproducible runs.",
     ),
     device: str = typer.Option("auto", help="auto, cpu or cuda (networks only: the rasterizer runs on the CPU)."),
     threads: int = typer.Option(
@@ -59,6 +61,8 @@ def splat_command(
         raise InputError(None, f"--iterations must be >= 0, got {iterations}")
     if reproj_px <= 0:
         raise InputError(None, f"--reproj-px must be positive, got {reproj_px}")
+    if not 0 <= head_warmup < 1:
+        raise InputError(None, f"--head-warmup must be in [0, 1), got {head_warmup}")
     cfg = SplatConfig(
         minutes=minutes,
         protocol=protocol,
@@ -70,6 +74,8 @@ def splat_command(
         head_iterations=None if iterations is None else iterations // 5,
         validity=ValidityConfig(reproj_max_px=reproj_px),
         fill=fill,
+        head_warmup=head_warmup,
+        joint_head=joint_head,
         seed=seed,
     )
     from acesplat.splat.run import run_splat

@@ -1,9 +1,11 @@
 """Stage 2 end to end: posed frames + a frozen SCR network -> an optimised Gaussian scene set.
 
 Order (all inside one wall-clock budget): read the views at the map's resolution; run the SCR
-network once per initialisation view (features kept); keep trustworthy cells; train the adapter and
-init head alone for ``head_warmup`` of the budget; merge every view's head Gaussians into one scene set
-on a lattice whose stride fits ``max_initial``; then optimise the set and the head jointly.
+network once per initialisation view (features kept); keep trustworthy cells; optionally train the adapter
+and init head alone for ``head_warmup`` of the budget (by default not: the fresh head's analytic start, the
+SCR coordinates at pixel resolution with the pixels' colours, measured better in the same budget); merge every
+view's head Gaussians into one scene set on a lattice whose stride fits ``max_initial``; then optimise the set
+(and, with ``joint_head``, the head with it).
 
 Protocols: ``static`` reconstructs the captured (training) views; ``sparse`` starts from two training
 views only and holds out the training frames between them as targets.
@@ -58,20 +60,32 @@ class SplatConfig:
         "static", "static (reconstruct the captured views) or sparse (two views in, held-out targets)."
     )
     iterations: int | None = knob(None, "Fixed optimisation iterations instead of the budget (reproducible runs).")
-    head_iterations: int | None = knob(None, "Fixed head warm-up steps instead of head_warmup of the budget.")
+    head_iterations: int | None = knob(
+        None, "Fixed head warm-up steps instead of head_warmup of the budget (when head_warmup > 0)."
+    )
     sh_degree: int = knob(knob_default(OptimizeConfig, "sh_degree"), "Highest SH degree of the scene set.")
     max_initial: int = knob(60_000, "Budget of initial Gaussians: the seeding lattice's stride is chosen to fit it.")
     max_gaussians: int = knob(
         200_000, "Cap on the number of Gaussians (rendering time, hence CPU time, grows with it)."
     )
     init_views: int = knob(48, "At most this many training views (evenly spread) seed Gaussians; all of them train.")
-    head_warmup: float = knob(0.08, "Share of the budget in which the adapter and head train alone before seeding.")
-    joint_head: bool = knob(True, "Keep training the head jointly with the scene set.")
+    head_warmup: float = knob(
+        0.0,
+        "Share of the budget in which the adapter and head train alone before seeding (0: the head's analytic start, "
+        "which beat 8% of head training on the room and herzjesu25: bench/splat_init.md).",
+    )
+    joint_head: bool = knob(
+        False, "Keep training the head jointly with the scene set (costs about a fifth of the iterations)."
+    )
     fuse: bool = knob(True, "Seed only the pixels no earlier view already seeded (one layer per surface).")
     fusion_tolerance: float = knob(
         DEPTH_TOLERANCE, "Relative depth difference under which views see the same surface (SCR depths are noisy)."
     )
-    fill: bool = knob(True, "Also seed untrusted pixels, at the depth of the nearest trusted cell.")
+    fill: bool = knob(
+        False,
+        "Also seed untrusted pixels, at the depth of the nearest trusted cell (cost herzjesu25 1 dB of test PSNR: "
+        "bench/splat_init.md).",
+    )
     cross_view: int = knob(
         CROSS_VIEW_NEIGHBOURS, "Confirm trusted cells against this many nearest views (0: own-view reprojection only)."
     )
@@ -277,9 +291,12 @@ def _valid_depths(v: SplatView) -> np.ndarray:
 def _warm_up(
     head: HeadTrainer, cfg: SplatConfig, deadline: float, rng: np.random.Generator, progress: ProgressFn | None
 ) -> tuple[int, int]:
-    """Train the adapter and head alone (their own AdamW and one-cycle) until ``deadline`` or cfg.head_iterations."""
+    """Train the adapter and head alone (their own AdamW and one-cycle) until ``deadline`` or cfg.head_iterations;
+    no step at all with ``cfg.head_warmup`` 0 (the head's analytic start)."""
     from acesplat.splat.optimize import finite_gradients
 
+    if cfg.head_warmup <= 0:
+        return 0, 0
     opt = torch.optim.AdamW(head.init.parameters(), lr=NET_LR_MIN, weight_decay=0.01)
     start = time.monotonic()
     span = max(deadline - start, 1e-9)
