@@ -26,14 +26,12 @@ from acesplat.scr.keyframes import MapKeyframes
 from acesplat.scr.localize import Localizer
 from acesplat.scr.mapfile import encoder_for_map, load_map
 
-FULL = replace(
-    KEYFRAME_ALIGN, rounds=3, first_flow_scale=1.0, max_pairs=0, thinning="even", enough_pairs=0, warp="keyframe"
-)
+FULL = replace(KEYFRAME_ALIGN, rounds=3, first_flow_scale=1.0, max_pairs=0, thinning="even", enough_pairs=0)
 """Every keyframe (4), three full-size rounds, every pair: the alignment before its cheaper defaults."""
 OPTIONS = {
     "base": FULL,
     "default": KEYFRAME_ALIGN,
-    "keyframe_warp": replace(KEYFRAME_ALIGN, warp="keyframe"),
+    "query": replace(KEYFRAME_ALIGN, warp="query"),
     "cap2k_even": replace(FULL, max_pairs=2000),
     "cap5k_even": replace(FULL, max_pairs=5000),
     "cap2k_conf": replace(FULL, max_pairs=2000, thinning="confidence"),

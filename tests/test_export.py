@@ -190,15 +190,15 @@ def test_keyframes_ride_in_the_bundle_and_the_edge_aligns_to_them(tiny, tmp_path
     # the views near enough to a keyframe to be aligned land within a few millimetres (measured 1 of 4, 0.8 cm)
     aligned = sorted(f["translation_m"] for f in s["per_frame"])[: s["keyframe_alignment"].get("aligned", 0)]
     assert len(aligned) >= 1 and max(aligned) < 0.02, s["per_frame"]
-    assert s["align_warp"] == "query"
-    # the keyframes' own depth warping them: recorded, and a warp that does not exist is refused
+    assert s["align_warp"] == "keyframe"
+    # the query's own SCR depth warping the keyframes: recorded, and a warp that does not exist is refused
     r = CliRunner().invoke(
         edge_app,
-        ["replay", str(tmp_path / "kf"), str(tiny["scene"]), "--align", "--align-warp", "keyframe", "--json", str(out)],
+        ["replay", str(tmp_path / "kf"), str(tiny["scene"]), "--align", "--align-warp", "query", "--json", str(out)],
     )
     assert r.exit_code == 0, r.output
     q = json.loads(out.read_text())
-    assert q["align_warp"] == "keyframe" and sum(q["keyframe_alignment"].values()) == q["localized"] == 4
+    assert q["align_warp"] == "query" and sum(q["keyframe_alignment"].values()) == q["localized"] == 4
     r = CliRunner().invoke(edge_app, ["replay", str(tmp_path / "kf"), str(tiny["scene"]), "--align-warp", "splat"])
     assert r.exit_code == 2 and "Traceback" not in r.output
     assert "--align-warp must be one of keyframe, query" in r.output

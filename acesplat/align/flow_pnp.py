@@ -75,10 +75,10 @@ class AlignConfig:
     converged_deg: float = knob(0.0, "...and less than this (deg).")
     enough_pairs: int = knob(0, "Keyframes are used nearest first until this many pairs (0: all; bench/align.md).")
     warp: str = knob(
-        "query",
-        "Depth that warps a keyframe to the estimate: query (the query's SCR depth, one backward remap: half the "
-        "time, as accurate; the keyframe's depth without SCR coordinates or when it cannot fit; bench/align.md) or "
-        "keyframe (its own, inverted by fixed-point iteration).",
+        "keyframe",
+        "Depth that warps a keyframe to the estimate: keyframe (its own, inverted by fixed-point iteration) or query "
+        "(the query's SCR depth, one backward remap: half the time, as accurate on the room and fountain11, 0.5 cm "
+        "worse on herzjesu25; the keyframe's depth without SCR coordinates or when it cannot fit; bench/align.md).",
     )
 
     def __post_init__(self) -> None:
