@@ -105,6 +105,11 @@ def test_the_query_depth_warp_brings_a_perturbed_pose_back_as_well(room, other: 
     al = align_to_keyframes(query, k, start, kfs[:4], cfg=cfg, coords=(coords, 8))
     e1 = pose_error(al.pose, true_pose)
     assert al.status == "aligned" and al.points > 2000 and e1[0] < 0.003 and e1[1] < 0.05, (al, e1)
+    # depths three times too far tear the warp everywhere: the keyframes' own depth takes over (the same pose)
+    wrong = true_pose[:3, 3] + 3.0 * (coords - true_pose[:3, 3])
+    again = align_to_keyframes(query, k, start, kfs[:4], cfg=cfg, coords=(wrong, 8))
+    exact = align_to_keyframes(query, k, start, kfs[:4], cfg=replace(cfg, warp="keyframe"))
+    assert again.status == "aligned" and np.array_equal(again.pose, exact.pose)
     # without coordinates the keyframes' own depth warps them: the same pose, as the default path gives
     plain = align_to_keyframes(query, k, start, kfs[:4], cfg=cfg)
     assert plain.status == "aligned" and np.array_equal(plain.pose, align_to_keyframes(query, k, start, kfs[:4]).pose)

@@ -250,35 +250,31 @@ def align_to_keyframes(
     flow = dis_flow(cfg)
     queries: dict[Intrinsics, np.ndarray] = {}
 
+    by_query = cfg.warp == "query" and coords is not None
+
     def pairs(pose: np.ndarray, r: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         Xs, uvs, errs = [], [], []
         scale = cfg.first_flow_scale if r == 0 else 1.0
-        if cfg.warp == "query" and coords is not None:
-            depth = query_depth(coords[0], pose)
-            for kf in keyframes:
-                X, uv, err = query_correspondences(gray, intrinsics, depth, coords[1], pose, kf, flow, cfg, scale)
-                Xs.append(X)
-                uvs.append(uv)
-                errs.append(err)
-                if cfg.enough_pairs and sum(len(x) for x in Xs) >= cfg.enough_pairs:
-                    break
-            return np.concatenate(Xs), np.concatenate(uvs), np.concatenate(errs)
+        depth = query_depth(coords[0], pose) if by_query else None
         for kf in keyframes:
-            if kf.intrinsics not in queries:
-                queries[kf.intrinsics] = resample_to(gray, intrinsics, kf.intrinsics)
-            X, uv, err = keyframe_correspondences(queries[kf.intrinsics], pose, kf, flow, cfg, scale)
-            # back to the query's own pixels, so every keyframe's pairs share one camera matrix
-            H = intrinsics.K @ np.linalg.inv(kf.intrinsics.K)
-            uvh = np.c_[uv, np.ones(len(uv))] @ H.T
+            if depth is not None:
+                X, uv, err = query_correspondences(gray, intrinsics, depth, coords[1], pose, kf, flow, cfg, scale)
+            else:
+                if kf.intrinsics not in queries:
+                    queries[kf.intrinsics] = resample_to(gray, intrinsics, kf.intrinsics)
+                X, uv, err = keyframe_correspondences(queries[kf.intrinsics], pose, kf, flow, cfg, scale)
+                # back to the query's own pixels, so every keyframe's pairs share one camera matrix
+                uvh = np.c_[uv, np.ones(len(uv))] @ (intrinsics.K @ np.linalg.inv(kf.intrinsics.K)).T
+                uv = uvh[:, :2] / uvh[:, 2:3]
             Xs.append(X)
-            uvs.append(uvh[:, :2] / uvh[:, 2:3])
+            uvs.append(uv)
             errs.append(err)
             if cfg.enough_pairs and sum(len(x) for x in Xs) >= cfg.enough_pairs:
                 break
         return np.concatenate(Xs), np.concatenate(uvs), np.concatenate(errs)
 
     al = refine_pose(start, intrinsics, pairs, cfg)
-    if cfg.warp == "query" and coords is not None and al.status in REWARP_STATUSES:
+    if by_query and al.status in REWARP_STATUSES:
         # where the query's SCR depth tears the warp (too few pairs agree), the keyframes' own depth warps them
         return align_to_keyframes(gray, intrinsics, start, keyframes, anchor, replace(cfg, warp="keyframe"))
     if al.status != "aligned" or anchor is None:
