@@ -77,8 +77,8 @@ class AlignConfig:
     warp: str = knob(
         "keyframe",
         "Depth that warps a keyframe to the estimate: keyframe (its own, inverted by fixed-point iteration) or query "
-        "(the query's SCR depth, one backward remap: half the time, as accurate on the room and fountain11, 0.5 cm "
-        "worse on herzjesu25; the keyframe's depth without SCR coordinates or when it cannot fit; bench/align.md).",
+        "(the query's SCR depth, one backward remap: faster, less accurate where the SCR depth is far off; the "
+        "keyframe's depth without SCR coordinates or when it cannot fit; bench/align.md).",
     )
 
     def __post_init__(self) -> None:

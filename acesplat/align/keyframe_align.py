@@ -51,7 +51,7 @@ QUERY_DEPTH_MEDIAN = 3
 would tear the warp around it."""
 REWARP_STATUSES = ("few_points", "no_fit")
 """A query-depth warp (``warp`` query) that ends so is tried again with the keyframes' own depth: the SCR depth can be
-wrong over whole regions (1 of 40 frames in bench/align.md), the keyframes' is not."""
+wrong over whole regions (bench/align.md), the keyframes' is not."""
 HIDDEN_DEPTH_RATIO = 0.1
 """With the query's depth warping (``warp`` query), a keyframe pixel whose own depth differs from the depth the query
 puts there by more than this fraction shows another surface (one of the two views does not see it)."""

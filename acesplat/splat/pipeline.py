@@ -72,10 +72,10 @@ class SplatConfig:
     head_warmup: float = knob(
         0.0,
         "Share of the budget in which the adapter and head train alone before seeding (0: the head's analytic start, "
-        "which beat 8% of head training on the room and herzjesu25: bench/splat_init.md).",
+        "better in the same budget: bench/splat_init.md).",
     )
     joint_head: bool = knob(
-        False, "Keep training the head jointly with the scene set (costs about a fifth of the iterations)."
+        False, "Keep training the head jointly with the scene set (its renders cost the scene set iterations)."
     )
     fuse: bool = knob(True, "Seed only the pixels no earlier view already seeded (one layer per surface).")
     fusion_tolerance: float = knob(
@@ -83,8 +83,8 @@ class SplatConfig:
     )
     fill: bool = knob(
         False,
-        "Also seed untrusted pixels, at the depth of the nearest trusted cell (cost herzjesu25 1 dB of test PSNR: "
-        "bench/splat_init.md).",
+        "Also seed untrusted pixels, at the depth of the nearest trusted cell (on real photographs that puts Gaussians "
+        "in front of sky and street: bench/splat_init.md).",
     )
     cross_view: int = knob(
         CROSS_VIEW_NEIGHBOURS, "Confirm trusted cells against this many nearest views (0: own-view reprojection only)."
