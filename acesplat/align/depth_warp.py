@@ -41,7 +41,7 @@ def forward_map(
 
     ``depth`` (h, w) holds source z-depths at the cell centres; 0 or non-finite means unknown.
     """
-    return _pixel_map(depth, intrinsics, stride, c2w_src, c2w_dst, intrinsics, with_depth=False)
+    return pixel_map(depth, intrinsics, stride, c2w_src, c2w_dst, with_depth=False)
 
 
 def pixel_map(
@@ -50,22 +50,13 @@ def pixel_map(
     stride: int,
     c2w_src: np.ndarray,
     c2w_dst: np.ndarray,
-    dst_intrinsics: Intrinsics,
+    dst_intrinsics: Intrinsics | None = None,
+    with_depth: bool = True,
 ) -> np.ndarray:
-    """Where each source pixel lands in a destination camera with its own intrinsics, and its z-depth there:
-    (H, W, 3) float32 (x, y, z), NaN where it cannot. H x W is the source's size; ``depth`` as forward_map's."""
-    return _pixel_map(depth, intrinsics, stride, c2w_src, c2w_dst, dst_intrinsics, with_depth=True)
-
-
-def _pixel_map(
-    depth: np.ndarray,
-    intrinsics: Intrinsics,
-    stride: int,
-    c2w_src: np.ndarray,
-    c2w_dst: np.ndarray,
-    dst_intrinsics: Intrinsics,
-    with_depth: bool,
-) -> np.ndarray:
+    """Where each source pixel lands in a destination camera (``dst_intrinsics``, default the source's) and, with
+    ``with_depth``, its z-depth there: (H, W, 3) float32 (x, y, z) or (H, W, 2), NaN where it cannot. H x W is the
+    source's size; ``depth`` as forward_map's."""
+    dst_intrinsics = intrinsics if dst_intrinsics is None else dst_intrinsics
     gh, gw = depth.shape
     centres = cell_centers(gh, gw, stride)
     first = float(centres[0, 0])  # pixel of cell 0 on either axis

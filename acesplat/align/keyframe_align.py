@@ -37,7 +37,7 @@ from acesplat.align.flow_pnp import (
 )
 from acesplat.core.camera import Intrinsics
 from acesplat.core.config import knob_default
-from acesplat.core.geometry import invert_pose
+from acesplat.core.geometry import invert_pose, transform_points
 from acesplat.core.grid import OUTPUT_STRIDE, grid_correspondences
 from acesplat.core.pnp import PnPConfig
 from acesplat.core.pose_refine import reprojection
@@ -199,7 +199,7 @@ def query_correspondences(
     at = np.stack([xs[ok], ys[ok]], axis=1).astype(np.float64)
     seen, keep, err = flow_to_query(warped, query, at, flow, cfg, scale)
     uv, zk = src[ok][keep, :2], z[ok][keep]
-    X = kf.intrinsics.unproject(uv, zk) @ kf.c2w[:3, :3].T + kf.c2w[:3, 3]
+    X = transform_points(kf.c2w, kf.intrinsics.unproject(uv, zk))
     return X, seen[keep], err[keep]
 
 
@@ -215,7 +215,7 @@ def keyframe_correspondences(
     keyframe's intrinsics, shows them (M, 2) given the query's estimated pose (4, 4), and the flow's
     forward-backward error (M,) px."""
     uv, z, seen, err = keyframe_matches(query, pose_c2w, kf, flow, cfg, scale)
-    X = kf.intrinsics.unproject(uv, z) @ kf.c2w[:3, :3].T + kf.c2w[:3, 3]
+    X = transform_points(kf.c2w, kf.intrinsics.unproject(uv, z))
     return X, seen, err
 
 
