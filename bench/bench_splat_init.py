@@ -51,7 +51,16 @@ from acesplat.splatcore.validity import cell_validity
 
 REPO = Path(__file__).resolve().parents[1]
 HERZJESU = REPO.parent / "shared" / "data" / "herzjesu25"
-METHODS = ("scr", "scr_analytic", "scr_analytic_fill", "scr_points", "sift", "random")
+METHODS = (
+    "scr",
+    "scr_analytic",
+    "scr_analytic_fill",
+    "scr_points",
+    "scr_points_few",
+    "scr_points_texture",
+    "sift",
+    "random",
+)
 SCR_VARIANTS = {
     "scr": {},
     "scr_analytic": {"head_warmup": 0.0, "joint_head": False, "fill": False},
@@ -126,6 +135,20 @@ DENSE_STEP = OUTPUT_STRIDE // DENSE_OUTPUT_STRIDE
 
 
 @torch.no_grad()
+def cell_gradient(gray: np.ndarray, cells_hw: tuple[int, int]) -> np.ndarray:
+    """Mean Sobel gradient magnitude (h, w) of ``gray`` (H, W) over each OUTPUT_STRIDE cell of the SCR grid."""
+    import cv2
+
+    g = gray.astype(np.float32)
+    mag = np.hypot(cv2.Sobel(g, cv2.CV_32F, 1, 0), cv2.Sobel(g, cv2.CV_32F, 0, 1))
+    h, w = cells_hw
+    out = np.zeros((h, w), np.float32)
+    hh, ww = min(h, mag.shape[0] // OUTPUT_STRIDE), min(w, mag.shape[1] // OUTPUT_STRIDE)
+    blocks = mag[: hh * OUTPUT_STRIDE, : ww * OUTPUT_STRIDE].reshape(hh, OUTPUT_STRIDE, ww, OUTPUT_STRIDE)
+    out[:hh, :ww] = blocks.mean((1, 3))
+    return out
+
+
 def remeasure_views(views: Sequence[SplatView], network: torch.nn.Module) -> dict:
     """Stage 2 seeds at depths re-measured between neighbouring training views (the same re-measurement as the pose
     alignment's keyframe depths, acesplat.align.keyframe_depth), for the scr_points start; through the init head it
@@ -204,22 +227,29 @@ def run_method(method: str, scene: Path, map_path: Path, args, eval_train, eval_
         poses = np.stack([v.pose for v in views])
         extent = scene_extent(poses, fallback=1.0)
         rng = np.random.default_rng(args.seed)
-        if method == "scr_points":
-            # The SCR coordinates (re-measured where neighbours triangulate) as a point cloud with the same 3DGS
-            # point start as SIFT's: separates what the points are worth from what the init head makes of them.
+        if method.startswith("scr_points"):
+            # The SCR coordinates as a point cloud with the same 3DGS point start as SIFT's: separates what the
+            # points are worth from what the init head makes of them. scr_points re-measures them where neighbours
+            # triangulate and keeps up to max_initial; scr_points_few keeps --points-cap of them at random;
+            # scr_points_texture the --points-cap cells of most image gradient (where SIFT finds its points).
             net = m.network(encoder_for_map(m, map_path, args.encoder))
             run_scr(views, net, keep_features=False)
-            info["remeasured"] = remeasure_views(views, net)
-            pts_l, cols_l = [], []
+            if method == "scr_points":
+                info["remeasured"] = remeasure_views(views, net)
+            pts_l, cols_l, score_l = [], [], []
             for v in views:
                 ok = v.validity.valid
                 uv = cell_centers(*ok.shape)[ok.ravel()].astype(int)  # the cell's own pixel, as the SCR sees it
                 pts_l.append(v.coords[ok].astype(np.float64))
                 cols_l.append(v.rgb[np.minimum(uv[:, 1], v.rgb.shape[0] - 1), np.minimum(uv[:, 0], v.rgb.shape[1] - 1)])
-            pts, cols = np.concatenate(pts_l), np.concatenate(cols_l)
-            cap = knob_default(SplatConfig, "max_initial")
+                score_l.append(cell_gradient(v.gray, ok.shape)[ok])
+            pts, cols, score = np.concatenate(pts_l), np.concatenate(cols_l), np.concatenate(score_l)
+            cap = knob_default(SplatConfig, "max_initial") if method == "scr_points" else args.points_cap
             if len(pts) > cap:
-                keep = rng.choice(len(pts), cap, replace=False)
+                if method == "scr_points_texture":
+                    keep = np.argsort(-score, kind="stable")[:cap]
+                else:
+                    keep = rng.choice(len(pts), cap, replace=False)
                 pts, cols = pts[keep], cols[keep]
         elif method == "sift":
             pts, cols = triangulated_points(
@@ -285,6 +315,8 @@ def plot(results: dict, path: Path, minutes: float) -> None:
         "scr_analytic": "tab:orange",
         "scr_analytic_fill": "tab:pink",
         "scr_points": "tab:green",
+        "scr_points_few": "tab:olive",
+        "scr_points_texture": "tab:cyan",
         "sift": "tab:blue",
         "random": "tab:gray",
     }
@@ -336,6 +368,7 @@ def main() -> None:
     ap.add_argument("--final-train-views", type=int, default=0, help="0: score every training view at the end")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--points-cap", type=int, default=12_000, help="points of scr_points_few / scr_points_texture")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)

@@ -242,6 +242,10 @@ def pretrain_command(
     ),
     pairs: int = option(PretrainConfig, "pairs"),
     seed: int = option(PretrainConfig, "seed"),
+    photos: str = option(PretrainConfig, "photos"),
+    photo_share: float = option(PretrainConfig, "photo_share"),
+    init_encoder: Path | None = option(PretrainConfig, "init_encoder"),
+    lr: float = option(PretrainConfig, "lr"),
     device: str = typer.Option("auto", help="auto, cpu or cuda (under torchrun: each rank's GPU is LOCAL_RANK)."),
     threads: int = typer.Option(0, help="CPU threads (0 = all cores); 1 is faster when other jobs share the cores."),
     install: bool = typer.Option(False, help="Install the resulting encoder as the shipped default (with provenance)."),
@@ -267,6 +271,10 @@ def pretrain_command(
         steps=steps,
         pairs=pairs,
         seed=seed,
+        photos=photos,
+        photo_share=photo_share,
+        init_encoder=None if init_encoder is None else str(init_encoder),
+        lr=lr,
     )
     command = "acesplat " + " ".join(sys.argv[1:])
     with distributed_from_env(resolve_device(device)) as (ddp, rank_device):

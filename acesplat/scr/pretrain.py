@@ -69,6 +69,22 @@ class PretrainConfig:
     encoder: EncoderConfig = knob(
         EDGE_ENCODER, "Encoder widths to train (EDGE_ENCODER: a fifth of ACE's MACs; bench/encoder_choice.md)."
     )
+    photos: str = knob(
+        "none",
+        "Real photographs seen through random homographies beside the rooms: none, packaged (scikit-image's "
+        "licensed photographs) or a folder with a photos.json licence manifest (acesplat/scr/photos.py).",
+    )
+    photo_share: float = knob(0.25, "Share of the view pairs drawn from the photographs (when there are any).")
+    init_encoder: str | None = knob(
+        None, "Start from these encoder weights instead of random ones (a new run only; a checkpoint wins)."
+    )
+    lr: float = knob(LR, "Peak learning rate of the cosine schedule (lower it to fine-tune from --init-encoder).")
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.photo_share <= 1.0:
+            raise ValueError(f"photo_share must be in [0, 1], got {self.photo_share}")
+        if not self.lr > 0:
+            raise ValueError(f"lr must be > 0, got {self.lr}")
 
 
 @dataclass
@@ -100,6 +116,78 @@ def make_scene(seed: int, cfg: PretrainConfig) -> PretrainScene:
     coords = np.stack([coords_from_depth(d, K, T) for _, d, T, K in frames]).astype(np.float16)
     mean = np.mean([T[:3, 3] for _, _, T, _ in frames], axis=0)
     return PretrainScene(gray, coords, mean)
+
+
+PHOTO_SIDE_RATIO = 2.0
+"""A photograph is resized so that its shorter side is this times the frame height: a frame sees part of it."""
+PHOTO_TILT_DEG = 30.0
+"""Largest yaw and pitch of the virtual camera looking at the photograph (the viewpoint change of a pair)."""
+PHOTO_ROLL_DEG = 10.0
+PHOTO_SCALE = (0.75, 4 / 3)
+"""Photograph pixels per frame pixel at the frame centre."""
+PHOTO_SHIFT = 0.15
+"""Largest offset of a frame's centre from the photograph's, as a fraction of the frame size (frames overlap)."""
+PHOTO_UNIT_M = MATCH_TOLERANCE_M / (OUTPUT_STRIDE / 2)
+"""Coordinate units per photograph pixel: a correspondence is within half a cell."""
+
+
+def photo_homography(rng: np.random.Generator, frame_hw: tuple[int, int], photo_hw: tuple[int, int]) -> np.ndarray:
+    """A random homography (3, 3) from frame pixels to photograph pixels: a camera of ~53 degrees' field of view,
+    tilted by up to PHOTO_TILT_DEG, its centre ray on the photograph within PHOTO_SHIFT of the photograph's centre."""
+    h, w = frame_hw
+    f = float(w)
+    yaw, pitch = np.radians(rng.uniform(-PHOTO_TILT_DEG, PHOTO_TILT_DEG, 2))
+    roll = np.radians(rng.uniform(-PHOTO_ROLL_DEG, PHOTO_ROLL_DEG))
+    cy, sy, cp, sp, cr, sr = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
+    R = (
+        np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+        @ np.array([[1, 0, 0], [0, cp, -sp], [0, sp, cp]])
+        @ np.array([[cr, -sr, 0], [sr, cr, 0], [0, 0, 1]])
+    )
+    K = np.diag([f, f, 1.0])
+    to_origin = np.array([[1, 0, -w / 2], [0, 1, -h / 2], [0, 0, 1.0]])
+    s = rng.uniform(*PHOTO_SCALE)
+    shift = rng.uniform(-PHOTO_SHIFT, PHOTO_SHIFT, 2) * np.array([w, h])
+    to_photo = np.array([[s, 0, photo_hw[1] / 2 + shift[0]], [0, s, photo_hw[0] / 2 + shift[1]], [0, 0, 1.0]])
+    M = K @ R @ np.linalg.inv(K)
+    c = M[:, 2] / M[2, 2]  # where the tilted camera's centre ray meets the photograph: brought back to its centre
+    M = np.array([[1, 0, -c[0]], [0, 1, -c[1]], [0, 0, 1.0]]) @ (M / M[2, 2])
+    H = to_photo @ M @ to_origin
+    return H / H[2, 2]
+
+
+def make_photo_scene(photo_gray: np.ndarray, seed: int, cfg: PretrainConfig) -> PretrainScene:
+    """A photograph (H, W) uint8 as a planar scene: ``cfg.frames_per_scene`` views through random homographies, each
+    pixel's coordinates its photograph pixel (x, y, 0) x PHOTO_UNIT_M (NaN off the photograph)."""
+    rng = np.random.default_rng(seed)
+    h, w = cfg.image_hw
+    k = PHOTO_SIDE_RATIO * h / min(photo_gray.shape)
+    photo = cv2.resize(
+        photo_gray,
+        (round(photo_gray.shape[1] * k), round(photo_gray.shape[0] * k)),
+        interpolation=cv2.INTER_AREA if k < 1 else cv2.INTER_LINEAR,
+    )
+    ph, pw = photo.shape
+    ys, xs = np.mgrid[0:h, 0:w]
+    pix = np.stack([xs.ravel(), ys.ravel(), np.ones(h * w)], 0)
+    grays, coords = [], []
+    for _ in range(cfg.frames_per_scene):
+        H = photo_homography(rng, (h, w), (ph, pw))
+        img = cv2.warpPerspective(
+            photo, H, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT
+        ).astype(np.float32)
+        if rng.random() < 0.3:
+            img = cv2.GaussianBlur(img, (0, 0), rng.uniform(0.3, 1.0))
+        img = 255.0 * (img / 255.0) ** rng.uniform(0.7, 1.4)
+        grays.append(np.clip(img, 0, 255).astype(np.uint8))
+        q = H @ pix
+        uv = (q[:2] / q[2]).T
+        on = (q[2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= pw - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= ph - 1)
+        c = np.full((h * w, 3), np.nan)
+        c[on, :2] = uv[on] * PHOTO_UNIT_M
+        c[on, 2] = 0.0
+        coords.append(c.reshape(h, w, 3))
+    return PretrainScene(np.stack(grays), np.stack(coords).astype(np.float16), np.zeros(3))
 
 
 def load_or_make_scene(cache: Path, seed: int, cfg: PretrainConfig) -> PretrainScene:
@@ -169,13 +257,16 @@ PairBatch = tuple[np.ndarray, list[tuple[int, np.ndarray, np.ndarray]]]
 """Crops (2P, h, w) uint8 (view A of pair k at 2k, view B at 2k+1) and (k, A cells, their B cells) per usable pair."""
 
 
-def sample_pairs(scenes: list[PretrainScene], rng: np.random.Generator, pairs: int) -> PairBatch | None:
-    """``pairs`` augmented view pairs with their cell correspondences; None if no pair has 4 correspondences."""
+def sample_pairs(
+    scenes: list[PretrainScene], rng: np.random.Generator, pairs: int, weights: np.ndarray | None = None
+) -> PairBatch | None:
+    """``pairs`` augmented view pairs with their cell correspondences; None if no pair has 4 correspondences.
+    A pair's scene is drawn uniformly, or with probabilities ``weights`` (len(scenes),)."""
     if not scenes or pairs < 1:
         raise ValueError(f"need scenes and pairs >= 1, got {len(scenes)} scenes and {pairs} pairs")
     crops = []
     for _ in range(pairs):
-        s = scenes[int(rng.integers(len(scenes)))]
+        s = scenes[int(rng.integers(len(scenes)) if weights is None else rng.choice(len(scenes), p=weights))]
         n = s.gray.shape[0]
         f = int(rng.integers(n))
         g = int(np.clip(f + rng.integers(-PAIR_MAX_GAP, PAIR_MAX_GAP + 1), 0, n - 1))
@@ -353,6 +444,9 @@ def pretrain(
         raise InputError(None, f"{cfg.scenes} scenes cannot be shared among {ddp.world_size} ranks")
     main = ddp.rank == 0
     report = progress if main else None
+    from acesplat.scr.photos import load_photo_gray, photo_sources
+
+    photos = photo_sources(cfg.photos)  # checked before any work; every rank checks every source alike
     out = Path(out_dir)
     cache = out / "scenes"
     cache.mkdir(parents=True, exist_ok=True)
@@ -370,9 +464,22 @@ def pretrain(
             break
     if _any_rank([out_of_time], ddp, device)[0]:
         return {"finished": False, "stage": "scenes", "scenes_ready": int(_rank_sum([len(scenes)], ddp, device)[0])}
+    for i in range(ddp.rank, len(photos), ddp.world_size):
+        scenes.append(make_photo_scene(load_photo_gray(photos[i]), cfg.seed * 100003 + 50000 + i, cfg))
+    n_rooms, n_photos = len(mine), len(scenes) - len(mine)
+    weights = None
+    if n_photos and n_rooms:
+        share = cfg.photo_share
+        weights = np.r_[np.full(n_rooms, (1 - share) / n_rooms), np.full(n_photos, share / n_photos)]
     torch.manual_seed(cfg.seed)
     encoder = Encoder(cfg.encoder).to(device)
-    opt = torch.optim.AdamW(encoder.parameters(), lr=LR, weight_decay=WEIGHT_DECAY)
+    init_sha = None
+    if cfg.init_encoder is not None:
+        from acesplat.scr.encoders import file_sha256
+
+        encoder.load_state_dict(torch.load(cfg.init_encoder, map_location="cpu", weights_only=True))
+        init_sha = file_sha256(Path(cfg.init_encoder))
+    opt = torch.optim.AdamW(encoder.parameters(), lr=cfg.lr, weight_decay=WEIGHT_DECAY)
     ckpt_path = out / "checkpoint.pt"
     step, elapsed_before = 0, 0.0
     history: list[dict] = []
@@ -430,11 +537,11 @@ def pretrain(
         if time_up and ddp.world_size == 1:
             break
         p = step / cfg.steps
-        lr = LR * (LR_FINAL_FRACTION + (1 - LR_FINAL_FRACTION) * 0.5 * (1 + np.cos(np.pi * p)))
+        lr = cfg.lr * (LR_FINAL_FRACTION + (1 - LR_FINAL_FRACTION) * 0.5 * (1 + np.cos(np.pi * p)))
         lr = float(lr * min(1.0, (step + 1) / 200))
         for g in opt.param_groups:
             g["lr"] = lr
-        batch = sample_pairs(scenes, rng, cfg.pairs)
+        batch = sample_pairs(scenes, rng, cfg.pairs, weights)
         time_up, no_batch = _any_rank([time_up, batch is None], ddp, device)
         if time_up:
             break
@@ -476,6 +583,8 @@ def pretrain(
         "backend": ddp.backend,
         "global_batch_pairs": cfg.pairs * ddp.world_size,
         "weights_sha256": sha,
+        "photos": [p.record() for p in photos],
+        "init_encoder_sha256": init_sha,
     }
     if main:
         save_checkpoint()
@@ -507,7 +616,15 @@ def install_default(out_dir: str | Path, command: str) -> Path:
         "sessions": summary.get("sessions", []),
         "objective": "dense InfoNCE over exact correspondences of nearby views (acesplat/scr/pretrain.py)",
         "data": f"{summary['config']['scenes']} procedural rooms from acesplat.synth.random_scene_frames, "
-        f"{summary['config']['frames_per_scene']} frames each at {summary['config']['image_hw']}",
+        f"{summary['config']['frames_per_scene']} frames each at {summary['config']['image_hw']}"
+        + (
+            f"; {len(summary.get('photos', []))} photographs through random homographies, "
+            f"{summary['config'].get('photo_share')} of the pairs"
+            if summary.get("photos")
+            else ""
+        ),
+        "photos": summary.get("photos", []),
+        "init_encoder_sha256": summary.get("init_encoder_sha256"),
         "seed": summary["config"]["seed"],
         "steps": summary["step"],
         "steps_planned": summary["steps"],
