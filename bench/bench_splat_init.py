@@ -47,6 +47,7 @@ from acesplat.splat.params import gaussians_from_params, params_from_gaussians
 from acesplat.splat.pipeline import SplatConfig, scene_extent, splat_scene, spread
 from acesplat.splat.point_init import gaussians_from_points, random_points, triangulated_points
 from acesplat.splat.views import SplatView, load_views, run_scr
+from acesplat.splatcore.cell_seeds import cell_texture
 from acesplat.splatcore.validity import cell_validity
 
 REPO = Path(__file__).resolve().parents[1]
@@ -55,6 +56,7 @@ METHODS = (
     "scr",
     "scr_analytic",
     "scr_analytic_fill",
+    "scr_cells",
     "scr_points",
     "scr_points_few",
     "scr_points_texture",
@@ -62,12 +64,13 @@ METHODS = (
     "random",
 )
 SCR_VARIANTS = {
-    "scr": {},
-    "scr_analytic": {"head_warmup": 0.0, "joint_head": False, "fill": False},
-    "scr_analytic_fill": {"head_warmup": 0.0, "joint_head": False},
+    "scr": {"start": "head", "head_warmup": 0.08, "joint_head": True, "fill": True},
+    "scr_analytic": {"start": "head", "head_warmup": 0.0, "joint_head": False, "fill": False},
+    "scr_analytic_fill": {"start": "head", "head_warmup": 0.0, "joint_head": False, "fill": True},
+    "scr_cells": {"start": "cells"},
 }
-"""SplatConfig fields of the library's SCR starts: the trained head, and its analytic start (no training, the
-fresh head's zero residuals) with or without the filled pixels."""
+"""SplatConfig fields of the library's SCR starts: the trained head (the former defaults), its analytic start (no
+training, the fresh head's zero residuals) with or without the filled pixels, and the textured-cell point start."""
 RANDOM_HALF_SIDE = 3.0
 """Random start: a cube of this many scene extents around the cameras (3DGS's random start is a fixed cube)."""
 
@@ -135,20 +138,6 @@ DENSE_STEP = OUTPUT_STRIDE // DENSE_OUTPUT_STRIDE
 
 
 @torch.no_grad()
-def cell_gradient(gray: np.ndarray, cells_hw: tuple[int, int]) -> np.ndarray:
-    """Mean Sobel gradient magnitude (h, w) of ``gray`` (H, W) over each OUTPUT_STRIDE cell of the SCR grid."""
-    import cv2
-
-    g = gray.astype(np.float32)
-    mag = np.hypot(cv2.Sobel(g, cv2.CV_32F, 1, 0), cv2.Sobel(g, cv2.CV_32F, 0, 1))
-    h, w = cells_hw
-    out = np.zeros((h, w), np.float32)
-    hh, ww = min(h, mag.shape[0] // OUTPUT_STRIDE), min(w, mag.shape[1] // OUTPUT_STRIDE)
-    blocks = mag[: hh * OUTPUT_STRIDE, : ww * OUTPUT_STRIDE].reshape(hh, OUTPUT_STRIDE, ww, OUTPUT_STRIDE)
-    out[:hh, :ww] = blocks.mean((1, 3))
-    return out
-
-
 def remeasure_views(views: Sequence[SplatView], network: torch.nn.Module) -> dict:
     """Stage 2 seeds at depths re-measured between neighbouring training views (the same re-measurement as the pose
     alignment's keyframe depths, acesplat.align.keyframe_depth), for the scr_points start; through the init head it
@@ -219,8 +208,16 @@ def run_method(method: str, scene: Path, map_path: Path, args, eval_train, eval_
         )
         params, views, opt = res.params, res.train_views, res.optimize
         info = {
-            k: res.stats[k]
-            for k in ("gaussians_initial", "stride", "valid_cell_fraction", "prepare_seconds", "head_warmup_seconds")
+            k: res.stats.get(k)
+            for k in (
+                "start",
+                "gaussians_initial",
+                "stride",
+                "valid_cell_fraction",
+                "confirmed_cells",
+                "prepare_seconds",
+                "head_warmup_seconds",
+            )
         }
     else:
         views = load_views(frames, m.short_side)
@@ -242,7 +239,7 @@ def run_method(method: str, scene: Path, map_path: Path, args, eval_train, eval_
                 uv = cell_centers(*ok.shape)[ok.ravel()].astype(int)  # the cell's own pixel, as the SCR sees it
                 pts_l.append(v.coords[ok].astype(np.float64))
                 cols_l.append(v.rgb[np.minimum(uv[:, 1], v.rgb.shape[0] - 1), np.minimum(uv[:, 0], v.rgb.shape[1] - 1)])
-                score_l.append(cell_gradient(v.gray, ok.shape)[ok])
+                score_l.append(cell_texture(v.gray, ok.shape)[ok])
             pts, cols, score = np.concatenate(pts_l), np.concatenate(cols_l), np.concatenate(score_l)
             cap = knob_default(SplatConfig, "max_initial") if method == "scr_points" else args.points_cap
             if len(pts) > cap:
@@ -314,6 +311,7 @@ def plot(results: dict, path: Path, minutes: float) -> None:
         "scr": "tab:red",
         "scr_analytic": "tab:orange",
         "scr_analytic_fill": "tab:pink",
+        "scr_cells": "tab:brown",
         "scr_points": "tab:green",
         "scr_points_few": "tab:olive",
         "scr_points_texture": "tab:cyan",

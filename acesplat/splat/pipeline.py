@@ -30,9 +30,11 @@ from acesplat.splat.head_training import HeadTrainer
 from acesplat.splat.init_head import InitHeadConfig
 from acesplat.splat.instantiate import GaussianInitializer, merge_views
 from acesplat.splat.optimize import EvalFn, OptimizeConfig, OptimizeResult, optimise_gaussians
-from acesplat.splat.params import GaussianParams, params_from_tensors
+from acesplat.splat.params import GaussianParams, params_from_gaussians, params_from_tensors
+from acesplat.splat.point_init import gaussians_from_points
 from acesplat.splat.schedule import NET_LR_MAX, NET_LR_MIN, one_cycle
 from acesplat.splat.views import SplatView, load_views, run_scr
+from acesplat.splatcore.cell_seeds import cell_points, cell_texture, textured_cells
 from acesplat.splatcore.fusion import DEPTH_TOLERANCE
 from acesplat.splatcore.head_io import SceneNorm
 from acesplat.splatcore.validity import (
@@ -51,6 +53,7 @@ SCENE_EXTENT_FACTOR = 1.1
 """3DGS's scene extent: 1.1 x the largest camera distance from their mean."""
 
 ProgressFn = Callable[[str, float, dict], None]
+STARTS = ("cells", "head")
 
 
 @dataclass
@@ -64,6 +67,12 @@ class SplatConfig:
         None, "Fixed head warm-up steps instead of head_warmup of the budget (when head_warmup > 0)."
     )
     sh_degree: int = knob(knob_default(OptimizeConfig, "sh_degree"), "Highest SH degree of the scene set.")
+    start: str = knob(
+        "head",
+        "Where Gaussians start: cells (the most textured trusted SCR cells, 3DGS's point start) or head (the init "
+        "head's Gaussians at pixel resolution, views fused; bench/splat_init.md).",
+    )
+    seed_cells: int = knob(12_000, "Cells the 'cells' start seeds (as many points as a sparse SfM start has).")
     max_initial: int = knob(60_000, "Budget of initial Gaussians: the seeding lattice's stride is chosen to fit it.")
     max_gaussians: int = knob(
         200_000, "Cap on the number of Gaussians (rendering time, hence CPU time, grows with it)."
@@ -107,6 +116,12 @@ class SplatConfig:
             raise InputError(None, f"protocol must be one of {PROTOCOLS}, got {self.protocol!r}")
         if self.minutes <= 0:
             raise InputError(None, f"minutes must be positive, got {self.minutes}")
+        if self.start not in STARTS:
+            raise InputError(None, f"start must be one of {STARTS}, got {self.start!r}")
+        if self.start != "head" and (self.head_warmup > 0 or self.joint_head):
+            raise InputError(None, "head_warmup and joint_head train the init head, which seeds with start 'head' only")
+        if self.seed_cells < 2:
+            raise InputError(None, f"seed_cells must be at least 2, got {self.seed_cells}")
 
 
 @dataclass
@@ -219,15 +234,33 @@ def splat_scene(
     warm_steps, warm_skipped = _warm_up(head, cfg, time.monotonic() + cfg.head_warmup * budget, rng, progress)
     t_warm = time.monotonic() - t0 - t_prep
 
-    pixels = [head.pixels(i) for i in range(len(usable))]
-    valid_px = int(sum(int(p.valid.sum()) for p in pixels))
-    trusted_px = int(sum(int(p.trusted.sum()) for p in pixels))
-    tensors, merge = merge_views(
-        usable, pixels, initializer, cfg.max_initial, cfg.sh_degree, rng, fuse=cfg.fuse, depth_tol=cfg.fusion_tolerance
-    )
-    if not tensors:
-        raise InputError(source, "validity mask is empty at pixel resolution in every view (no Gaussian to start from)")
-    params = params_from_tensors(tensors)
+    seeding: dict = {"start": cfg.start}
+    if cfg.start == "cells":
+        params = _cell_start(usable, cfg, source)
+        seeding["seed_cells"] = int(params["means"].shape[0])
+    else:
+        pixels = [head.pixels(i) for i in range(len(usable))]
+        tensors, merge = merge_views(
+            usable,
+            pixels,
+            initializer,
+            cfg.max_initial,
+            cfg.sh_degree,
+            rng,
+            fuse=cfg.fuse,
+            depth_tol=cfg.fusion_tolerance,
+        )
+        if not tensors:
+            raise InputError(
+                source, "validity mask is empty at pixel resolution in every view (no Gaussian to start from)"
+            )
+        params = params_from_tensors(tensors)
+        seeding.update(
+            trusted_pixels=int(sum(int(p.trusted.sum()) for p in pixels)),
+            seeding_pixels=int(sum(int(p.valid.sum()) for p in pixels)),
+            novel_pixels=merge.novel_pixels,
+            stride=merge.stride,
+        )
     n_initial = int(params["means"].shape[0])
     remaining = max(budget - (time.monotonic() - t0), 1.0)
     ocfg = OptimizeConfig(
@@ -262,10 +295,7 @@ def splat_scene(
         "valid_cell_fraction": overall,
         "valid_cells": own_valid,
         "confirmed_cells": confirmed_cells,
-        "trusted_pixels": trusted_px,
-        "seeding_pixels": valid_px,
-        "novel_pixels": merge.novel_pixels,
-        "stride": merge.stride,
+        **seeding,
         "gaussians_initial": n_initial,
         "gaussians_final": int(params["means"].shape[0]),
         "iterations": opt.iterations,
@@ -279,6 +309,20 @@ def splat_scene(
         "lifecycle": opt.events,
     }
     return SplatResult(params, initializer, norm, views, [frames[i] for i in target_idx], stats, opt)
+
+
+def _cell_start(views: Sequence[SplatView], cfg: SplatConfig, source: str | Path | None) -> GaussianParams:
+    """3DGS's point start from the ``cfg.seed_cells`` most textured trusted cells of ``views``."""
+    masks = textured_cells(
+        [cell_texture(v.gray, v.validity.valid.shape) for v in views],  # type: ignore[union-attr]
+        [v.validity.valid for v in views],  # type: ignore[union-attr]
+        cfg.seed_cells,
+    )
+    parts = [cell_points(v.coords, m, v.rgb) for v, m in zip(views, masks)]  # type: ignore[arg-type]
+    points = np.concatenate([p for p, _ in parts])
+    if len(points) < 2:
+        raise InputError(source, f"only {len(points)} trusted cell(s) to start from: nothing to seed Gaussians with")
+    return params_from_gaussians(gaussians_from_points(points, np.concatenate([c for _, c in parts]), cfg.sh_degree))
 
 
 def _valid_depths(v: SplatView) -> np.ndarray:
