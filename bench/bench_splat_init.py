@@ -201,7 +201,12 @@ def run_method(method: str, scene: Path, map_path: Path, args, eval_train, eval_
             frames,
             net,
             m.short_side,
-            SplatConfig(minutes=args.minutes, seed=args.seed, **SCR_VARIANTS[method]),
+            SplatConfig(
+                minutes=args.minutes,
+                seed=args.seed,
+                **SCR_VARIANTS[method],
+                **({"seed_cells": args.seed_cells} if method == "scr_cells" and args.seed_cells else {}),
+            ),
             source=map_path,
             eval_fn=curve,
             eval_every_s=args.eval_every,
@@ -367,6 +372,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--points-cap", type=int, default=12_000, help="points of scr_points_few / scr_points_texture")
+    ap.add_argument("--seed-cells", type=int, default=0, help="scr_cells: SplatConfig.seed_cells (0: its default)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)

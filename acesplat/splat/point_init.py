@@ -1,4 +1,5 @@
-"""The conventional starts Stage 2 is compared against: Gaussians from a point cloud (3DGS's recipe).
+"""Gaussians from a point cloud (3DGS's recipe): the `cells` start's textured SCR cells, and the conventional starts
+Stage 2 is compared against.
 
 3DGS seeds one Gaussian per point: isotropic, its scale the mean distance to the 3 nearest other
 points, opacity 0.1, identity rotation, colour from the point. The point cloud is either sparse
