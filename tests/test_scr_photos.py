@@ -21,16 +21,11 @@ from acesplat.scr.photos import (
     check_source,
     folder_photos,
     load_photo_gray,
-    photo_sources,
-)
-from acesplat.scr.pretrain import (
-    PHOTO_UNIT_M,
-    PretrainConfig,
-    install_default,
-    make_photo_scene,
     photo_homography,
-    pretrain,
+    photo_sources,
+    photo_views,
 )
+from acesplat.scr.pretrain import PretrainConfig, install_default, make_photo_scene, pretrain
 
 TINY = EncoderConfig(c1=4, c2=8, c3=8, c4=16, res2=16, out=16)
 
@@ -96,24 +91,25 @@ def test_homography_maps_the_frame_centre_near_the_photograph_centre() -> None:
         assert abs(c[0] / c[2] - 320) <= 0.15 * 320 + 1e-6 and abs(c[1] / c[2] - 240) <= 0.15 * 240 + 1e-6
 
 
-def test_photo_scene_coordinates_are_the_photograph_pixels_each_frame_shows() -> None:
+def test_photo_views_coordinates_are_the_photograph_pixels_each_frame_shows() -> None:
     rng = np.random.default_rng(0)
     photo = cv2.GaussianBlur(rng.integers(0, 256, (300, 400), dtype=np.uint8), (0, 0), 3.0)
     photo = cv2.normalize(photo, None, 0, 255, cv2.NORM_MINMAX)
-    cfg = PretrainConfig(frames_per_scene=6, image_hw=(120, 160))
-    scene = make_photo_scene(photo, 3, cfg)
-    assert scene.gray.shape == (6, 120, 160) and scene.coords.shape == (6, 120, 160, 3)
+    unit = 0.01
+    gray, coords = photo_views(photo, 3, 6, (120, 160), unit)
+    assert gray.shape == (6, 120, 160) and gray.dtype == np.uint8 and coords.shape == (6, 120, 160, 3)
     k = 2.0 * 120 / 300  # PHOTO_SIDE_RATIO x frame height / the photograph's shorter side
     big = cv2.resize(photo, (round(400 * k), round(300 * k)), interpolation=cv2.INTER_LINEAR).astype(np.float32)
     for f in range(6):
-        c = scene.coords[f].astype(np.float64)
-        on = np.isfinite(c[..., 0])
-        assert on.mean() > 0.5 and np.all(c[on, 2] == 0)
-        uv = (c[on, :2] / PHOTO_UNIT_M).astype(np.float32)
+        on = np.isfinite(coords[f][..., 0])
+        assert on.mean() > 0.5 and np.all(coords[f][on, 2] == 0)
+        uv = (coords[f][on, :2] / unit).astype(np.float32)
         seen = cv2.remap(big, uv[:, 0].reshape(-1, 1), uv[:, 1].reshape(-1, 1), cv2.INTER_LINEAR)[:, 0]
         # the frame's gray levels are the photograph's at those coordinates, up to the gamma and blur of the frame
-        r = np.corrcoef(seen, scene.gray[f][on].astype(np.float64))[0, 1]
+        r = np.corrcoef(seen, gray[f][on].astype(np.float64))[0, 1]
         assert r > 0.9, (f, r)
+    scene = make_photo_scene(photo, 3, PretrainConfig(frames_per_scene=6, image_hw=(120, 160)))
+    assert np.array_equal(scene.gray, gray) and scene.coords.dtype == np.float16  # pretraining's planar scene
 
 
 def test_pretraining_with_photographs_records_them_and_starts_from_given_weights(tmp_path, monkeypatch) -> None:

@@ -40,6 +40,41 @@ EVALUATION_SITES = (
 MANIFEST = "photos.json"
 MIN_SIDE_PX = 256
 """Photographs with a shorter side below this are too small to warp into a pretraining frame."""
+PHOTO_SIDE_RATIO = 2.0
+"""A photograph is resized so that its shorter side is this times the frame height: a frame sees part of it."""
+PHOTO_TILT_DEG = 30.0
+"""Largest yaw and pitch of the virtual camera looking at the photograph (the viewpoint change of a pair)."""
+PHOTO_ROLL_DEG = 10.0
+PHOTO_SCALE = (0.75, 4 / 3)
+"""Photograph pixels per frame pixel at the frame centre."""
+PHOTO_SHIFT = 0.15
+"""Largest offset of a frame's centre from the photograph's, as a fraction of the frame size (frames overlap)."""
+
+
+def photo_homography(rng: np.random.Generator, frame_hw: tuple[int, int], photo_hw: tuple[int, int]) -> np.ndarray:
+    """A random homography (3, 3) from frame pixels to photograph pixels: a camera of ~53 degrees' field of view,
+    tilted by up to PHOTO_TILT_DEG, its centre ray on the photograph within PHOTO_SHIFT of the photograph's centre."""
+    h, w = frame_hw
+    f = float(w)
+    yaw, pitch = np.radians(rng.uniform(-PHOTO_TILT_DEG, PHOTO_TILT_DEG, 2))
+    roll = np.radians(rng.uniform(-PHOTO_ROLL_DEG, PHOTO_ROLL_DEG))
+    cy, sy, cp, sp, cr, sr = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
+    R = (
+        np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+        @ np.array([[1, 0, 0], [0, cp, -sp], [0, sp, cp]])
+        @ np.array([[cr, -sr, 0], [sr, cr, 0], [0, 0, 1]])
+    )
+    K = np.diag([f, f, 1.0])
+    to_origin = np.array([[1, 0, -w / 2], [0, 1, -h / 2], [0, 0, 1.0]])
+    s = rng.uniform(*PHOTO_SCALE)
+    shift = rng.uniform(-PHOTO_SHIFT, PHOTO_SHIFT, 2) * np.array([w, h])
+    to_photo = np.array([[s, 0, photo_hw[1] / 2 + shift[0]], [0, s, photo_hw[0] / 2 + shift[1]], [0, 0, 1.0]])
+    M = K @ R @ np.linalg.inv(K)
+    c = M[:, 2] / M[2, 2]  # where the tilted camera's centre ray meets the photograph: brought back to its centre
+    M = np.array([[1, 0, -c[0]], [0, 1, -c[1]], [0, 0, 1.0]]) @ (M / M[2, 2])
+    H = to_photo @ M @ to_origin
+    return H / H[2, 2]
+
 
 # (file in skimage/data, what it shows, licence, origin as skimage's docstrings give it)
 _SKIMAGE = (
@@ -144,3 +179,40 @@ def load_photo_gray(src: PhotoSource) -> np.ndarray:
     if min(img.shape) < MIN_SIDE_PX:
         raise InputError(src.path, f"photograph {src.name!r} is {img.shape[1]}x{img.shape[0]}, below {MIN_SIDE_PX} px")
     return img
+
+
+def photo_views(
+    photo_gray: np.ndarray, seed: int, frames: int, frame_hw: tuple[int, int], unit: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """A photograph (H, W) uint8 as a planar scene: ``frames`` views (F, h, w) uint8 through random homographies
+    (:func:`photo_homography`), with blur and gamma, and each pixel's coordinates (F, h, w, 3): its photograph pixel
+    (x, y, 0) x ``unit`` (NaN off the photograph)."""
+    rng = np.random.default_rng(seed)
+    h, w = frame_hw
+    k = PHOTO_SIDE_RATIO * h / min(photo_gray.shape)
+    photo = cv2.resize(
+        photo_gray,
+        (round(photo_gray.shape[1] * k), round(photo_gray.shape[0] * k)),
+        interpolation=cv2.INTER_AREA if k < 1 else cv2.INTER_LINEAR,
+    )
+    ph, pw = photo.shape
+    ys, xs = np.mgrid[0:h, 0:w]
+    pix = np.stack([xs.ravel(), ys.ravel(), np.ones(h * w)], 0)
+    grays, coords = [], []
+    for _ in range(frames):
+        H = photo_homography(rng, (h, w), (ph, pw))
+        img = cv2.warpPerspective(
+            photo, H, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT
+        ).astype(np.float32)
+        if rng.random() < 0.3:
+            img = cv2.GaussianBlur(img, (0, 0), rng.uniform(0.3, 1.0))
+        img = 255.0 * (img / 255.0) ** rng.uniform(0.7, 1.4)
+        grays.append(np.clip(img, 0, 255).astype(np.uint8))
+        q = H @ pix
+        uv = (q[:2] / q[2]).T
+        on = (q[2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= pw - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= ph - 1)
+        c = np.full((h * w, 3), np.nan)
+        c[on, :2] = uv[on] * unit
+        c[on, 2] = 0.0
+        coords.append(c.reshape(h, w, 3))
+    return np.stack(grays), np.stack(coords)
