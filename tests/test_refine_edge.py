@@ -204,6 +204,8 @@ def splat_bundle(tiny, tmp_path_factory) -> Path:
             "5",
             "--max-gaussians",
             "4000",
+            "--start",
+            "head",
             "--head-warmup",
             "0.08",
             "--joint-head",

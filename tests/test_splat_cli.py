@@ -93,6 +93,8 @@ def test_splat_rises_above_the_floor_and_render_scores_it(world):
         "0",
         "--reproj-px",
         REPROJ,
+        "--start",
+        "head",
         "--fill",
         "--json",
         root / "start.json",
@@ -110,6 +112,8 @@ def test_splat_rises_above_the_floor_and_render_scores_it(world):
         ITERATIONS,
         "--reproj-px",
         REPROJ,
+        "--start",
+        "head",
         "--fill",  # this world's map comes from an untrained encoder: its trusted cells seed a sixth of the pixels
         "--json",
         root / "splat.json",

@@ -68,9 +68,10 @@ class SplatConfig:
     )
     sh_degree: int = knob(knob_default(OptimizeConfig, "sh_degree"), "Highest SH degree of the scene set.")
     start: str = knob(
-        "head",
-        "Where Gaussians start: cells (the most textured trusted SCR cells, 3DGS's point start) or head (the init "
-        "head's Gaussians at pixel resolution, views fused; bench/splat_init.md).",
+        "cells",
+        "Where Gaussians start: cells (the most textured trusted SCR cells, 3DGS's point start: better on real "
+        "photographs) or head (the init head's Gaussians at pixel resolution, views fused: better on the synthetic "
+        "room; bench/splat_init.md).",
     )
     seed_cells: int = knob(12_000, "Cells the 'cells' start seeds (as many points as a sparse SfM start has).")
     max_initial: int = knob(60_000, "Budget of initial Gaussians: the seeding lattice's stride is chosen to fit it.")
@@ -119,7 +120,10 @@ class SplatConfig:
         if self.start not in STARTS:
             raise InputError(None, f"start must be one of {STARTS}, got {self.start!r}")
         if self.start != "head" and (self.head_warmup > 0 or self.joint_head):
-            raise InputError(None, "head_warmup and joint_head train the init head, which seeds with start 'head' only")
+            raise InputError(
+                None,
+                "head_warmup and joint_head train the init head, which seeds with start 'head' only (use --start head)",
+            )
         if self.seed_cells < 2:
             raise InputError(None, f"seed_cells must be at least 2, got {self.seed_cells}")
 
