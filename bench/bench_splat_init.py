@@ -1,10 +1,10 @@
 """The paper's claim, measured: the same Stage 2 budget from three starts, PSNR against wall-clock time.
 
-Starts: SCR initialisation (ours: the map's scene coordinates through the adapter and init head),
-sparse SIFT points triangulated with the known poses (the conventional SfM-style start), and 3DGS's
-random initialisation. Every start gets the same wall-clock budget, and its own preparation (SCR
-inference and head warm-up, SIFT matching and triangulation) is charged to it. After the start the
-optimisation is the same code (acesplat.splat.optimize) with the same lifecycle.
+Starts: SCR initialisation (ours: the map's most textured trusted cells as points, `scr_cells`, or its scene
+coordinates through the adapter and init head, `scr*`; SCR_VARIANTS), sparse SIFT points triangulated with the
+known poses (the conventional SfM-style start), and 3DGS's random initialisation. Every start gets the same
+wall-clock budget, and its own preparation (SCR inference and head warm-up, SIFT matching and triangulation) is
+charged to it. After the start the optimisation is the same code (acesplat.splat.optimize) with the same lifecycle.
 
 Scenes: the built-in synthetic room (synthesized into --out if absent) and ../shared/data/herzjesu25
 (read in place). Maps come from --builtin-map / --herzjesu-map, or are made here with Stage 1
