@@ -47,7 +47,7 @@ from acesplat.splat.params import gaussians_from_params, params_from_gaussians
 from acesplat.splat.pipeline import SplatConfig, scene_extent, splat_scene, spread
 from acesplat.splat.point_init import gaussians_from_points, random_points, triangulated_points
 from acesplat.splat.views import SplatView, load_views, run_scr
-from acesplat.splatcore.cell_seeds import cell_texture
+from acesplat.splatcore.cell_seeds import cell_points, cell_texture
 from acesplat.splatcore.validity import cell_validity
 
 REPO = Path(__file__).resolve().parents[1]
@@ -241,9 +241,9 @@ def run_method(method: str, scene: Path, map_path: Path, args, eval_train, eval_
             pts_l, cols_l, score_l = [], [], []
             for v in views:
                 ok = v.validity.valid
-                uv = cell_centers(*ok.shape)[ok.ravel()].astype(int)  # the cell's own pixel, as the SCR sees it
-                pts_l.append(v.coords[ok].astype(np.float64))
-                cols_l.append(v.rgb[np.minimum(uv[:, 1], v.rgb.shape[0] - 1), np.minimum(uv[:, 0], v.rgb.shape[1] - 1)])
+                p, c = cell_points(v.coords, ok, v.rgb)  # each cell's coordinate, coloured by its own pixel
+                pts_l.append(p)
+                cols_l.append(c)
                 score_l.append(cell_texture(v.gray, ok.shape)[ok])
             pts, cols, score = np.concatenate(pts_l), np.concatenate(cols_l), np.concatenate(score_l)
             cap = knob_default(SplatConfig, "max_initial") if method == "scr_points" else args.points_cap

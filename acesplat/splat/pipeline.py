@@ -1,11 +1,13 @@
 """Stage 2 end to end: posed frames + a frozen SCR network -> an optimised Gaussian scene set.
 
 Order (all inside one wall-clock budget): read the views at the map's resolution; run the SCR
-network once per initialisation view (features kept); keep trustworthy cells; optionally train the adapter
-and init head alone for ``head_warmup`` of the budget (by default not: the fresh head's analytic start, the
-SCR coordinates at pixel resolution with the pixels' colours, measured better in the same budget); merge every
-view's head Gaussians into one scene set on a lattice whose stride fits ``max_initial``; then optimise the set
-(and, with ``joint_head``, the head with it).
+network once per initialisation view (features kept); keep trustworthy cells; seed the scene set; optimise it.
+The default ``start`` ("cells") seeds 3DGS's point start at the ``seed_cells`` most textured trusted cells. With
+``start`` "head": optionally train the adapter and init head alone for ``head_warmup`` of the budget (by default
+not: the fresh head's analytic start, the SCR coordinates at pixel resolution with the pixels' colours), merge
+every view's head Gaussians into one scene set on a lattice whose stride fits ``max_initial``, and optimise the
+set (with ``joint_head``, the head with it). The adapter and head are built and saved either way: the export
+ships them as the edge refiner's initializer.
 
 Protocols: ``static`` reconstructs the captured (training) views; ``sparse`` starts from two training
 views only and holds out the training frames between them as targets.
