@@ -54,6 +54,10 @@ OPTIONS = {
     "query_k2_r1": replace(KEYFRAME_ALIGN, warp="query", rounds=1, first_flow_scale=1.0),
     "query_k1": replace(KEYFRAME_ALIGN, warp="query"),
     "query_k2_half": replace(KEYFRAME_ALIGN, warp="query", rounds=1, first_flow_scale=0.5),
+    "thr2": replace(KEYFRAME_ALIGN, threads=2),
+    "step4": replace(KEYFRAME_ALIGN, warp_step_px=4),
+    "step2": replace(KEYFRAME_ALIGN, warp_step_px=2),
+    "step4_thr2": replace(KEYFRAME_ALIGN, warp_step_px=4, threads=2),
 }
 KEYFRAME_COUNT = {"query_k2": 2, "query_k2_r1": 2, "query_k1": 1, "query_k2_half": 2}
 """Options that align to fewer than acesplat.align.keyframe_align.KEYFRAMES keyframes (nearest first)."""

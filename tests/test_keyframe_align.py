@@ -69,6 +69,21 @@ def test_a_perturbed_pose_comes_back_to_the_rendered_one(room) -> None:
     assert al.shift_m == pytest.approx(pose_error(al.pose, start)[0])
 
 
+@pytest.mark.parametrize("warp_step", [1, 4])
+def test_threads_change_nothing_and_a_coarse_warp_aligns_as_well(room, warp_step: int) -> None:
+    _, K, kfs, true_pose, query = room
+    start = perturb(true_pose, [0.04, -0.03, 0.02], [0.004, -0.006, 0.003])
+    near = [kfs[i] for i in nearest_keyframes(np.stack([k.c2w for k in kfs]), start)]
+    one, two = (
+        align_to_keyframes(query, K, start, near, cfg=replace(KEYFRAME_ALIGN, threads=t, warp_step_px=warp_step))
+        for t in (1, 2)
+    )
+    assert one.status == two.status == "aligned" and one.points == two.points and one.inliers == two.inliers
+    assert np.array_equal(one.pose, two.pose)  # the keyframes' pairs are joined in their order either way
+    e = pose_error(two.pose, true_pose)
+    assert e[0] < 0.003 and e[1] < 0.05, e
+
+
 def test_a_query_with_other_intrinsics_is_resampled_and_aligns_as_well(room) -> None:
     scene, K, kfs, true_pose, _ = room
     other = Intrinsics(K.fx * 1.15, K.fy * 1.15, K.cx + 12.0, K.cy - 8.0, 352, 264)

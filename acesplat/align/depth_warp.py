@@ -21,6 +21,9 @@ FIXED_POINT_STEPS = 12
 """Iterations of s <- v - D(s); the displacement field of a smooth surface contracts in a few."""
 CLOSE_TOLERANCE_PX = 0.5
 """A warped pixel is valid if its source pixel maps back to it within this distance."""
+FULL_SIZE_STEPS = 2
+"""With a coarse inversion (``inverse_step`` > 1), fixed-point iterations at full size after the upsampled start:
+they settle the pixels where the coarse grid's interpolation is off (depth edges) before the closing check."""
 
 
 def _check(gray: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, stride: int) -> None:
@@ -89,32 +92,70 @@ def pixel_map(
 
 
 def warp_to_camera(
-    gray: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, stride: int, c2w_src: np.ndarray, c2w_dst: np.ndarray
+    gray: np.ndarray,
+    depth: np.ndarray,
+    intrinsics: Intrinsics,
+    stride: int,
+    c2w_src: np.ndarray,
+    c2w_dst: np.ndarray,
+    inverse_step: int = 1,
+    forward: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The source image (H, W) uint8 as the destination camera (same intrinsics) would see it, and a validity
     mask (H, W) bool.
 
     ``depth`` (h, w): source z-depth at the cells spaced ``stride`` px apart; c2w_* (4, 4) camera-to-world.
+    ``inverse_step`` > 1 inverts the forward map on destination pixels that many apart and upsamples the inverse
+    (FIXED_POINT_STEPS iterations there, FULL_SIZE_STEPS at full size): the depth grid is coarse, so the map is
+    smooth between its cells, and the closing check is still made on every pixel. ``forward``: forward_map's
+    result (H, W, 2) for these cameras, when the caller has it already.
     """
     _check(gray, depth, intrinsics, stride)
+    if inverse_step < 1:
+        raise ValueError(f"inverse_step must be >= 1, got {inverse_step}")
     h, w = gray.shape
-    F = forward_map(depth, intrinsics, stride, c2w_src, c2w_dst)
-    py, px = np.mgrid[0:h, 0:w].astype(np.float32)
-    v = np.stack([px, py], -1)
+    F = forward_map(depth, intrinsics, stride, c2w_src, c2w_dst) if forward is None else forward
+    if F.shape != (h, w, 2):
+        raise ValueError(f"forward map is {F.shape}, expected {(h, w, 2)}")
+    v = _pixel_grid(h, w)
     D = F - v
     finite = np.isfinite(D).all(-1)
     if not finite.any():
         return np.zeros_like(gray), np.zeros(gray.shape, bool)
-    s = v - np.median(D[finite], axis=0)
+    start = np.median(D[finite], axis=0).astype(np.float32)
     # Replicated borders keep the last row and column (bilinear reads one past them); leaving the source
     # image is tested explicitly instead.
-    for _ in range(FIXED_POINT_STEPS):
-        s = v - cv2.remap(D, s[..., 0], s[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    back = cv2.remap(F, s[..., 0], s[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    err = np.linalg.norm(back - v, axis=-1)
+    if inverse_step == 1:
+        s = _fixed_point(D, v, v - start, FIXED_POINT_STEPS)
+    else:
+        vc = np.ascontiguousarray(v[::inverse_step, ::inverse_step])
+        sc = _fixed_point(D, vc, vc - start, FIXED_POINT_STEPS)
+        # upsample the inverse displacement (smooth), not the positions, then settle at full size; a coarse pixel
+        # that did not close starts its neighbours from the median displacement, as the full inversion does
+        ec = vc - sc
+        ec = np.where(np.isfinite(ec), ec, start).astype(np.float32)
+        e = cv2.remap(ec, v / np.float32(inverse_step), None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        s = _fixed_point(D, v, v - e, FULL_SIZE_STEPS)
+    s = np.where(np.isfinite(s), s, np.float32(-1.0))
+    back = cv2.remap(F, s, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) - v
+    err = np.hypot(back[..., 0], back[..., 1])
     eps = 1e-3  # the iteration lands on the border only up to rounding
     inside = (s[..., 0] >= -eps) & (s[..., 0] <= w - 1 + eps) & (s[..., 1] >= -eps) & (s[..., 1] <= h - 1 + eps)
-    valid = inside & np.isfinite(err) & (err < CLOSE_TOLERANCE_PX)
-    s = np.where(valid[..., None], s, -1.0).astype(np.float32)
-    out = cv2.remap(gray, s[..., 0], s[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    valid = inside & (err < CLOSE_TOLERANCE_PX)  # NaN compares False
+    s[~valid] = -1.0
+    out = cv2.remap(gray, s, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     return out, valid
+
+
+def _pixel_grid(h: int, w: int) -> np.ndarray:
+    """(H, W, 2) float32 pixel coordinates (x, y)."""
+    py, px = np.mgrid[0:h, 0:w].astype(np.float32)
+    return np.stack([px, py], -1)
+
+
+def _fixed_point(D: np.ndarray, v: np.ndarray, s: np.ndarray, steps: int) -> np.ndarray:
+    """``steps`` iterations of s <- v - D(s): source pixels (..., 2) of the destination pixels v (..., 2) under
+    the displacement field D (H, W, 2), from the start s."""
+    for _ in range(steps):
+        s = v - cv2.remap(D, s, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return s

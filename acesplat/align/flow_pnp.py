@@ -74,6 +74,10 @@ class AlignConfig:
     converged_m: float = knob(0.0, "Stop the rounds when one moves the pose less than this (m; 0: never).")
     converged_deg: float = knob(0.0, "...and less than this (deg).")
     enough_pairs: int = knob(0, "Keyframes are used nearest first until this many pairs (0: all; bench/align.md).")
+    warp_step_px: int = knob(
+        1, "The keyframe warp is inverted on pixels this far apart and upsampled (1: every pixel; bench/align.md)."
+    )
+    threads: int = knob(2, "Keyframes are warped and flowed in this many threads (OpenCV releases the GIL).")
     warp: str = knob(
         "keyframe",
         "Depth that warps a keyframe to the estimate: keyframe (its own, inverted by fixed-point iteration) or query "
@@ -82,8 +86,10 @@ class AlignConfig:
     )
 
     def __post_init__(self) -> None:
-        if self.sample_step_px < 1 or self.ransac_iterations < 1 or self.rounds < 1 or self.min_points < 4:
-            raise ValueError(f"sample_step_px, ransac_iterations, rounds must be >= 1 and min_points >= 4: {self}")
+        if min(self.sample_step_px, self.ransac_iterations, self.rounds, self.warp_step_px, self.threads) < 1:
+            raise ValueError(f"sample_step_px, ransac_iterations, rounds, warp_step_px, threads must be >= 1: {self}")
+        if self.min_points < 4:
+            raise ValueError(f"min_points must be >= 4, got {self.min_points}")
         if self.max_photo_diff is not None and not self.max_photo_diff > 0:
             raise ValueError(f"max_photo_diff must be > 0 or None, got {self.max_photo_diff}")
         if self.max_fb_error_px is not None and not self.max_fb_error_px > 0:

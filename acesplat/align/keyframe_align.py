@@ -18,6 +18,7 @@ cameras), so cameras with other calibrations align too.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
 import cv2
@@ -141,7 +142,9 @@ def keyframe_matches(
     forward-backward error there (M,) px (acesplat.align.flow_pnp.flow_to_query; ``scale`` < 1: a coarse flow)."""
     h, w = kf.gray.shape
     fmap = forward_map(kf.depth, kf.intrinsics, kf.stride, kf.c2w, pose_c2w)  # keyframe pixel -> query pixel
-    warped, valid = warp_to_camera(kf.gray, kf.depth, kf.intrinsics, kf.stride, kf.c2w, pose_c2w)
+    warped, valid = warp_to_camera(
+        kf.gray, kf.depth, kf.intrinsics, kf.stride, kf.c2w, pose_c2w, cfg.warp_step_px, forward=fmap
+    )
     ys, xs = sample_grid(h, w, cfg.sample_step_px)
     u, v = xs.ravel().astype(np.float64), ys.ravel().astype(np.float64)
     at = fmap[ys.ravel(), xs.ravel()].astype(np.float64)
@@ -247,31 +250,34 @@ def align_to_keyframes(
     start = np.asarray(pose_c2w, np.float64)
     if not keyframes:
         return Alignment(start, "few_points")
-    flow = dis_flow(cfg)
-    queries: dict[Intrinsics, np.ndarray] = {}
-
     by_query = cfg.warp == "query" and coords is not None
+    queries = {} if by_query else {kf.intrinsics: resample_to(gray, intrinsics, kf.intrinsics) for kf in keyframes}
+    # keyframes in parallel only when all of them are used anyway (enough_pairs stops at the first that suffice)
+    threads = 1 if cfg.enough_pairs else min(cfg.threads, len(keyframes))
+
+    def one(kf: Keyframe, pose: np.ndarray, depth: np.ndarray | None, scale: float) -> tuple[np.ndarray, ...]:
+        flow = dis_flow(cfg)  # DIS holds working buffers: one per call, so threads never share one
+        if depth is not None:
+            return query_correspondences(gray, intrinsics, depth, coords[1], pose, kf, flow, cfg, scale)
+        X, uv, err = keyframe_correspondences(queries[kf.intrinsics], pose, kf, flow, cfg, scale)
+        # back to the query's own pixels, so every keyframe's pairs share one camera matrix
+        uvh = np.c_[uv, np.ones(len(uv))] @ (intrinsics.K @ np.linalg.inv(kf.intrinsics.K)).T
+        return X, uvh[:, :2] / uvh[:, 2:3], err
 
     def pairs(pose: np.ndarray, r: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        Xs, uvs, errs = [], [], []
         scale = cfg.first_flow_scale if r == 0 else 1.0
         depth = query_depth(coords[0], pose) if by_query else None
-        for kf in keyframes:
-            if depth is not None:
-                X, uv, err = query_correspondences(gray, intrinsics, depth, coords[1], pose, kf, flow, cfg, scale)
-            else:
-                if kf.intrinsics not in queries:
-                    queries[kf.intrinsics] = resample_to(gray, intrinsics, kf.intrinsics)
-                X, uv, err = keyframe_correspondences(queries[kf.intrinsics], pose, kf, flow, cfg, scale)
-                # back to the query's own pixels, so every keyframe's pairs share one camera matrix
-                uvh = np.c_[uv, np.ones(len(uv))] @ (intrinsics.K @ np.linalg.inv(kf.intrinsics.K)).T
-                uv = uvh[:, :2] / uvh[:, 2:3]
-            Xs.append(X)
-            uvs.append(uv)
-            errs.append(err)
-            if cfg.enough_pairs and sum(len(x) for x in Xs) >= cfg.enough_pairs:
-                break
-        return np.concatenate(Xs), np.concatenate(uvs), np.concatenate(errs)
+        if threads > 1:
+            with ThreadPoolExecutor(threads, thread_name_prefix="acesplat-align") as pool:
+                found = list(pool.map(lambda kf: one(kf, pose, depth, scale), keyframes))
+        else:
+            found, total = [], 0
+            for kf in keyframes:
+                found.append(one(kf, pose, depth, scale))
+                total += len(found[-1][0])
+                if cfg.enough_pairs and total >= cfg.enough_pairs:
+                    break
+        return tuple(np.concatenate(parts) for parts in zip(*found, strict=True))
 
     al = refine_pose(start, intrinsics, pairs, cfg)
     if by_query and al.status in REWARP_STATUSES:
