@@ -1,4 +1,4 @@
-"""`acesplat map`, `acesplat eval` and `acesplat pretrain-encoder`."""
+"""`acesplat map`, `acesplat eval`, `acesplat pretrain-encoder` and `acesplat adapt-encoder`."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ from rich.table import Table
 from acesplat.apps.support import PhaseProgress, one_line_errors, option, parse_size, report_json
 from acesplat.core.config import knob_default, knob_help
 from acesplat.core.errors import InputError
+from acesplat.scr.adapt import AdaptConfig
 from acesplat.scr.device import resolve_device
 from acesplat.scr.localize import Localizer
 from acesplat.scr.mapping import MappingConfig
@@ -289,3 +290,63 @@ def pretrain_command(
 
         path = install_default(out, command)
         console.print(f"installed {path} (provenance in {path.with_suffix('.json')})")
+
+
+@one_line_errors
+def adapt_command(
+    map_path: Path = typer.Argument(..., metavar="MAP", help="A first map of SCENE from `acesplat map`."),
+    scene: Path = typer.Argument(..., help="The scene folder MAP was made from (its training split is used)."),
+    out: Path = typer.Option(..., "-o", "--out", help="Encoder weights to write; map again with --encoder OUT."),
+    steps: int = option(AdaptConfig, "steps", min=1),
+    lr: float = option(AdaptConfig, "lr"),
+    pairs: int = option(AdaptConfig, "pairs", min=1),
+    max_gap: int = option(AdaptConfig, "max_gap", min=1),
+    max_error_px: float = option(AdaptConfig, "max_error_px"),
+    seed: int = option(AdaptConfig, "seed"),
+    encoder: Path | None = typer.Option(None, help="Encoder weights if not where the map says."),
+    json_out: Path | None = typer.Option(None, "--json", help="Write the numbers here."),
+) -> None:
+    """Adapt the map's encoder to SCENE from its own training images and poses (InfoNCE between its views, the
+    correspondences from MAP's coordinates), then `acesplat map SCENE --encoder OUT` maps with it
+    (bench/encoder_choice.md)."""
+    import sys
+
+    import torch
+
+    from acesplat.core.atomic import write_json
+    from acesplat.core.scene import read_split
+    from acesplat.scr.adapt import adapt_encoder, save_encoder, scene_views
+    from acesplat.scr.encoders import file_sha256
+    from acesplat.scr.mapfile import encoder_for_map, load_map
+
+    if not lr > 0 or not max_error_px > 0:
+        raise InputError(None, f"--lr and --max-error-px must be positive, got {lr} and {max_error_px}")
+    torch.set_num_threads(max(1, torch.get_num_threads()))
+    cfg = AdaptConfig(steps=steps, lr=lr, pairs=pairs, max_gap=max_gap, max_error_px=max_error_px, seed=seed)
+    m = load_map(map_path)
+    enc = encoder_for_map(m, map_path, encoder)
+    split = read_split(scene, "train")
+    loc = Localizer(m.network(enc), m.short_side, {})
+    with PhaseProgress("adapt ") as bar:
+        views, found = scene_views(split, loc, cfg.max_error_px)
+        summary = adapt_encoder(enc, views, cfg, bar)
+    save_encoder(enc, out)
+    report = {
+        "command": "acesplat " + " ".join(sys.argv[1:]),
+        "scene": str(Path(scene).resolve()),
+        "train_images": [f.name for f in split.frames],
+        "map": str(Path(map_path).resolve()),
+        "map_sha256": file_sha256(Path(map_path)),
+        "from_encoder": m.encoder_identity.as_dict(),
+        "encoder_sha256": file_sha256(out),
+        **found,
+        **summary,
+    }
+    write_json(out.with_suffix(".json"), report)  # provenance beside the weights
+    last = summary["history"][-1] if summary["history"] else {}
+    console.print(
+        f"adapted the encoder on {found['views']} training images ({found['cells_kept']:.0%} of cells fit) in "
+        f"{summary['seconds']:.1f} s, {cfg.steps} steps, last loss {last.get('loss', float('nan')):.3f}, top-1 "
+        f"{last.get('top1', float('nan')):.3f} -> {out} (provenance {out.with_suffix('.json')})"
+    )
+    report_json(json_out, report)

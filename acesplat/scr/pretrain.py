@@ -197,10 +197,16 @@ PairBatch = tuple[np.ndarray, list[tuple[int, np.ndarray, np.ndarray]]]
 
 
 def sample_pairs(
-    scenes: list[PretrainScene], rng: np.random.Generator, pairs: int, weights: np.ndarray | None = None
+    scenes: list[PretrainScene],
+    rng: np.random.Generator,
+    pairs: int,
+    weights: np.ndarray | None = None,
+    max_gap: int = PAIR_MAX_GAP,
+    crop_hw: tuple[int, int] = CROP_HW,
 ) -> PairBatch | None:
-    """``pairs`` augmented view pairs with their cell correspondences; None if no pair has 4 correspondences.
-    A pair's scene is drawn uniformly, or with probabilities ``weights`` (len(scenes),)."""
+    """``pairs`` augmented view pairs (crops ``crop_hw``) with their cell correspondences; None if no pair has 4
+    correspondences. A pair's scene is drawn uniformly, or with probabilities ``weights`` (len(scenes),); its second
+    frame is at most ``max_gap`` frames from the first."""
     if not scenes or pairs < 1:
         raise ValueError(f"need scenes and pairs >= 1, got {len(scenes)} scenes and {pairs} pairs")
     crops = []
@@ -208,8 +214,8 @@ def sample_pairs(
         s = scenes[int(rng.integers(len(scenes)) if weights is None else rng.choice(len(scenes), p=weights))]
         n = s.gray.shape[0]
         f = int(rng.integers(n))
-        g = int(np.clip(f + rng.integers(-PAIR_MAX_GAP, PAIR_MAX_GAP + 1), 0, n - 1))
-        crops += [sample_crop(s, rng, CROP_HW, f), sample_crop(s, rng, CROP_HW, g)]
+        g = int(np.clip(f + rng.integers(-max_gap, max_gap + 1), 0, n - 1))
+        crops += [sample_crop(s, rng, crop_hw, f), sample_crop(s, rng, crop_hw, g)]
     matches = []
     for k in range(pairs):
         ia, jb = correspondences(crops[2 * k][1].reshape(3, -1).T, crops[2 * k + 1][1].reshape(3, -1).T)
