@@ -135,27 +135,27 @@ def adapt_encoder(
     rng = np.random.default_rng(cfg.seed)
     encoder.train()
     opt = torch.optim.AdamW(encoder.parameters(), lr=cfg.lr, weight_decay=WEIGHT_DECAY)
-    history, running = [], []
+    history, running, last = [], [], {}
     t0 = time.monotonic()
     for step in range(cfg.steps):
         lr = cfg.lr * 0.5 * (1.0 + np.cos(np.pi * step / cfg.steps)) * min(1.0, (step + 1) / WARMUP_STEPS)
         for g in opt.param_groups:
             g["lr"] = lr
         batch = sample_pairs([scene], rng, cfg.pairs, max_gap=cfg.max_gap, crop_hw=crop)
-        if batch is None:
-            continue
-        loss, top1 = pair_loss(encoder, batch)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(encoder.parameters(), GRAD_CLIP)
-        opt.step()
-        running.append((float(loss.detach()), top1))
-        if (step + 1) % 100 == 0 or step + 1 == cfg.steps:
+        if batch is not None:  # no pair of the draw overlapped: a step without a gradient
+            loss, top1 = pair_loss(encoder, batch)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(encoder.parameters(), GRAD_CLIP)
+            opt.step()
+            running.append((float(loss.detach()), top1))
+            last = {"step": step + 1, "loss": running[-1][0], "top1": top1}
+        if running and ((step + 1) % 100 == 0 or step + 1 == cfg.steps):
             arr = np.array(running)
             history.append({"step": step + 1, "loss": float(arr[:, 0].mean()), "top1": float(arr[:, 1].mean())})
             running = []
-        if progress:
-            progress("adapt", (step + 1) / cfg.steps, {"step": step + 1, "loss": float(loss.detach()), "top1": top1})
+        if progress and last:
+            progress("adapt", (step + 1) / cfg.steps, last)
     encoder.eval()
     return {"config": asdict(cfg), "seconds": round(time.monotonic() - t0, 1), "history": history}
 
