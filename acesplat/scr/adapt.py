@@ -48,9 +48,9 @@ MIN_VIEWS = 3
 class AdaptConfig:
     """How the encoder is fine-tuned on one scene (defaults measured in bench/encoder_choice.md)."""
 
-    steps: int = knob(1500, "Optimisation steps, each on `pairs` view pairs.")
-    lr: float = knob(1e-3, "Peak learning rate of the cosine schedule.")
-    pairs: int = knob(4, "View pairs per step; a cell competes with every cell of the step's other views.")
+    steps: int = knob(1200, "Optimisation steps, each on `pairs` view pairs.")
+    lr: float = knob(5e-4, "Peak learning rate of the cosine schedule (bench/encoder_choice.md).")
+    pairs: int = knob(6, "View pairs per step; a cell competes with every cell of the step's other views.")
     max_gap: int = knob(
         4, "A pair's views are at most this many training images apart (name order: along the trajectory)."
     )
