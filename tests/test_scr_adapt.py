@@ -42,13 +42,19 @@ def test_view_coordinates_drop_exactly_the_cells_that_do_not_reproject() -> None
     assert (~np.isfinite(view_coordinates(moved, pose, K.K, max_error_px=2.0)[..., 0])).sum() == 2
 
 
-def test_pixel_coordinates_are_bilinear_between_cells_and_the_nearest_next_to_a_hole() -> None:
-    pose = np.eye(4)
-    cells = plane_cells(pose).astype(np.float32)
-    px = pixel_coordinates(cells, 64, 80)
+@pytest.mark.parametrize("stride", [8, 4])
+def test_pixel_coordinates_are_linear_on_a_wall_between_the_cells(stride: int) -> None:
+    h, w = (64 - 4) // stride + 1, (80 - 4) // stride + 1
+    uv = cell_centers(h, w, stride)
+    cells = K.unproject(uv, np.full(len(uv), 3.0)).reshape(h, w, 3).astype(np.float32)
+    px = pixel_coordinates(cells, 64, 80, stride)
     ys, xs = np.mgrid[4:60, 4:76]  # between the outermost cell centres a wall's coordinates are linear in the pixel
     truth = K.unproject(np.stack([xs.ravel(), ys.ravel()], 1).astype(float), np.full(xs.size, 3.0))
     np.testing.assert_allclose(px[4:60, 4:76].reshape(-1, 3), truth, atol=1e-5)
+
+
+def test_pixel_coordinates_take_the_nearest_cell_next_to_a_hole() -> None:
+    cells = plane_cells(np.eye(4)).astype(np.float32)
     holed = cells.copy()
     holed[3, 4] = np.nan
     near = pixel_coordinates(holed, 64, 80)

@@ -66,22 +66,27 @@ class AdaptConfig:
             raise ValueError(f"lr and max_error_px must be > 0: {self}")
 
 
-def view_coordinates(coords: np.ndarray, pose_c2w: np.ndarray, K: np.ndarray, max_error_px: float) -> np.ndarray:
-    """The cells' coordinates (h, w, 3) with NaN where a cell's coordinate does not reproject within
-    ``max_error_px`` of the cell under the view's known pose (4, 4) and intrinsics K (3, 3)."""
+def view_coordinates(
+    coords: np.ndarray, pose_c2w: np.ndarray, K: np.ndarray, max_error_px: float, stride: int = OUTPUT_STRIDE
+) -> np.ndarray:
+    """The cells' coordinates (h, w, 3) (cells ``stride`` px apart) with NaN where a cell's coordinate does not
+    reproject within ``max_error_px`` of the cell under the view's known pose (4, 4) and intrinsics K (3, 3)."""
     h, w, _ = coords.shape
     w2c = invert_pose(pose_c2w)
-    err = reprojection(coords.reshape(-1, 3).astype(np.float64), cell_centers(h, w), K, w2c[:3, :3], w2c[:3, 3])[2]
+    uv = cell_centers(h, w, stride)
+    err = reprojection(coords.reshape(-1, 3).astype(np.float64), uv, K, w2c[:3, :3], w2c[:3, 3])[2]
     out = coords.astype(np.float32).copy()
     out.reshape(-1, 3)[~(err < max_error_px)] = np.nan
     return out
 
 
 def pixel_coordinates(cells: np.ndarray, height: int, width: int, stride: int = OUTPUT_STRIDE) -> np.ndarray:
-    """Per-pixel coordinates (H, W, 3) from cell coordinates (h, w, 3) (cell centres ``stride`` px apart, the first
-    at stride / 2): bilinear between valid cells, the nearest cell's next to an invalid one, NaN where that is."""
+    """Per-pixel coordinates (H, W, 3) from cell coordinates (h, w, 3) (cells ``stride`` px apart, placed as
+    acesplat.core.grid.cell_centers places them): bilinear between valid cells, the nearest cell's next to an invalid
+    one, NaN where that is."""
+    first = float(cell_centers(1, 1, stride)[0, 0])
     ys, xs = np.mgrid[0:height, 0:width].astype(np.float32)
-    gx, gy = (xs - stride / 2) / stride, (ys - stride / 2) / stride
+    gx, gy = (xs - first) / stride, (ys - first) / stride
     src = np.ascontiguousarray(cells, np.float32)
     lin = cv2.remap(src, gx, gy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     near = cv2.remap(src, gx, gy, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
@@ -96,7 +101,7 @@ def scene_views(split: SceneSplit, localizer: Localizer, max_error_px: float) ->
     f_px = None
     for f in split.frames:
         gray, intr = localizer.network_input(f.load_rgb(), f.intrinsics)
-        cells = view_coordinates(localizer.coordinates(gray), f.pose, intr.K, max_error_px)
+        cells = view_coordinates(localizer.coordinates(gray), f.pose, intr.K, max_error_px, localizer.output_stride)
         ok = np.isfinite(cells[..., 0])
         kept.append(float(ok.mean()))
         if ok.any():
@@ -110,7 +115,8 @@ def scene_views(split: SceneSplit, localizer: Localizer, max_error_px: float) ->
         raise InputError(split.root, f"only {views} training views have cells the map fits: cannot adapt the encoder")
     half_cell_m = float(np.median(depths)) * (localizer.output_stride / 2) / f_px
     scale = MATCH_TOLERANCE_M / half_cell_m
-    scene = PretrainScene(np.stack(grays), (np.stack(coords) * scale).astype(np.float16), np.zeros(3))
+    centre = np.mean([f.pose[:3, 3] for f in split.frames], axis=0)  # float16 keeps its precision near the origin
+    scene = PretrainScene(np.stack(grays), ((np.stack(coords) - centre) * scale).astype(np.float16), np.zeros(3))
     return scene, {
         "views": len(split.frames),
         "cells_kept": float(np.mean(kept)),
