@@ -18,25 +18,14 @@ import numpy as np
 import torch
 
 from acesplat.core.atomic import write_json
-from acesplat.core.geometry import invert_pose, pose_error
-from acesplat.core.grid import cell_centers
+from acesplat.core.geometry import pose_error
+from acesplat.core.grid import cell_reprojection_errors
 from acesplat.core.pnp import solve_from_grid
-from acesplat.core.pose_refine import reprojection
 from acesplat.core.scene import read_split
 from acesplat.scr.localize import Localizer
 from acesplat.scr.mapfile import encoder_for_map, load_map
 
 THRESHOLDS_PX = (1.0, 2.0, 4.0, 10.0)
-
-
-def cell_errors(coords: np.ndarray, T_c2w: np.ndarray, intr) -> np.ndarray:
-    """Pixel distance (h * w,) between each cell centre and its predicted coordinate (h, w, 3) projected with the
-    true pose; inf behind the camera."""
-    h, w, _ = coords.shape
-    w2c = invert_pose(T_c2w)
-    return reprojection(coords.reshape(-1, 3).astype(np.float64), cell_centers(h, w), intr.K, w2c[:3, :3], w2c[:3, 3])[
-        2
-    ]
 
 
 def split_cell_accuracy(split, loc: Localizer, max_frames: int = 0) -> list[dict]:
@@ -48,7 +37,7 @@ def split_cell_accuracy(split, loc: Localizer, max_frames: int = 0) -> list[dict
     rows = []
     for f in frames:
         coords, intr = loc.predict(f.load_rgb(), f.intrinsics)
-        err = cell_errors(coords, f.pose, intr)
+        err = cell_reprojection_errors(coords, f.pose, intr.K)
         res = solve_from_grid(coords, intr)
         t_cm = 100.0 * pose_error(res.T_c2w, f.pose)[0] if res.T_c2w is not None else float("inf")
         rows.append(

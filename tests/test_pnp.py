@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from acesplat.core.camera import Intrinsics
-from acesplat.core.geometry import invert_pose, look_at, pose_error, transform_points
-from acesplat.core.grid import cell_centers
+from acesplat.core.geometry import invert_pose, look_at, make_pose, pose_error, rodrigues_to_matrix, transform_points
+from acesplat.core.grid import cell_centers, cell_reprojection_errors
 from acesplat.core.metrics import FrameResult, accuracy_summary, timing_stats
 from acesplat.core.pnp import PNP_METHODS, PnPConfig, solve_from_grid, solve_pnp
 
@@ -180,3 +180,21 @@ def test_a_malformed_prior_or_ratio_is_refused() -> None:
         solve_from_grid(coords, INTR, prior_c2w=np.full((4, 4), np.nan))
     with pytest.raises(ValueError, match="prior_min_ratio"):
         PnPConfig(prior_min_ratio=1.5)
+
+
+def test_cell_reprojection_errors_are_the_pixel_offsets_of_moved_cells() -> None:
+    """Cells of a wall 2 m ahead, one moved 3 px sideways, one behind the camera, one NaN, at either stride."""
+    k = Intrinsics(50.0, 50.0, 31.5, 23.5, 64, 48)
+    pose = make_pose(rodrigues_to_matrix(np.radians([2.0, -3.0, 1.0])), [0.1, 0.2, -0.3])
+    for stride in (8, 4):
+        h, w = (48 - 4) // stride + 1, (64 - 4) // stride + 1
+        uv = cell_centers(h, w, stride)
+        coords = transform_points(pose, k.unproject(uv, np.full(len(uv), 2.0))).reshape(h, w, 3)
+        coords[1, 2] += pose[:3, 0] * 2.0 * 3.0 / k.fx
+        coords[2, 1] = transform_points(pose, np.array([[0.0, 0.0, -1.0]]))[0]
+        coords[0, 0] = np.nan
+        err = cell_reprojection_errors(coords, pose, k.K, stride).reshape(h, w)
+        assert err[1, 2] == pytest.approx(3.0, abs=1e-6) and np.isinf(err[2, 1]) and np.isnan(err[0, 0])
+        rest = np.ones((h, w), bool)
+        rest[1, 2] = rest[2, 1] = rest[0, 0] = False
+        assert np.abs(err[rest]).max() < 1e-6

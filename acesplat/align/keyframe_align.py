@@ -251,7 +251,8 @@ def align_to_keyframes(
     if not keyframes:
         return Alignment(start, "few_points")
     by_query = cfg.warp == "query" and coords is not None
-    queries = {} if by_query else {kf.intrinsics: resample_to(gray, intrinsics, kf.intrinsics) for kf in keyframes}
+    cameras = set() if by_query else {kf.intrinsics for kf in keyframes}
+    queries = {k: resample_to(gray, intrinsics, k) for k in cameras}  # once per distinct camera
     # keyframes in parallel only when all of them are used anyway (enough_pairs stops at the first that suffice)
     threads = 1 if cfg.enough_pairs else min(cfg.threads, len(keyframes))
 

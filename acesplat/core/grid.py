@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from acesplat.core.geometry import invert_pose
+from acesplat.core.pose_refine import reprojection
+
 OUTPUT_STRIDE = 8
 """SCR predictions are made for every 8th pixel; cell (i, j) belongs to pixel (8 j + 4, 8 i + 4)."""
 DENSE_OUTPUT_STRIDE = 4
@@ -41,3 +44,14 @@ def grid_correspondences(coords: np.ndarray, stride: int = OUTPUT_STRIDE) -> tup
         coords = np.moveaxis(coords, 0, -1)
     h, w, _ = coords.shape
     return coords.reshape(-1, 3), cell_centers(h, w, stride)
+
+
+def cell_reprojection_errors(
+    coords: np.ndarray, pose_c2w: np.ndarray, K: np.ndarray, stride: int = OUTPUT_STRIDE
+) -> np.ndarray:
+    """Pixel distance (h * w,) between each cell and its coordinate (h, w, 3) projected by the camera ``pose_c2w``
+    (4, 4) with intrinsics K (3, 3); inf behind the camera, NaN where the coordinate is NaN (so never within a
+    threshold)."""
+    points, pixels = grid_correspondences(coords, stride)
+    w2c = invert_pose(pose_c2w)
+    return reprojection(points.astype(np.float64), pixels, K, w2c[:3, :3], w2c[:3, 3])[2]

@@ -22,8 +22,7 @@ import torch
 from acesplat.core.config import knob
 from acesplat.core.errors import InputError
 from acesplat.core.geometry import invert_pose
-from acesplat.core.grid import OUTPUT_STRIDE, cell_centers
-from acesplat.core.pose_refine import reprojection
+from acesplat.core.grid import OUTPUT_STRIDE, cell_centers, cell_reprojection_errors
 from acesplat.core.scene import SceneSplit
 from acesplat.scr.localize import Localizer
 from acesplat.scr.network import Encoder
@@ -71,10 +70,7 @@ def view_coordinates(
 ) -> np.ndarray:
     """The cells' coordinates (h, w, 3) (cells ``stride`` px apart) with NaN where a cell's coordinate does not
     reproject within ``max_error_px`` of the cell under the view's known pose (4, 4) and intrinsics K (3, 3)."""
-    h, w, _ = coords.shape
-    w2c = invert_pose(pose_c2w)
-    uv = cell_centers(h, w, stride)
-    err = reprojection(coords.reshape(-1, 3).astype(np.float64), uv, K, w2c[:3, :3], w2c[:3, 3])[2]
+    err = cell_reprojection_errors(coords, pose_c2w, K, stride)
     out = coords.astype(np.float32).copy()
     out.reshape(-1, 3)[~(err < max_error_px)] = np.nan
     return out
