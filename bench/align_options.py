@@ -58,8 +58,36 @@ OPTIONS = {
     "step4": replace(KEYFRAME_ALIGN, warp_step_px=4),
     "step2": replace(KEYFRAME_ALIGN, warp_step_px=2),
     "step4_thr2": replace(KEYFRAME_ALIGN, warp_step_px=4, threads=2),
+    "sparse": replace(KEYFRAME_ALIGN, matcher="sparse"),
+    "sparse_r1": replace(KEYFRAME_ALIGN, matcher="sparse", rounds=1),
+    "sparse_r3": replace(KEYFRAME_ALIGN, matcher="sparse", rounds=3),
+    "sparse_2k": replace(KEYFRAME_ALIGN, matcher="sparse", corners=2000),
+    "sparse_t1": replace(KEYFRAME_ALIGN, matcher="sparse", threads=1),
+    "sparse_noplane": replace(KEYFRAME_ALIGN, matcher="sparse", lk_plane_warp=False),
+    "sparse_w15": replace(KEYFRAME_ALIGN, matcher="sparse", lk_window_px=15),
+    "sparse_w31": replace(KEYFRAME_ALIGN, matcher="sparse", lk_window_px=31),
+    "sparse_k6": replace(KEYFRAME_ALIGN, matcher="sparse"),
+    "sparse_k8": replace(KEYFRAME_ALIGN, matcher="sparse"),
+    "sparse_k8_r1": replace(KEYFRAME_ALIGN, matcher="sparse", rounds=1),
+    "sparse_px2": replace(KEYFRAME_ALIGN, matcher="sparse", reproj_px=2.0),
+    "sparse_fb1": replace(KEYFRAME_ALIGN, matcher="sparse", max_fb_error_px=1.0),
+    "sparse_fb02": replace(KEYFRAME_ALIGN, matcher="sparse", max_fb_error_px=0.2),
+    "sparse_q": replace(KEYFRAME_ALIGN, matcher="sparse", warp="query"),
+    "sparse_q_r1": replace(KEYFRAME_ALIGN, matcher="sparse", warp="query", rounds=1),
+    "sparse_q_r3": replace(KEYFRAME_ALIGN, matcher="sparse", warp="query", rounds=3),
+    "sparse_q_2k": replace(KEYFRAME_ALIGN, matcher="sparse", warp="query", corners=2000),
+    "sparse_q_k6": replace(KEYFRAME_ALIGN, matcher="sparse", warp="query"),
 }
-KEYFRAME_COUNT = {"query_k2": 2, "query_k2_r1": 2, "query_k1": 1, "query_k2_half": 2}
+KEYFRAME_COUNT = {
+    "query_k2": 2,
+    "query_k2_r1": 2,
+    "query_k1": 1,
+    "query_k2_half": 2,
+    "sparse_k6": 6,
+    "sparse_k8": 8,
+    "sparse_k8_r1": 8,
+    "sparse_q_k6": 6,
+}
 """Options that align to fewer than acesplat.align.keyframe_align.KEYFRAMES keyframes (nearest first)."""
 
 

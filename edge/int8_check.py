@@ -9,11 +9,12 @@ export machine may deviate on the device. The check passes when every deviation 
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from acesplat.core.bundle import MANIFEST_NAME, Bundle
+from acesplat.core.bundle import INT8_PRECISIONS, MANIFEST_NAME, PRECISION_ROLES, ROLE_INT8_CHECK, Bundle
 from acesplat.core.check_frames import bundle_check_frames, deviation
 from acesplat.core.config import knob, knob_default
 from acesplat.core.errors import InputError
@@ -32,6 +33,9 @@ class Int8CheckConfig:
     slack_deg: float = knob(0.1, "Allowance added to the rotation bound (degrees).")
     skip: bool = knob(False, "Run INT8 without the on-device check against FP32 (localize/replay --int8).")
 
+
+INT8_MIN_GAIN = 0.1
+"""A graph other than the default runs only when its inference is at least this much faster on this CPU."""
 
 CRITERIA = (
     ("coord_median", "coordinate median", "slack"),
@@ -59,6 +63,8 @@ class Int8CheckReport:
     runtime: dict
     frames: list[str] = field(default_factory=list)
     config: dict = field(default_factory=dict)
+    precision: str = "int8"
+    """The INT8 graph checked (acesplat.core.bundle.INT8_PRECISIONS)."""
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -70,8 +76,9 @@ class Int8CheckReport:
         figures = ", ".join(
             f"{words} {_fmt(d.get(k), k)} (bound {_fmt(self.bounds.get(k), k)})" for k, words, _ in CRITERIA
         )
+        name = "INT8" if self.precision == "int8" else f"INT8 ({self.precision})"
         return (
-            f"INT8 check {'passed' if self.passed else 'FAILED'} on {len(self.frames)} frames "
+            f"{name} check {'passed' if self.passed else 'FAILED'} on {len(self.frames)} frames "
             f"(ISA {isa}, onnxruntime {self.runtime['onnxruntime']}, provider {self.runtime['provider']}): {figures}"
         )
 
@@ -117,15 +124,34 @@ def _median_ms(sess: ScrSession, gray: np.ndarray, runs: int = 3) -> float:
     return float(np.median(ts))
 
 
+def int8_precisions(bundle: Bundle) -> list[str]:
+    """The INT8 graphs the bundle carries, the default first (acesplat.core.bundle.INT8_PRECISIONS)."""
+    return [p for p in INT8_PRECISIONS if bundle.has(PRECISION_ROLES[p])]
+
+
+def _export_figures(bundle: Bundle, precision: str) -> dict:
+    checks = bundle.manifest.get("checks") or {}
+    export = checks.get("int8_vs_fp32" if precision == "int8" else f"{precision}_vs_fp32")
+    if not isinstance(export, dict) or "coord_median" not in export:
+        raise InputError(
+            bundle.root / MANIFEST_NAME, f"manifest has no export {precision.upper()}-vs-FP32 figures; re-export it"
+        )
+    return export
+
+
 def check_int8(
     bundle: Bundle,
     config: Int8CheckConfig | None = None,
     threads: int | None = None,
     provider: str = knob_default(SessionSettings, "provider"),
-) -> Int8CheckReport:
-    """Run the bundle's check frames (the first ``config.frames``) through its FP32 and INT8 models on this CPU and
-    judge the INT8 deviation against the export's; InputError when the bundle cannot be checked (no INT8 model, no
-    check frames, no export figures)."""
+    precisions: Sequence[str] = ("int8",),
+) -> list[Int8CheckReport]:
+    """Run the bundle's check frames (the first ``config.frames``) through its FP32 model and each INT8 graph of
+    ``precisions`` on this CPU and judge each one's deviation against the export's; InputError when the bundle
+    cannot be checked (no such INT8 model, no check frames, no export figures).
+
+    A graph other than the default ('int8') is also held to the default's coordinate bounds: a U8S8 graph exported
+    on a CPU where it saturates carries loose figures of its own."""
     config = config or Int8CheckConfig()
     if config.frames <= 0:
         raise InputError(None, f"--frames must be positive, got {config.frames}")
@@ -135,35 +161,81 @@ def check_int8(
             f"the INT8 check's tolerance must be at least 1 and its slacks non-negative, got {config.tolerance}, "
             f"{config.slack}, {config.slack_deg}",
         )
-    export = (bundle.manifest.get("checks") or {}).get("int8_vs_fp32")
+    exports = {p: _export_figures(bundle, p) for p in precisions}
     frames = bundle_check_frames(bundle)
-    if not isinstance(export, dict) or "coord_median" not in export:
-        raise InputError(bundle.root / MANIFEST_NAME, "manifest has no export INT8-vs-FP32 figures; re-export it")
     n = min(config.frames, len(frames))
     fp32 = ScrSession(bundle.scr_model("fp32"), bundle.input_size, threads, provider)
-    int8 = ScrSession(bundle.scr_model("int8"), bundle.input_size, threads, provider)
     intr = [frames.intrinsics(i) for i in range(n)]
     ref = [fp32.run(frames.gray[i]) for i in range(n)]
-    q = [int8.run(frames.gray[i]) for i in range(n)]
+    fp32_ms = _median_ms(fp32, frames.gray[0])
     stride = bundle.output_stride
-    if n != export.get("frames"):  # the manifest's figures are over all the frames: the export's on these n
-        export = {**export, **deviation(list(frames.coords[:n]), list(frames.int8_coords[:n]), intr, stride)}
-    device = deviation(ref, q, intr, stride)
     diff = np.concatenate([np.linalg.norm(r - frames.coords[i], axis=-1).ravel() for i, r in enumerate(ref)])
     fp32_vs_export = {"coord_median": float(np.median(diff)), "coord_max": float(np.max(diff))}
-    bounds, failures = judge(device, export, config)
-    return Int8CheckReport(
-        passed=not failures,
-        failures=failures,
-        device=device,
-        export=export,
-        fp32_vs_export=fp32_vs_export,
-        bounds=bounds,
-        inference_ms={"fp32": _median_ms(fp32, frames.gray[0]), "int8": _median_ms(int8, frames.gray[0])},
-        runtime=runtime_info(provider),
-        frames=frames.names[:n],
-        config=asdict(config),
-    )
+    default_bounds: dict = {}
+    if any(p != "int8" for p in precisions):
+        d = _export_figures(bundle, "int8")
+        if n != d.get("frames"):
+            d = {**d, **deviation(list(frames.coords[:n]), list(frames.int8_coords[:n]), intr, stride)}
+        default_bounds = {k: bound_for(d.get(k), getattr(config, slack), config) for k, _, slack in CRITERIA}
+    reports = []
+    for precision in precisions:
+        export = exports[precision]
+        try:
+            stored = frames.int8(precision)
+        except ValueError:
+            raise InputError(bundle.path(ROLE_INT8_CHECK), f"check frames carry no {precision} coordinates") from None
+        if n != export.get("frames"):  # the manifest's figures are over all the frames: the export's on these n
+            export = {**export, **deviation(list(frames.coords[:n]), list(stored[:n]), intr, stride)}
+        sess = ScrSession(bundle.scr_model(precision), bundle.input_size, threads, provider)
+        device = deviation(ref, [sess.run(frames.gray[i]) for i in range(n)], intr, stride)
+        bounds, failures = judge(device, export, config)
+        if precision != "int8":
+            failures += _within_default(device, default_bounds)
+        reports.append(
+            Int8CheckReport(
+                passed=not failures,
+                failures=failures,
+                device=device,
+                export=export,
+                fp32_vs_export=fp32_vs_export,
+                bounds=bounds,
+                inference_ms={"fp32": fp32_ms, "int8": _median_ms(sess, frames.gray[0])},
+                runtime=runtime_info(provider),
+                frames=frames.names[:n],
+                config=asdict(config),
+                precision=precision,
+            )
+        )
+    return reports
+
+
+def _within_default(device: dict, default_bounds: dict) -> list[str]:
+    """Failures of a non-default graph's coordinate figures against the default INT8 graph's bounds."""
+    out = []
+    for key, words, _ in CRITERIA[:2]:
+        b, v = default_bounds.get(key), device.get(key)
+        if b is not None and (v is None or not np.isfinite(v) or v > b):
+            out.append(f"{words} {_fmt(v, key)} > {_fmt(b, key)} (the default INT8 graph's bound)")
+    return out
+
+
+def choose_int8(
+    bundle: Bundle,
+    config: Int8CheckConfig | None = None,
+    threads: int | None = None,
+    provider: str = knob_default(SessionSettings, "provider"),
+) -> tuple[str | None, list[Int8CheckReport]]:
+    """Check every INT8 graph the bundle carries on this CPU; the precision to run (the fastest that passes, the
+    default unless another is faster by ``INT8_MIN_GAIN``; None when none passes) and the reports, default first."""
+    reports = check_int8(bundle, config, threads, provider, int8_precisions(bundle))
+    passed = [r for r in reports if r.passed]
+    if not passed:
+        return None, reports
+    chosen = passed[0]
+    for r in passed[1:]:
+        if r.inference_ms["int8"] < (1.0 - INT8_MIN_GAIN) * chosen.inference_ms["int8"]:
+            chosen = r
+    return chosen.precision, reports
 
 
 def require_int8(
@@ -171,18 +243,20 @@ def require_int8(
     config: Int8CheckConfig | None = None,
     threads: int | None = None,
     provider: str = knob_default(SessionSettings, "provider"),
-) -> Int8CheckReport | None:
-    """The check before an INT8 run: None with ``config.skip``; the report when INT8 passes; InputError in one line
-    (naming the INT8 model, the first failure, ISA and onnxruntime) when it does not."""
+) -> tuple[str, list[Int8CheckReport]]:
+    """The check before an INT8 run: the INT8 precision to run and the reports (('int8', []) with ``config.skip``:
+    the default graph, unverified); InputError in one line (naming the INT8 model, the default graph's first
+    failure, ISA and onnxruntime) when no INT8 graph passes."""
     config = config or Int8CheckConfig()
     if config.skip:
-        return None
-    rep = check_int8(bundle, config, threads, provider)
-    if not rep.passed:
+        return "int8", []
+    precision, reports = choose_int8(bundle, config, threads, provider)
+    if precision is None:
+        rep = reports[0]
         isa = " ".join(rep.runtime["cpu_isa"]) or "-"
         raise InputError(
             bundle.scr_model("int8"),
             f"INT8 deviates from FP32 on this CPU (ISA {isa}, onnxruntime {rep.runtime['onnxruntime']}): "
             f"{rep.failures[0]}; run FP32, re-export, or pass --skip-int8-check",
         )
-    return rep
+    return precision, reports

@@ -25,6 +25,7 @@ from acesplat.core.bundle import (
     ROLE_KEYFRAMES,
     ROLE_SCR_FP32,
     ROLE_SCR_INT8,
+    ROLE_SCR_INT8_VNNI,
     BundleFile,
     describe_file,
     sha256_of,
@@ -41,12 +42,13 @@ from acesplat.scr.mapfile import encoder_for_map, load_map
 from acesplat.scr.network import GRAY_MEAN, GRAY_STD
 from export.checks import CheckFrame, fp32_parity, localization_accuracy, onnx_coords, onnx_session, prepare_frames
 from export.onnx_graph import FEATURES_NAME, INPUT_NAME, OPSET, OUTPUT_NAME, export_scr_onnx
-from export.options import ExportOptions, check_int8_options, int8_scheme_text
+from export.options import ExportOptions, check_int8_options, int8_scheme_text, vnni_options
 from export.quantize import quantize_int8
 
 FP32_FILE = "scr.onnx"
 KEYFRAMES_FILE = "keyframes.npz"
 INT8_FILE = "scr.int8.onnx"
+INT8_VNNI_FILE = "scr.int8.u8s8.onnx"
 CHECK_FILE = "int8_check.npz"
 PARITY_FRAMES = 8
 """Frames the FP32 graph is compared with torch on."""
@@ -112,13 +114,18 @@ def _swap_into_place(tmp: Path, out: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
-def _write_check_frames(tmp: Path, frames: list, size: tuple[int, int], stride: int) -> dict:
-    """Store ``frames`` prepared at ``size`` with their FP32 and INT8 coordinates in the bundle written at ``tmp``;
-    the INT8-vs-FP32 deviation on this machine (what `acesplat-edge check` compares the device with)."""
+def _write_check_frames(tmp: Path, frames: list, size: tuple[int, int], stride: int, vnni: bool) -> dict:
+    """Store ``frames`` prepared at ``size`` with their FP32 and INT8 coordinates (and, with ``vnni``, the U8S8
+    twin's) in the bundle written at ``tmp``; the INT8-vs-FP32 deviation on this machine by INT8 precision (what
+    `acesplat-edge check` compares the device with)."""
     prepared = prepare_frames(frames, size)
     fp32, int8 = onnx_session(tmp / FP32_FILE), onnx_session(tmp / INT8_FILE)
     ref = [onnx_coords(fp32, f.gray).astype(np.float32) for f in prepared]
     q = [onnx_coords(int8, f.gray).astype(np.float32) for f in prepared]
+    qv = None
+    if vnni:
+        sess = onnx_session(tmp / INT8_VNNI_FILE)
+        qv = [onnx_coords(sess, f.gray).astype(np.float32) for f in prepared]
     intr = [f.intrinsics for f in prepared]
     save_check_frames(
         tmp / CHECK_FILE,
@@ -129,14 +136,14 @@ def _write_check_frames(tmp: Path, frames: list, size: tuple[int, int], stride: 
             np.stack(ref),
             np.stack(q),
             stride,
+            None if qv is None else np.stack(qv),
         ),
     )
-    return {
-        **deviation(ref, q, intr, stride),
-        "units": "scene units (metres) and degrees",
-        "cpu_isa": cpu_isa(),
-        "onnxruntime": ort_version,
-    }
+    machine = {"units": "scene units (metres) and degrees", "cpu_isa": cpu_isa(), "onnxruntime": ort_version}
+    out = {"int8": {**deviation(ref, q, intr, stride), **machine}}
+    if qv is not None:
+        out["int8_vnni"] = {**deviation(ref, qv, intr, stride), **machine}
+    return out
 
 
 def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: ProgressFn | None = None) -> ExportReport:
@@ -169,6 +176,7 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
         )
     timings: dict[str, float] = {}
     checks: dict = {}
+    vnni = vnni_options(opts)
 
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
@@ -221,12 +229,28 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
             if progress:
                 progress("quantize int8", 1.0, {"images": len(calib)})
             files.append(describe_file(tmp, INT8_FILE, ROLE_SCR_INT8))
+            if vnni is not None:
+                t0 = time.monotonic()
+                quantize_int8(
+                    tmp / FP32_FILE,
+                    tmp / INT8_VNNI_FILE,
+                    [c.gray for c in calib],
+                    quant_format=vnni.int8_format,
+                    types=vnni.int8_types,
+                    per_channel=vnni.int8_per_channel,
+                    reduce_range=vnni.int8_reduce_range,
+                )
+                timings["quantize_int8_vnni_s"] = time.monotonic() - t0
+                files.append(describe_file(tmp, INT8_VNNI_FILE, ROLE_SCR_INT8_VNNI))
             checks["int8_calibration_frames"] = len(calib)
             if opts.check_frames > 0:
                 t0 = time.monotonic()
-                checks["int8_vs_fp32"] = _write_check_frames(
-                    tmp, evenly((test or train).frames, opts.check_frames), size, stride
+                by_precision = _write_check_frames(
+                    tmp, evenly((test or train).frames, opts.check_frames), size, stride, vnni is not None
                 )
+                checks["int8_vs_fp32"] = by_precision["int8"]
+                if "int8_vnni" in by_precision:
+                    checks["int8_vnni_vs_fp32"] = by_precision["int8_vnni"]
                 files.append(describe_file(tmp, CHECK_FILE, ROLE_INT8_CHECK))
                 timings["check_frames_s"] = time.monotonic() - t0
             if test is not None:
@@ -236,6 +260,10 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
                     "fp32": localization_accuracy(tmp / FP32_FILE, test_frames, "fp32", progress, stride),
                     "int8": localization_accuracy(tmp / INT8_FILE, test_frames, "int8", progress, stride),
                 }
+                if vnni is not None:
+                    acc["int8_vnni"] = localization_accuracy(
+                        tmp / INT8_VNNI_FILE, test_frames, "int8_vnni", progress, stride
+                    )
                 acc["recall_drop_points"] = {
                     k: acc["fp32"][k] - acc["int8"][k]
                     for k in ("recall_5cm_5deg", "recall_10cm_5deg", "recall_25cm_2deg")
@@ -302,8 +330,9 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
                 "encoder": {"name": m.encoder_identity.name, "sha256": m.encoder_identity.sha256},
                 "head": m.head.cfg.as_dict(),
                 "opset": OPSET,
-                "precisions": ["fp32"] + (["int8"] if opts.int8 else []),
+                "precisions": ["fp32"] + (["int8"] if opts.int8 else []) + (["int8_vnni"] if vnni else []),
                 "int8_scheme": int8_scheme_text(opts) if opts.int8 else None,
+                "int8_vnni_scheme": int8_scheme_text(vnni) if vnni else None,
             },
             "checks": checks,
         }

@@ -23,7 +23,7 @@ def test_manifest_describes_the_bundle(tiny) -> None:
     assert m["scr"]["normalization"]["mean"] == 0.4 and m["scr"]["normalization"]["std"] == 0.25
     assert len(m["scr"]["mean_offset"]) == 3
     assert m["scr"]["encoder"]["sha256"] == file_sha256(tiny["encoder"])  # the encoder the map was trained with
-    assert {f.role for f in b.files.values()} == {"scr_fp32", "scr_int8", "int8_check"}
+    assert {f.role for f in b.files.values()} == {"scr_fp32", "scr_int8", "scr_int8_vnni", "int8_check"}
     assert m["format_version"] == 2
     assert m["scr"]["features"]["name"] == "features" and m["scr"]["features"]["shape"] == [1, 32, 8, 10]
     assert m["created_by"].startswith("acesplat-edge") and m["scene"]["name"] == "room"

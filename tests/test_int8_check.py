@@ -32,6 +32,12 @@ def test_check_frames_round_trip(tmp_path: Path) -> None:
     assert g.names == f.names and g.stride == f.stride
     for k in ("gray", "K", "coords", "int8_coords"):
         np.testing.assert_array_equal(getattr(g, k), getattr(f, k))
+    assert g.vnni_coords is None
+    with pytest.raises(ValueError, match="no int8_vnni"):
+        g.int8("int8_vnni")
+    v = CheckFrames(f.names, f.gray, f.K, f.coords, f.int8_coords, f.stride, f.coords + 0.02)
+    save_check_frames(tmp_path / "v.npz", v)
+    np.testing.assert_array_equal(load_check_frames(tmp_path / "v.npz").int8("int8_vnni"), v.vnni_coords)
 
 
 def test_check_frames_bad_file_names_it(tmp_path: Path) -> None:
@@ -43,6 +49,10 @@ def test_check_frames_bad_file_names_it(tmp_path: Path) -> None:
              int8_coords=f.int8_coords, stride=np.int64(8))  # fmt: skip
     with pytest.raises(InputError, match="short.npz: coords must be"):
         load_check_frames(tmp_path / "short.npz")
+    np.savez(tmp_path / "twin.npz", names=np.array(f.names), gray=f.gray, K=f.K, coords=f.coords,
+             int8_coords=f.int8_coords, vnni_coords=f.coords[:, :1], stride=np.int64(8))  # fmt: skip
+    with pytest.raises(InputError, match="twin.npz: vnni_coords must be"):
+        load_check_frames(tmp_path / "twin.npz")
 
 
 def _grid_of_plane(intr: Intrinsics, T_c2w: np.ndarray, stride: int = 8) -> np.ndarray:
@@ -107,31 +117,34 @@ def test_check_passes_on_the_export_machine(tiny) -> None:
     from acesplat.core.bundle import load_bundle
     from edge.int8_check import check_int8
 
-    rep = check_int8(load_bundle(tiny["bundle"]), Int8CheckConfig(frames=2), threads=1)
+    (rep,) = check_int8(load_bundle(tiny["bundle"]), Int8CheckConfig(frames=2), threads=1)
     assert rep.passed, rep.failures
     assert rep.fp32_vs_export["coord_max"] < 1e-3  # the same FP32 graph on the same CPU
     assert len(rep.frames) == 2 and rep.runtime["onnxruntime"]
     assert "INT8 check passed on 2 frames (ISA" in rep.line()
 
 
-def _perturbed_bundle(tiny, dst: Path) -> Path:
-    """A copy of the tiny bundle whose INT8 model's weights are scrambled and whose manifest lists the new hash:
-    an intact bundle with a bad INT8 model."""
+def _perturbed_bundle(tiny, dst: Path, precisions: tuple[str, ...] = ("int8", "int8_vnni")) -> Path:
+    """A copy of the tiny bundle whose INT8 graphs of ``precisions`` have their weights scrambled and whose manifest
+    lists the new hashes: an intact bundle with bad INT8 models."""
     import onnx
     from onnx import numpy_helper
 
-    from acesplat.core.bundle import ROLE_SCR_INT8, describe_file, load_bundle, write_manifest
+    from acesplat.core.bundle import PRECISION_ROLES, describe_file, load_bundle, write_manifest
 
     shutil.copytree(tiny["bundle"], dst)
-    model = onnx.load(str(dst / "scr.int8.onnx"))
-    rng = np.random.default_rng(1)
-    for init in model.graph.initializer:
-        w = numpy_helper.to_array(init)
-        if w.dtype in (np.int8, np.uint8) and w.size > 64:
-            init.CopyFrom(numpy_helper.from_array(rng.permutation(w.ravel()).reshape(w.shape), init.name))
-    onnx.save(model, str(dst / "scr.int8.onnx"))
     b = load_bundle(dst, verify=False)
-    files = [describe_file(dst, f.path, f.role) if f.role == ROLE_SCR_INT8 else f for f in b.files.values()]
+    roles = {PRECISION_ROLES[p] for p in precisions}
+    rng = np.random.default_rng(1)
+    for role in roles:
+        path = dst / b.files[role].path
+        model = onnx.load(str(path))
+        for init in model.graph.initializer:
+            w = numpy_helper.to_array(init)
+            if w.dtype in (np.int8, np.uint8) and w.size > 64:
+                init.CopyFrom(numpy_helper.from_array(rng.permutation(w.ravel()).reshape(w.shape), init.name))
+        onnx.save(model, str(path))
+    files = [describe_file(dst, f.path, f.role) if f.role in roles else f for f in b.files.values()]
     write_manifest(dst, b.manifest, files, version=b.format_version)
     return dst
 
@@ -143,7 +156,8 @@ def test_a_perturbed_int8_model_fails_the_check_and_is_refused(tiny, tmp_path: P
     r = CliRunner().invoke(app, ["check", str(bad), "--json", str(tmp_path / "c.json"), "--threads", "1"])
     assert r.exit_code == 1, r.output
     rep = json.loads((tmp_path / "c.json").read_text())
-    assert rep["passed"] is False and rep["failures"]
+    assert rep["passed"] is False and rep["chosen"] is None and rep["failures"]
+    assert [r["precision"] for r in rep["reports"]] == ["int8", "int8_vnni"]
     r = CliRunner().invoke(app, ["replay", str(bad), str(tiny["scene"]), "--int8", "--threads", "1",
                                  "--json", str(tmp_path / "r.json")])  # fmt: skip
     assert r.exit_code == 2
@@ -157,6 +171,66 @@ def test_a_perturbed_int8_model_fails_the_check_and_is_refused(tiny, tmp_path: P
     r = CliRunner().invoke(app, ["replay", str(bad), str(tiny["scene"]), "--int8", "--threads", "1",
                                  "--skip-int8-check"])  # fmt: skip
     assert r.exit_code == 0, r.output
+
+
+def test_export_writes_the_u8s8_twin_with_its_figures(tiny, tmp_path: Path) -> None:
+    from acesplat.apps.cli import app
+    from acesplat.core.bundle import ROLE_SCR_INT8_VNNI, load_bundle
+    from acesplat.core.check_frames import bundle_check_frames
+
+    b = load_bundle(tiny["bundle"])
+    assert b.has(ROLE_SCR_INT8_VNNI) and b.scr["precisions"] == ["fp32", "int8", "int8_vnni"]
+    assert "U8S8" in b.scr["int8_vnni_scheme"] and "U8U8" in b.scr["int8_scheme"]
+    frames = bundle_check_frames(b)
+    dev = tiny["manifest"]["checks"]["int8_vnni_vs_fp32"]
+    intr = [frames.intrinsics(i) for i in range(len(frames))]
+    again = deviation(list(frames.coords), list(frames.int8("int8_vnni")), intr, b.output_stride)
+    assert again["coord_median"] == pytest.approx(dev["coord_median"], rel=1e-6)
+    assert not np.array_equal(frames.vnni_coords, frames.int8_coords)  # two graphs, two sets of coordinates
+    assert tiny["manifest"]["checks"]["test_split"]["int8_vnni"]["frames"] > 0
+    r = CliRunner().invoke(app, ["export", str(tiny["map"]), "-o", str(tmp_path / "b"), "--int8", "--no-int8-vnni",
+                                 "--check-frames", "1"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    b = load_bundle(tmp_path / "b")
+    assert not b.has(ROLE_SCR_INT8_VNNI) and bundle_check_frames(b).vnni_coords is None
+    assert "int8_vnni_vs_fp32" not in b.manifest["checks"]
+
+
+def test_a_bad_u8s8_twin_is_refused_and_the_default_runs(tiny, tmp_path: Path) -> None:
+    from acesplat.apps.edge_cli import app
+    from acesplat.core.bundle import load_bundle
+    from edge.int8_check import choose_int8
+
+    bad = _perturbed_bundle(tiny, tmp_path / "bad", ("int8_vnni",))
+    chosen, reports = choose_int8(load_bundle(bad), Int8CheckConfig(frames=2), threads=1)
+    assert chosen == "int8" and reports[0].passed and not reports[1].passed
+    assert any("the default INT8 graph's bound" in f for f in reports[1].failures)
+    r = CliRunner().invoke(app, ["replay", str(bad), str(tiny["scene"]), "--int8", "--threads", "1", "--no-tracking",
+                                 "--json", str(tmp_path / "r.json")])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    assert json.loads((tmp_path / "r.json").read_text())["precision"] == "int8"
+    # the default broken, the twin verified: --int8 runs the twin
+    bad2 = _perturbed_bundle(tiny, tmp_path / "bad2", ("int8",))
+    chosen, reports = choose_int8(load_bundle(bad2), Int8CheckConfig(frames=2), threads=1)
+    assert chosen == "int8_vnni" and not reports[0].passed and reports[1].passed
+
+
+def test_the_fastest_passing_graph_runs(monkeypatch) -> None:
+    from edge import int8_check
+
+    def rep(p: str, ok: bool, ms: float):
+        return int8_check.Int8CheckReport(ok, [] if ok else ["x"], {}, {}, {}, {}, {"int8": ms}, {}, precision=p)
+
+    cases = [
+        ([rep("int8", True, 60.0), rep("int8_vnni", True, 30.0)], "int8_vnni"),
+        ([rep("int8", True, 60.0), rep("int8_vnni", True, 57.0)], "int8"),  # within INT8_MIN_GAIN: the default
+        ([rep("int8", True, 60.0), rep("int8_vnni", False, 30.0)], "int8"),
+        ([rep("int8", False, 60.0), rep("int8_vnni", False, 30.0)], None),
+    ]
+    monkeypatch.setattr(int8_check, "int8_precisions", lambda b: ["int8", "int8_vnni"])
+    for reports, want in cases:
+        monkeypatch.setattr(int8_check, "check_int8", lambda *a, _r=reports, **k: _r)
+        assert int8_check.choose_int8(None)[0] == want
 
 
 def test_check_command_passes_and_replay_int8_runs_the_check(tiny, tmp_path: Path) -> None:

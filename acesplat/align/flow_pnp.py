@@ -31,6 +31,7 @@ FLOW_PRESETS = {
 }
 THINNING = ("even", "confidence")
 WARPS = ("keyframe", "query")
+MATCHERS = ("dense", "sparse")
 COVERED_ALPHA = 0.5
 """Alpha at which a rendered pixel counts towards the render's coverage."""
 MIN_DEPTH_M = 1e-3
@@ -84,6 +85,17 @@ class AlignConfig:
         "(the query's SCR depth, one backward remap: faster, less accurate where the SCR depth is far off; the "
         "keyframe's depth without SCR coordinates or when it cannot fit; bench/align.md).",
     )
+    matcher: str = knob(
+        "dense",
+        "How keyframe pixels are found in the query: dense (the keyframe warped to the estimate, DIS flow) or sparse "
+        "(the keyframe's corners tracked by pyramidal Lucas-Kanade from where the estimate projects them; no warp; "
+        "bench/align.md).",
+    )
+    corners: int = knob(800, "Sparse matcher: corners per keyframe (Shi-Tomasi, strongest first).")
+    lk_window_px: int = knob(21, "Sparse matcher: Lucas-Kanade window side (px).")
+    lk_plane_warp: bool = knob(
+        True, "Sparse matcher: the keyframe is first warped by its dominant plane's homography to the estimate."
+    )
 
     def __post_init__(self) -> None:
         if min(self.sample_step_px, self.ransac_iterations, self.rounds, self.warp_step_px, self.threads) < 1:
@@ -96,10 +108,18 @@ class AlignConfig:
             raise ValueError(f"max_fb_error_px must be > 0 or None, got {self.max_fb_error_px}")
         if not (self.reproj_px > 0 and 0 <= self.min_inlier_ratio <= 1 and 0 < self.first_flow_scale <= 1):
             raise ValueError(f"need reproj_px > 0, min_inlier_ratio in [0, 1], first_flow_scale in (0, 1]: {self}")
-        if self.flow_preset not in FLOW_PRESETS or self.thinning not in THINNING or self.warp not in WARPS:
+        if (
+            self.flow_preset not in FLOW_PRESETS
+            or self.thinning not in THINNING
+            or self.warp not in WARPS
+            or self.matcher not in MATCHERS
+        ):
             raise ValueError(
-                f"flow_preset must be one of {sorted(FLOW_PRESETS)}, thinning one of {THINNING}, warp one of {WARPS}"
+                f"flow_preset must be one of {sorted(FLOW_PRESETS)}, thinning one of {THINNING}, warp one of {WARPS}, "
+                f"matcher one of {MATCHERS}"
             )
+        if self.corners < 4 or self.lk_window_px < 5:
+            raise ValueError(f"corners must be >= 4 and lk_window_px >= 5: {self}")
         if self.max_pairs and self.max_pairs < self.min_points:
             raise ValueError(f"max_pairs {self.max_pairs} is below min_points {self.min_points}")
         if self.thinning == "confidence" and self.max_fb_error_px is None:

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -56,6 +56,21 @@ wrong over whole regions (bench/align.md), the keyframes' is not."""
 HIDDEN_DEPTH_RATIO = 0.1
 """With the query's depth warping (``warp`` query), a keyframe pixel whose own depth differs from the depth the query
 puts there by more than this fraction shows another surface (one of the two views does not see it)."""
+CORNER_QUALITY = 0.01
+"""Sparse matcher: a corner's Shi-Tomasi score is at least this share of the keyframe's strongest."""
+CORNER_SPACING_PX = 5
+"""Sparse matcher: corners of a keyframe are at least this far apart (px)."""
+LK_LEVELS = 3
+"""Sparse matcher: pyramid levels above full size that Lucas-Kanade starts from (a start pose off by ~8x its window)."""
+LK_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
+"""Sparse matcher: Lucas-Kanade stops after 30 iterations or a step under 0.01 px per level."""
+DEPTH_EDGE_RATIO = 0.05
+"""Sparse matcher: a corner whose depth a cell away varies by more than this fraction lies on a depth edge, where
+the interpolated depth belongs to neither surface."""
+PLANE_TOLERANCE = 0.03
+"""Sparse matcher: depth cells within this fraction of the median depth of a keyframe's plane belong to it."""
+PLANE_RANSAC_ITERATIONS = 64
+"""Sparse matcher: plane hypotheses tried per keyframe."""
 ROTATION_WEIGHT = 0.25
 """Weight of the angle between viewing directions against the baseline's parallax (baseline / depth, radians) when
 keyframes are ranked by viewpoint change: a keyframe's depth error moves its warp by the parallax only (a rotation
@@ -68,6 +83,7 @@ class Keyframe:
 
     gray (H, W) uint8 at the map's resolution; intrinsics of it; c2w (4, 4); depth (h, w) float32 z-depth at
     the prediction cells spaced ``stride`` px apart (acesplat.core.grid.cell_centers), 0 where unknown.
+    cache: what the sparse matcher derives from the keyframe alone (its corners and plane), made on first use.
     """
 
     gray: np.ndarray
@@ -75,6 +91,7 @@ class Keyframe:
     c2w: np.ndarray
     depth: np.ndarray
     stride: int
+    cache: dict = field(default_factory=dict, compare=False, repr=False)
 
 
 def nearest_keyframes(
@@ -158,6 +175,172 @@ def keyframe_matches(
     u, v, at, z = u[known], v[known], at[known], z[known]
     seen, ok, err = flow_to_query(warped, query, at, flow, cfg, scale)
     return np.stack([u[ok], v[ok]], axis=1), z[ok], seen[ok], err[ok]
+
+
+@dataclass(frozen=True)
+class Corners:
+    """What the sparse matcher tracks from a keyframe: corner pixels uv (M, 2) float32 with their world points
+    X (M, 3), and the keyframe's dominant plane (4,) (n, d: n . X = d, |n| = 1, in its camera frame) or None."""
+
+    uv: np.ndarray
+    X: np.ndarray
+    plane: np.ndarray | None
+
+
+def keyframe_corners(kf: Keyframe, count: int) -> Corners:
+    """The keyframe's ``count`` strongest corners with a known depth off depth edges, and its plane; made once per
+    keyframe and count (kept in ``kf.cache``)."""
+    key = ("corners", count)
+    if key not in kf.cache:
+        pts = cv2.goodFeaturesToTrack(kf.gray, count, CORNER_QUALITY, CORNER_SPACING_PX)
+        uv = np.zeros((0, 2)) if pts is None else pts.reshape(-1, 2).astype(np.float64)
+        z = _depth_at(kf, uv[:, 0], uv[:, 1])
+        s = float(kf.stride)
+        around = [_depth_at(kf, uv[:, 0] + dx, uv[:, 1] + dy) for dx, dy in ((-s, -s), (s, -s), (-s, s), (s, s))]
+        lo, hi = np.minimum.reduce([z, *around]), np.maximum.reduce([z, *around])
+        keep = (lo > 0) & np.isfinite(hi) & (hi <= (1.0 + DEPTH_EDGE_RATIO) * lo)
+        uv, z = uv[keep], z[keep]
+        X = transform_points(kf.c2w, kf.intrinsics.unproject(uv, z))
+        kf.cache[key] = Corners(uv.astype(np.float32), X, keyframe_plane(kf))
+    return kf.cache[key]
+
+
+def keyframe_plane(kf: Keyframe) -> np.ndarray | None:
+    """The keyframe's dominant plane in its camera frame, (4,) n, d with n . X = d and |n| = 1: RANSAC over its
+    depth cells (inliers within PLANE_TOLERANCE of the median depth), refined on its inliers; None without
+    three cells of depth."""
+    hh, ww = kf.depth.shape
+    first = OUTPUT_STRIDE / 2.0
+    gy, gx = np.mgrid[0:hh, 0:ww]
+    z = kf.depth.ravel().astype(np.float64)
+    ok = z > 0
+    if ok.sum() < 3:
+        return None
+    uv = np.stack([first + gx.ravel() * kf.stride, first + gy.ravel() * kf.stride], axis=1)[ok]
+    P = kf.intrinsics.unproject(uv, z[ok])
+    tol = PLANE_TOLERANCE * float(np.median(z[ok]))
+    idx = np.random.default_rng(0).integers(0, len(P), (PLANE_RANSAC_ITERATIONS, 3))
+    a, b, c = P[idx[:, 0]], P[idx[:, 1]], P[idx[:, 2]]
+    n = np.cross(b - a, c - a)
+    norm = np.linalg.norm(n, axis=1)
+    good = norm > 1e-12
+    if not good.any():
+        return None
+    n, a = n[good] / norm[good, None], a[good]
+    d = np.einsum("ij,ij->i", n, a)
+    counts = (np.abs(P @ n.T - d) < tol).sum(axis=0)
+    best = int(np.argmax(counts))
+    inl = P[np.abs(P @ n[best] - d[best]) < tol]
+    if len(inl) < 3:
+        return None
+    centre = inl.mean(axis=0)
+    normal = np.linalg.svd(inl - centre, full_matrices=False)[2][-1]
+    return np.r_[normal, normal @ centre]
+
+
+def plane_homography(
+    kf: Keyframe, plane: np.ndarray | None, intrinsics: Intrinsics, pose_c2w: np.ndarray
+) -> np.ndarray | None:
+    """The homography (3, 3) from keyframe pixels to the pixels of a camera with ``intrinsics`` at ``pose_c2w``
+    (4, 4) induced by the keyframe's ``plane`` (keyframe_plane); None without one."""
+    if plane is None or abs(plane[3]) < 1e-9:
+        return None
+    rel = invert_pose(pose_c2w) @ kf.c2w  # keyframe camera -> query camera
+    R, t = rel[:3, :3], rel[:3, 3]
+    H = intrinsics.K @ (R + np.outer(t, plane[:3]) / plane[3]) @ np.linalg.inv(kf.intrinsics.K)
+    return H / H[2, 2] if abs(H[2, 2]) > 1e-12 else None
+
+
+def corner_correspondences(
+    query: np.ndarray,
+    intrinsics: Intrinsics,
+    pose_c2w: np.ndarray,
+    kf: Keyframe,
+    corners: Corners,
+    cfg: AlignConfig = KEYFRAME_ALIGN,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World points (M, 3) of the keyframe's ``corners`` (keyframe_corners), where the query (H, W) uint8 with
+    ``intrinsics`` shows them (M, 2) and the forward-backward error there (M,) px: each corner is tracked by
+    pyramidal Lucas-Kanade from the keyframe (warped to the estimate ``pose_c2w`` (4, 4) by its plane with
+    ``cfg.lk_plane_warp``) to the query, starting where the estimate projects its point, and back."""
+    h, w = query.shape
+    ref, at = kf.gray, corners.uv
+    H = plane_homography(kf, corners.plane, intrinsics, pose_c2w) if cfg.lk_plane_warp else None
+    if H is not None:  # the keyframe seen from the estimate as if its scene were its dominant plane
+        ref = cv2.warpPerspective(kf.gray, H, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        q = np.c_[at, np.ones(len(at))] @ H.T
+        at = (q[:, :2] / q[:, 2:3]).astype(np.float32)
+    pc = transform_points(invert_pose(pose_c2w), corners.X)
+    front = pc[:, 2] > 1e-6
+    p0 = pc[front] @ intrinsics.K.T
+    p0 = p0[:, :2] / p0[:, 2:3]
+    m = cfg.lk_window_px / 2.0
+    inside = (p0[:, 0] >= m) & (p0[:, 0] <= w - 1 - m) & (p0[:, 1] >= m) & (p0[:, 1] <= h - 1 - m)
+    src, X, p0 = at[front][inside], corners.X[front][inside], p0[inside].astype(np.float32)
+    if len(src) == 0:
+        return X, p0.astype(np.float64), np.zeros(0)
+    seen, err, keep = track_corners(ref, query, src, p0, cfg)
+    return X[keep], seen[keep], err[keep]
+
+
+def track_corners(
+    ref: np.ndarray, query: np.ndarray, src: np.ndarray, start: np.ndarray, cfg: AlignConfig = KEYFRAME_ALIGN
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixels ``src`` (M, 2) of ``ref`` tracked into ``query`` (both (H, W) uint8) by pyramidal Lucas-Kanade from
+    ``start`` (M, 2) and back: where they are seen (M, 2), the forward-backward error (M,) px and the verdict
+    keep (M,) bool (both tracks converged, inside the query, the error within ``cfg.max_fb_error_px``)."""
+    h, w = query.shape
+    win = (cfg.lk_window_px, cfg.lk_window_px)
+    lk = dict(winSize=win, maxLevel=LK_LEVELS, criteria=LK_CRITERIA, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    a = np.ascontiguousarray(src, np.float32).reshape(-1, 1, 2)
+    seen, ok, _ = cv2.calcOpticalFlowPyrLK(
+        ref, query, a, np.ascontiguousarray(start, np.float32).reshape(-1, 1, 2), **lk
+    )
+    back, ok2, _ = cv2.calcOpticalFlowPyrLK(query, ref, seen, a.copy(), **lk)
+    seen = seen.reshape(-1, 2).astype(np.float64)
+    err = np.linalg.norm(back.reshape(-1, 2) - a.reshape(-1, 2), axis=1).astype(np.float64)
+    keep = (ok.ravel() == 1) & (ok2.ravel() == 1)
+    keep &= (seen[:, 0] >= 0) & (seen[:, 0] <= w - 1) & (seen[:, 1] >= 0) & (seen[:, 1] <= h - 1)
+    if cfg.max_fb_error_px is not None:
+        keep &= err < cfg.max_fb_error_px
+    return seen, err, keep
+
+
+def query_corner_correspondences(
+    query: np.ndarray,
+    intrinsics: Intrinsics,
+    depth: np.ndarray,
+    stride: int,
+    pose_c2w: np.ndarray,
+    kf: Keyframe,
+    cfg: AlignConfig = KEYFRAME_ALIGN,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """As query_correspondences (the keyframe warped to the estimate by the query's own ``depth``, one remap), with
+    the warped keyframe's corners tracked by Lucas-Kanade (track_corners) instead of a dense flow; each starts where
+    the estimate projects the keyframe's 3D point it shows."""
+    h, w = query.shape
+    kh, kw = kf.gray.shape
+    m = pixel_map(depth, intrinsics, stride, pose_c2w, kf.c2w, kf.intrinsics)  # query pixel -> keyframe x, y, z
+    mx = np.where(np.isfinite(m[..., 0]), m[..., 0], -1.0).astype(np.float32)
+    my = np.where(np.isfinite(m[..., 1]), m[..., 1], -1.0).astype(np.float32)
+    warped = cv2.remap(kf.gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    valid = ((mx >= 0) & (mx <= kw - 1) & (my >= 0) & (my <= kh - 1)).astype(np.uint8)
+    pts = cv2.goodFeaturesToTrack(warped, cfg.corners, CORNER_QUALITY, CORNER_SPACING_PX, mask=valid)
+    if pts is None:
+        return np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0)
+    at = pts.reshape(-1, 2).astype(np.float64)
+    src = bilinear(m, at[:, 0], at[:, 1])  # keyframe x, y and the query depth's z there
+    ok = np.isfinite(src).all(1) & (src[:, 0] >= 0) & (src[:, 0] <= kw - 1) & (src[:, 1] >= 0)
+    ok &= src[:, 1] <= kh - 1
+    at, src = at[ok], src[ok]
+    z = _depth_at(kf, src[:, 0], src[:, 1])
+    ok = (z > 0) & (np.abs(z - src[:, 2]) <= HIDDEN_DEPTH_RATIO * src[:, 2])
+    at, X = at[ok], transform_points(kf.c2w, kf.intrinsics.unproject(src[ok, :2], z[ok]))
+    pc = transform_points(invert_pose(pose_c2w), X)
+    front = pc[:, 2] > 1e-6
+    p0 = pc[front] @ intrinsics.K.T
+    seen, err, keep = track_corners(warped, query, at[front], p0[:, :2] / p0[:, 2:3], cfg)
+    return X[front][keep], seen[keep], err[keep]
 
 
 def query_depth(coords: np.ndarray, pose_c2w: np.ndarray) -> np.ndarray:
@@ -251,12 +434,19 @@ def align_to_keyframes(
     if not keyframes:
         return Alignment(start, "few_points")
     by_query = cfg.warp == "query" and coords is not None
-    cameras = set() if by_query else {kf.intrinsics for kf in keyframes}
+    cameras = set() if by_query or cfg.matcher == "sparse" else {kf.intrinsics for kf in keyframes}
     queries = {k: resample_to(gray, intrinsics, k) for k in cameras}  # once per distinct camera
     # keyframes in parallel only when all of them are used anyway (enough_pairs stops at the first that suffice)
     threads = 1 if cfg.enough_pairs else min(cfg.threads, len(keyframes))
 
+    sparse = cfg.matcher == "sparse"
+    corners = {id(kf): keyframe_corners(kf, cfg.corners) for kf in keyframes} if sparse and not by_query else {}
+
     def one(kf: Keyframe, pose: np.ndarray, depth: np.ndarray | None, scale: float) -> tuple[np.ndarray, ...]:
+        if sparse and depth is not None:
+            return query_corner_correspondences(gray, intrinsics, depth, coords[1], pose, kf, cfg)
+        if sparse:
+            return corner_correspondences(gray, intrinsics, pose, kf, corners[id(kf)], cfg)
         flow = dis_flow(cfg)  # DIS holds working buffers: one per call, so threads never share one
         if depth is not None:
             return query_correspondences(gray, intrinsics, depth, coords[1], pose, kf, flow, cfg, scale)

@@ -6,7 +6,7 @@ code; every array's shape and every pose is checked on load, and the error names
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -30,13 +30,19 @@ class KeyframeSet:
     c2w: np.ndarray
     K: np.ndarray
     stride: int
+    _made: dict[int, Keyframe] = field(default_factory=dict, compare=False, repr=False)
 
     def __len__(self) -> int:
         return int(self.gray.shape[0])
 
     def keyframe(self, i: int) -> Keyframe:
-        h, w = self.gray.shape[1:]
-        return Keyframe(self.gray[i], Intrinsics.from_K(self.K[i], w, h), self.c2w[i], self.depth[i], self.stride)
+        """Keyframe i, one object per index (it caches what the sparse matcher derives from it)."""
+        if i not in self._made:
+            h, w = self.gray.shape[1:]
+            self._made[i] = Keyframe(
+                self.gray[i], Intrinsics.from_K(self.K[i], w, h), self.c2w[i], self.depth[i], self.stride
+            )
+        return self._made[i]
 
     def near(self, pose_c2w: np.ndarray, k: int = KEYFRAMES, depth: float | None = None) -> list[Keyframe]:
         """Up to ``k`` keyframes nearest the camera-to-world ``pose_c2w`` (4, 4) and looking the same way (by

@@ -37,7 +37,8 @@ SPLAT_MAX_GAUSSIANS = 60_000
 """Stage 2 cap of the demo's short budget: fewer Gaussians train more iterations in 1.5 minutes (bench/refine.md).
 Refinement takes a map of any size (its cap limits growth only)."""
 REFINE_PRECISION = "int8"
-"""The refinement replay runs the INT8 SCR graph, the edge's fast path: more of the budget is left for refinement."""
+"""The refinement replay runs the INT8 SCR graph the device's check picks, the edge's fast path: more of the budget
+is left for refinement."""
 
 
 def _stage_synth(work: Path, summary: dict, size: tuple[int, int] | None, frames: tuple[int, int] | None) -> Path:
@@ -150,6 +151,7 @@ def _stage_edge(map_path: Path, scene: Path, splat_dir: Path, work: Path, budget
     edge runtime with each precision, then once more with refinement."""
     from acesplat.apps.refine_cmd import refine_session
     from acesplat.core.bundle import load_bundle
+    from edge.int8_check import choose_int8
     from edge.refine.session import write_before_after
     from edge.replay import replay_split
     from edge.runtime import EdgeLocalizer
@@ -162,27 +164,31 @@ def _stage_edge(map_path: Path, scene: Path, splat_dir: Path, work: Path, budget
         sp = export_splat(bundle_dir, splat_dir, map_path, progress=bar)
     summary["export"] = {"seconds": rep.seconds + sp["seconds"], "checks": sp["manifest"].get("checks", {})}
     bundle = load_bundle(bundle_dir)
-    for precision in ("fp32", "int8"):
+    int8, reports = choose_int8(bundle)  # the INT8 graph `--int8` runs on this CPU
+    int8 = int8 or "int8"
+    summary["int8_check"] = [{"precision": r.precision, "passed": r.passed, **r.inference_ms} for r in reports]
+    for key, precision in (("fp32", "fp32"), ("int8", int8)):
         loc = EdgeLocalizer(bundle, precision)
         with PhaseProgress(f"demo replay {precision} ") as bar:
             r = replay_split(loc, scene, "test", lambda i, n: bar("localize", i / n, {"frame": i}))
         r.pop("per_frame", None)
-        summary[f"replay_{precision}"] = r
+        summary[f"replay_{key}"] = r
     # The reference for refinement's latency: the same precision paced at one frame per budget without refinement
     # (the refinement replay is paced too; idling between frames changes latency on a shared machine).
-    loc = EdgeLocalizer(bundle, REFINE_PRECISION, pace_ms=budget_ms)
-    with PhaseProgress(f"demo replay {REFINE_PRECISION} paced ") as bar:
+    refine_precision = int8 if REFINE_PRECISION == "int8" else REFINE_PRECISION
+    loc = EdgeLocalizer(bundle, refine_precision, pace_ms=budget_ms)
+    with PhaseProgress(f"demo replay {refine_precision} paced ") as bar:
         r = replay_split(loc, scene, "test", lambda i, n: bar("localize", i / n, {"frame": i}))
     r.pop("per_frame", None)
     summary["replay_paced"] = r
-    loc = EdgeLocalizer(bundle, REFINE_PRECISION)
+    loc = EdgeLocalizer(bundle, refine_precision)
     session = refine_session(
         True, loc, bundle, budget_ms, None, lambda msg: console.print(f"[yellow]{msg}[/yellow]"), evaluate=True
     )
     if session is None:
         raise InputError(bundle_dir, "the demo bundle has no Gaussians to refine")
     t0 = time.monotonic()
-    with PhaseProgress(f"demo replay {REFINE_PRECISION} + refinement ") as bar:
+    with PhaseProgress(f"demo replay {refine_precision} + refinement ") as bar:
         try:
             r = replay_split(loc, scene, "test", lambda i, n: bar("localize + refine", i / n, {"frame": i}))
         finally:
@@ -239,7 +245,7 @@ def results_table(summary: dict) -> Table:
         if r:
             tm = r["timing_ms"]["total"]
             t.add_row(
-                f"edge replay ({precision})",
+                f"edge replay ({r['precision']})",
                 f"{_accuracy(r)}; total p50 {tm['p50']:.0f} ms, p95 {tm['p95']:.0f} ms",
                 f"{tm['mean'] * r['frames'] / 1000:.1f}",
             )

@@ -169,9 +169,8 @@ def localize_command(
     """Localize frames from a live or recorded source; Ctrl-C ends with a summary."""
     stop_on_signals()
     check_provider(provider)
-    precision = "int8" if int8 else "fp32"
-    b = open_bundle(bundle, [precision], align or tracking)
-    int8_gate(b, int8, skip_int8_check, threads, provider)
+    b = open_bundle(bundle, ["int8" if int8 else "fp32"], align or tracking)
+    precision = int8_gate(b, int8, skip_int8_check, threads, provider)
     calib = read_calibration_file(intrinsics) if intrinsics else None
     track = _tracking(tracking, reanchor_every)
     loc = EdgeLocalizer(
@@ -317,9 +316,8 @@ def replay_command(
     from edge.replay import replay_split
 
     check_provider(provider)
-    precision = "int8" if int8 else "fp32"
-    b = open_bundle(bundle, [precision], align or tracking)
-    int8_gate(b, int8, skip_int8_check, threads, provider)
+    b = open_bundle(bundle, ["int8" if int8 else "fp32"], align or tracking)
+    precision = int8_gate(b, int8, skip_int8_check, threads, provider)
     track = _tracking(tracking, reanchor_every)
     loc = EdgeLocalizer(
         b,
@@ -503,18 +501,24 @@ def record_command(
     report_json(json_out, {"out": str(out), **stats.as_dict()})
 
 
-def int8_gate(b: Bundle, int8: bool, skip: bool, threads: int | None, provider: str) -> None:
-    """With --int8: the on-device INT8 check once before the run; one line (exit 2) when INT8 deviates past the
-    bound (edge.int8_check.require_int8); a warning when skipped."""
+def int8_gate(b: Bundle, int8: bool, skip: bool, threads: int | None, provider: str) -> str:
+    """The precision to run: 'fp32' without --int8; with it, the on-device INT8 check of every INT8 graph once
+    before the run and the fastest that passes (edge.int8_check.require_int8); one line (exit 2) when none does; a
+    warning and the default INT8 graph when skipped."""
     if not int8:
-        return
+        return "fp32"
     if skip:
         _warn("INT8 check skipped (--skip-int8-check): INT8 runs unverified on this CPU")
-        return
+        return "int8"
     from edge.int8_check import require_int8
 
-    rep = require_int8(_for_check(b.root), Int8CheckConfig(), threads, provider)
-    console.print(rep.line())
+    precision, reports = require_int8(_for_check(b.root), Int8CheckConfig(), threads, provider)
+    for rep in reports:
+        console.print(rep.line())
+    if len(reports) > 1:
+        ms = ", ".join(f"{r.precision} {r.inference_ms['int8']:.1f} ms" for r in reports)
+        console.print(f"running {precision} (inference on this CPU: {ms})")
+    return precision
 
 
 @one_line_errors
@@ -528,15 +532,34 @@ def check_command(
     threads: int | None = typer.Option(None, help="onnxruntime intra-op threads (default: all cores)."),
     provider: str = option(SessionSettings, "provider"),
 ) -> None:
-    """Verify the bundle's INT8 model on this CPU: its stored frames through FP32 and INT8, against the export's
-    figures; exit 1 when INT8 deviates past the bound."""
-    from edge.int8_check import check_int8
+    """Verify the bundle's INT8 graphs on this CPU: its stored frames through FP32 and each INT8 graph, against the
+    export's figures, and name the one `--int8` runs here; exit 1 when none passes."""
+    from edge.int8_check import choose_int8
 
     check_provider(provider)
     b = _for_check(bundle)
     cfg = Int8CheckConfig(frames=frames, tolerance=tolerance, slack=slack, slack_deg=slack_deg)
-    rep = check_int8(b, cfg, threads, provider)
-    t = Table(title=f"INT8 vs FP32, {b.root} ({len(rep.frames)} frames)")
+    chosen, reports = choose_int8(b, cfg, threads, provider)
+    for rep in reports:
+        _print_check(b, rep)
+    if chosen is not None:
+        console.print(f"--int8 runs {chosen} on this CPU")
+    report_json(
+        json_out,
+        {
+            "passed": chosen is not None,
+            "chosen": chosen,
+            "failures": [f"{r.precision}: {f}" for r in reports for f in r.failures],
+            "reports": [r.as_dict() for r in reports],
+        },
+    )
+    if chosen is None:
+        raise typer.Exit(1)
+
+
+def _print_check(b: Bundle, rep) -> None:
+    """One INT8 graph's check as a table, its one-line verdict and its failures."""
+    t = Table(title=f"{rep.precision.upper()} vs FP32, {b.root} ({len(rep.frames)} frames)")
     for col in ("figure", "this CPU", "export", "bound"):
         t.add_column(col, justify="right")
     isa_export = " ".join(rep.export.get("cpu_isa") or []) or "-"
@@ -561,16 +584,14 @@ def check_command(
     console.print(rep.line())
     for f in rep.failures:
         console.print(f"[red]  {f}[/red]")
-    report_json(json_out, rep.as_dict())
-    if not rep.passed:
-        raise typer.Exit(1)
 
 
 def _for_check(path: Path) -> Bundle:
-    """The bundle with both models and its check frames verified (open_bundle's checks)."""
-    from acesplat.core.bundle import ROLE_INT8_CHECK, ROLE_SCR_FP32, ROLE_SCR_INT8
+    """The bundle with its models and its check frames verified (open_bundle's checks)."""
+    from acesplat.core.bundle import ROLE_INT8_CHECK, ROLE_SCR_FP32, ROLE_SCR_INT8, ROLE_SCR_INT8_VNNI
 
-    b = load_bundle(path, verify=True, roles=[ROLE_SCR_FP32, ROLE_SCR_INT8, ROLE_INT8_CHECK])
+    roles = [ROLE_SCR_FP32, ROLE_SCR_INT8, ROLE_SCR_INT8_VNNI, ROLE_INT8_CHECK]  # the U8S8 twin if it is there
+    b = load_bundle(path, verify=True, roles=roles)
     b.scr_model("int8")
     return b
 

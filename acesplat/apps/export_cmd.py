@@ -42,10 +42,12 @@ def checks_table(manifest: dict) -> Table:
             "FP32 ONNX vs torch: encoder features max |diff| / max |feature|",
             f"{_fmt(par['features_max_abs_diff'])} / {_fmt(par['features_max_abs'])}",
         )
-    dev = checks.get("int8_vs_fp32")
-    if dev:
+    for prec in ("int8", "int8_vnni"):
+        dev = checks.get(f"{prec}_vs_fp32")
+        if not dev:
+            continue
         t.add_row(
-            f"INT8 vs FP32 on {dev['frames']} check frames: coordinate median / p90 (cm)",
+            f"{prec.upper()} vs FP32 on {dev['frames']} check frames: coordinate median / p90 (cm)",
             f"{100 * dev['coord_median']:.2f} / {100 * dev['coord_p90']:.2f}",
         )
         if dev.get("pose_median_translation") is not None:
@@ -55,8 +57,10 @@ def checks_table(manifest: dict) -> Table:
             )
     acc = checks.get("test_split")
     if acc:
-        for prec in ("fp32", "int8"):
-            a = acc[prec]
+        for prec in ("fp32", "int8", "int8_vnni"):
+            a = acc.get(prec)
+            if a is None:
+                continue
             t.add_row(f"{prec.upper()} test: localized / frames", f"{a['localized']} / {a['frames']}")
             t.add_row(
                 f"{prec.upper()} test: median (m / deg)",
@@ -74,7 +78,7 @@ def checks_table(manifest: dict) -> Table:
             "splat initializer ONNX vs torch: max |diff| / max |output|",
             f"{_fmt(par['max_abs_diff'])} / {_fmt(par['max_abs_output'])}",
         )
-        for prec in ("fp32", "int8"):
+        for prec in ("fp32", "int8", "int8_vnni"):
             via = checks.get(f"splat_init_via_scr_{prec}_vs_torch")
             if via:
                 t.add_row(
@@ -102,6 +106,7 @@ def export_command(
     int8_types: str = option(ExportOptions, "int8_types"),
     int8_per_channel: bool = option(ExportOptions, "int8_per_channel", "--int8-per-channel/--int8-per-tensor"),
     int8_reduce_range: bool = option(ExportOptions, "int8_reduce_range"),
+    int8_vnni: bool = option(ExportOptions, "int8_vnni"),
     check_frames: int = option(ExportOptions, "check_frames"),
 ) -> None:
     """Export a map to an ONNX bundle (FP32, optionally INT8) that checks itself."""
@@ -124,6 +129,7 @@ def export_command(
         int8_types=int8_types,
         int8_per_channel=int8_per_channel,
         int8_reduce_range=int8_reduce_range,
+        int8_vnni=int8_vnni,
         check_frames=check_frames,
     )
     with PhaseProgress() as bar:

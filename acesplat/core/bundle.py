@@ -35,11 +35,16 @@ SCR_FEATURES_OUTPUT = "features"
 
 ROLE_SCR_FP32 = "scr_fp32"
 ROLE_SCR_INT8 = "scr_int8"
+ROLE_SCR_INT8_VNNI = "scr_int8_vnni"
+"""The INT8 twin in U8S8: about twice as fast where the CPU multiplies uint8 by int8 without saturating (VNNI, AMX);
+the device's check runs it only where it matches FP32 as closely as the default INT8 graph (edge.int8_check)."""
 ROLE_KEYFRAMES = "keyframes"
 """Mapping images with their poses and depth (acesplat.align.keyframe_set), for pose refinement."""
 ROLE_INT8_CHECK = "int8_check"
 """A few prepared frames with their FP32 coordinates (acesplat.core.check_frames), for the device's INT8 check."""
-PRECISION_ROLES = {"fp32": ROLE_SCR_FP32, "int8": ROLE_SCR_INT8}
+PRECISION_ROLES = {"fp32": ROLE_SCR_FP32, "int8": ROLE_SCR_INT8, "int8_vnni": ROLE_SCR_INT8_VNNI}
+INT8_PRECISIONS = ("int8", "int8_vnni")
+"""The INT8 graphs a bundle can carry, the default first: `--int8` runs the fastest one the device's check passes."""
 
 
 def sha256_of(path: str | Path) -> str:
@@ -112,7 +117,7 @@ class Bundle:
         return int(self.scr["output_stride"])
 
     def scr_model(self, precision: str) -> Path:
-        """Path of the SCR model for 'fp32' or 'int8'."""
+        """Path of the SCR model for 'fp32', 'int8' or 'int8_vnni'."""
         if precision not in PRECISION_ROLES:
             raise InputError(None, f"precision must be one of {sorted(PRECISION_ROLES)}, got {precision!r}")
         role = PRECISION_ROLES[precision]
@@ -120,7 +125,7 @@ class Bundle:
             raise InputError(
                 self.root / MANIFEST_NAME,
                 f"bundle has no {precision.upper()} model; re-export with"
-                + (" --int8" if precision == "int8" else "out --int8"),
+                + (" --int8" if precision.startswith("int8") else "out --int8"),
             )
         return self.root / self.files[role].path
 

@@ -22,7 +22,8 @@ from acesplat.core.pnp import solve_from_grid
 @dataclass(frozen=True)
 class CheckFrames:
     """names (N,); gray (N, H, W) uint8 network inputs; K (N, 3, 3) of those inputs; coords and int8_coords
-    (N, h, w, 3) float32: the FP32 and INT8 scene coordinates on the export machine, cells ``stride`` px apart."""
+    (N, h, w, 3) float32: the FP32 and INT8 scene coordinates on the export machine, cells ``stride`` px apart;
+    vnni_coords like them from the U8S8 graph (acesplat.core.bundle.ROLE_SCR_INT8_VNNI), None without one."""
 
     names: list[str]
     gray: np.ndarray
@@ -30,6 +31,7 @@ class CheckFrames:
     coords: np.ndarray
     int8_coords: np.ndarray
     stride: int
+    vnni_coords: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.gray.shape[0])
@@ -38,14 +40,30 @@ class CheckFrames:
         h, w = self.gray.shape[1:]
         return Intrinsics.from_K(self.K[i], w, h)
 
+    def int8(self, precision: str) -> np.ndarray:
+        """The export machine's coordinates (N, h, w, 3) from the INT8 graph of ``precision`` (int8, int8_vnni)."""
+        if precision == "int8_vnni":
+            if self.vnni_coords is None:
+                raise ValueError("these check frames carry no int8_vnni coordinates")
+            return self.vnni_coords
+        return self.int8_coords
+
     def __post_init__(self) -> None:
-        problem = _shape_problem(self.gray, self.K, self.coords, self.int8_coords, self.stride, len(self.names))
+        problem = _shape_problem(
+            self.gray, self.K, self.coords, self.int8_coords, self.stride, len(self.names), self.vnni_coords
+        )
         if problem:
             raise ValueError(problem)
 
 
 def _shape_problem(
-    gray: np.ndarray, K: np.ndarray, coords: np.ndarray, int8_coords: np.ndarray, stride: int, n_names: int
+    gray: np.ndarray,
+    K: np.ndarray,
+    coords: np.ndarray,
+    int8_coords: np.ndarray,
+    stride: int,
+    n_names: int,
+    vnni_coords: np.ndarray | None = None,
 ) -> str | None:
     if gray.ndim != 3 or gray.dtype != np.uint8 or gray.shape[0] == 0:
         return f"gray must be (N, H, W) uint8 with N > 0, got {gray.shape} {gray.dtype}"
@@ -56,6 +74,8 @@ def _shape_problem(
         return f"coords must be ({n}, {h // max(stride, 1)}, {w // max(stride, 1)}, 3) float32, got {coords.shape}"
     if int8_coords.shape != coords.shape or int8_coords.dtype != np.float32:
         return f"int8_coords must be {coords.shape} float32 like coords, got {int8_coords.shape} {int8_coords.dtype}"
+    if vnni_coords is not None and (vnni_coords.shape != coords.shape or vnni_coords.dtype != np.float32):
+        return f"vnni_coords must be {coords.shape} float32 like coords, got {vnni_coords.shape} {vnni_coords.dtype}"
     if n_names != n:
         return f"{n_names} names for {n} frames"
     return None
@@ -73,6 +93,7 @@ def save_check_frames(path: str | Path, frames: CheckFrames) -> Path:
             coords=frames.coords,
             int8_coords=frames.int8_coords,
             stride=np.int64(frames.stride),
+            **({} if frames.vnni_coords is None else {"vnni_coords": frames.vnni_coords}),
         )
     return path
 
@@ -83,6 +104,7 @@ def load_check_frames(path: str | Path) -> CheckFrames:
     try:
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in ("names", "gray", "K", "coords", "int8_coords", "stride")}
+            vnni = z["vnni_coords"] if "vnni_coords" in z.files else None
     except (OSError, ValueError, KeyError) as e:
         raise InputError(path, f"not a check-frames file ({str(e).splitlines()[0][:120]})") from None
     problem = _shape_problem(
@@ -92,6 +114,7 @@ def load_check_frames(path: str | Path) -> CheckFrames:
         arrays["int8_coords"],
         int(arrays["stride"]),
         len(arrays["names"].reshape(-1)),
+        vnni,
     )
     if problem:
         raise InputError(path, problem)
@@ -102,6 +125,7 @@ def load_check_frames(path: str | Path) -> CheckFrames:
         arrays["coords"],
         arrays["int8_coords"],
         int(arrays["stride"]),
+        vnni,
     )
 
 

@@ -46,6 +46,7 @@ class MapKeyframes:
         self.k = k
         self._depth: dict[int, np.ndarray] = {}
         self._head: dict[int, np.ndarray] = {}
+        self._made: dict[int, Keyframe] = {}
 
     def head_depth(self, i: int) -> np.ndarray:
         if i not in self._head:
@@ -81,8 +82,11 @@ class MapKeyframes:
         return KeyframeSet.stack([self.keyframe(i) for i in range(len(self.images))])
 
     def keyframe(self, i: int) -> Keyframe:
-        im = self.images[i]
-        return Keyframe(im.gray, im.intrinsics, im.c2w, self.depth(i), DENSE_OUTPUT_STRIDE)
+        """Keyframe i, one object per index (it caches what the sparse matcher derives from it)."""
+        if i not in self._made:
+            im = self.images[i]
+            self._made[i] = Keyframe(im.gray, im.intrinsics, im.c2w, self.depth(i), DENSE_OUTPUT_STRIDE)
+        return self._made[i]
 
     def near(self, pose_c2w: np.ndarray, depth: float | None = None, k: int | None = None) -> list[Keyframe]:
         """Up to ``k`` (default: the set's) keyframes nearest the camera-to-world ``pose_c2w`` (4, 4) and looking the
