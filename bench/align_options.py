@@ -72,11 +72,6 @@ OPTIONS = {
     "sparse_px2": replace(KEYFRAME_ALIGN, matcher="sparse", reproj_px=2.0),
     "sparse_fb1": replace(KEYFRAME_ALIGN, matcher="sparse", max_fb_error_px=1.0),
     "sparse_fb02": replace(KEYFRAME_ALIGN, matcher="sparse", max_fb_error_px=0.2),
-    "sparse_q": replace(KEYFRAME_ALIGN, matcher="sparse", warp="query"),
-    "sparse_q_r1": replace(KEYFRAME_ALIGN, matcher="sparse", warp="query", rounds=1),
-    "sparse_q_r3": replace(KEYFRAME_ALIGN, matcher="sparse", warp="query", rounds=3),
-    "sparse_q_2k": replace(KEYFRAME_ALIGN, matcher="sparse", warp="query", corners=2000),
-    "sparse_q_k6": replace(KEYFRAME_ALIGN, matcher="sparse", warp="query"),
 }
 KEYFRAME_COUNT = {
     "query_k2": 2,
@@ -86,7 +81,6 @@ KEYFRAME_COUNT = {
     "sparse_k6": 6,
     "sparse_k8": 8,
     "sparse_k8_r1": 8,
-    "sparse_q_k6": 6,
 }
 """Options that align to fewer than acesplat.align.keyframe_align.KEYFRAMES keyframes (nearest first)."""
 

@@ -80,5 +80,6 @@ def replay_split(
     out["input_size"] = list(localizer.input_size)
     out["tracking_enabled"] = localizer.tracker is not None
     out["align_warp"] = localizer.align_config.warp if localizer.keyframes is not None else None
+    out["align_matcher"] = localizer.align_config.matcher if localizer.keyframes is not None else None
     out.update(runtime_info(localizer.session.provider))
     return out

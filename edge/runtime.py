@@ -155,6 +155,8 @@ class EdgeLocalizer:
         """The bundle's keyframes when poses are refined against them (InputError at start if it has none)."""
         self.align_config = align_config
         """How --align refines a pose against the keyframes (acesplat.align.flow_pnp.AlignConfig)."""
+        if self.keyframes is not None and align_config.matcher == "sparse":
+            self.keyframes.prepare_corners(align_config.corners)  # at start, not on the first frames near each
         self.tracker = Tracker(tracking) if tracking is not None and tracking.enabled else None
         """Tracking between frames (edge.tracking), None: every frame solved alone."""
         self.track_keyframes = (

@@ -202,6 +202,14 @@ def test_keyframes_ride_in_the_bundle_and_the_edge_aligns_to_them(tiny, tmp_path
     r = CliRunner().invoke(edge_app, ["replay", str(tmp_path / "kf"), str(tiny["scene"]), "--align-warp", "splat"])
     assert r.exit_code == 2 and "Traceback" not in r.output
     assert "--align-warp must be one of keyframe, query" in r.output
+    # the sparse matcher (keyframe corners tracked by Lucas-Kanade): recorded, and an unknown one refused
+    kf_scene = [str(tmp_path / "kf"), str(tiny["scene"])]
+    r = CliRunner().invoke(edge_app, ["replay", *kf_scene, "--align", "--align-matcher", "sparse", "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    q = json.loads(out.read_text())
+    assert q["align_matcher"] == "sparse" and sum(q["keyframe_alignment"].values()) == q["localized"] == 4
+    r = CliRunner().invoke(edge_app, ["replay", str(tmp_path / "kf"), str(tiny["scene"]), "--align-matcher", "sift"])
+    assert r.exit_code == 2 and "--align-matcher must be one of dense, sparse" in r.output
     # a bundle without keyframes, and one whose keyframes were altered, are refused in one line
     r = CliRunner().invoke(edge_app, ["replay", str(tiny["bundle"]), str(tiny["scene"]), "--align"])
     assert r.exit_code == 2 and "re-export with --keyframes" in r.output and "Traceback" not in r.output

@@ -17,13 +17,16 @@ from acesplat.align.keyframe_align import (
     Keyframe,
     _depth_at,
     align_to_keyframes,
+    keyframe_corners,
+    keyframe_plane,
     nearest_keyframes,
+    plane_homography,
     query_depth,
     resample_to,
 )
 from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import make_pose, pose_error, rodrigues_to_matrix, transform_points
-from acesplat.core.grid import cell_centers
+from acesplat.core.grid import OUTPUT_STRIDE, cell_centers
 from acesplat.synth import default_intrinsics, make_room, make_trajectory, render_view
 from acesplat.synth.dataset import texel_density_for
 
@@ -198,3 +201,61 @@ def test_bad_queries_are_refused_before_any_work(room) -> None:
     bad[0, 3] = np.nan
     with pytest.raises(ValueError, match="finite"):
         align_to_keyframes(query, K, bad, kfs)
+
+
+# ----------------------------------------------------------------------------------- the sparse matcher
+def _plane_keyframe(n: np.ndarray, d: float, stride: int = STRIDE, size: tuple[int, int] = (48, 64)) -> Keyframe:
+    """A keyframe at the origin looking at the plane n . X = d (its camera frame), with that plane's exact depth at
+    its cells."""
+    k = Intrinsics(60.0, 60.0, size[1] / 2, size[0] / 2, size[1], size[0])
+    uv = cell_centers(size[0] // stride, size[1] // stride, stride).astype(np.float64)
+    rays = k.unproject(uv, np.ones(len(uv)))
+    z = d / (rays @ n)
+    return Keyframe(np.zeros(size, np.uint8), k, np.eye(4), z.reshape(size[0] // stride, -1).astype(np.float32), stride)
+
+
+def test_keyframe_plane_is_the_plane_its_depth_lies_on() -> None:
+    n = np.array([0.2, -0.1, 1.0]) / np.linalg.norm([0.2, -0.1, 1.0])
+    plane = keyframe_plane(_plane_keyframe(n, 3.0))
+    sign = np.sign(plane[3])
+    np.testing.assert_allclose(sign * plane[:3], n, atol=1e-6)
+    assert sign * plane[3] == pytest.approx(3.0, rel=1e-6)
+    assert keyframe_plane(replace(_plane_keyframe(n, 3.0), depth=np.zeros((12, 16), np.float32))) is None
+
+
+def test_plane_homography_carries_plane_pixels_to_where_the_other_camera_sees_them() -> None:
+    n = np.array([0.3, 0.1, 1.0]) / np.linalg.norm([0.3, 0.1, 1.0])
+    kf = _plane_keyframe(n, 4.0)
+    other = make_pose(rodrigues_to_matrix(np.array([0.02, -0.05, 0.01])), np.array([0.3, -0.1, 0.2]))
+    H = plane_homography(kf, keyframe_plane(kf), kf.intrinsics, other)
+    uv = np.array([[5.0, 7.0], [40.0, 30.0], [60.0, 2.0]])
+    X = kf.intrinsics.unproject(uv, 4.0 / (kf.intrinsics.unproject(uv, np.ones(3)) @ n))
+    seen = kf.intrinsics.project(transform_points(np.linalg.inv(other), X))
+    q = np.c_[uv, np.ones(3)] @ H.T
+    np.testing.assert_allclose(q[:, :2] / q[:, 2:3], seen, atol=1e-6)
+
+
+def test_corners_skip_depth_edges_and_are_made_once(room) -> None:
+    _, _, kfs, _, _ = room
+    kf = kfs[0]
+    c = keyframe_corners(kf, 300)
+    assert keyframe_corners(kf, 300) is c and 50 < len(c.uv) <= 300  # cached on the keyframe
+    z = _depth_at(kf, c.uv[:, 0].astype(np.float64), c.uv[:, 1].astype(np.float64))
+    np.testing.assert_allclose(transform_points(np.linalg.inv(kf.c2w), c.X)[:, 2], z, rtol=1e-6)
+    step = kf.depth.copy()
+    step[:, step.shape[1] // 2 :] *= 2.0  # a depth edge down the middle
+    edge = keyframe_corners(replace(kf, depth=step, cache={}), 300)
+    col = kf.stride * (step.shape[1] // 2) + OUTPUT_STRIDE / 2 - kf.stride  # the last cell before the edge
+    assert np.any(np.abs(c.uv[:, 0] - col) < kf.stride)  # corners there without the edge (measured 12)
+    assert len(edge.uv) and not np.any(np.abs(edge.uv[:, 0] - col) < kf.stride)
+
+
+@pytest.mark.parametrize("rounds", [1, 2])
+def test_the_sparse_matcher_brings_a_perturbed_pose_back(room, rounds: int) -> None:
+    _, K, kfs, true_pose, query = room
+    start = perturb(true_pose, [0.04, -0.03, 0.02], [0.004, -0.006, 0.003])
+    near = [kfs[i] for i in nearest_keyframes(np.stack([k.c2w for k in kfs]), start)]
+    al = align_to_keyframes(query, K, start, near, cfg=replace(KEYFRAME_ALIGN, matcher="sparse", rounds=rounds))
+    e0, e1 = pose_error(start, true_pose), pose_error(al.pose, true_pose)
+    assert al.status == "aligned" and al.points > 300, al
+    assert e0[0] > 0.05 and e1[0] < 0.005 and e1[1] < 0.08, (e0, e1)

@@ -88,8 +88,8 @@ class AlignConfig:
     matcher: str = knob(
         "dense",
         "How keyframe pixels are found in the query: dense (the keyframe warped to the estimate, DIS flow) or sparse "
-        "(the keyframe's corners tracked by pyramidal Lucas-Kanade from where the estimate projects them; no warp; "
-        "bench/align.md).",
+        "(the keyframe's corners tracked by pyramidal Lucas-Kanade from where the estimate projects them, the "
+        "keyframe warped by its dominant plane; ignores warp; bench/align.md).",
     )
     corners: int = knob(800, "Sparse matcher: corners per keyframe (Shi-Tomasi, strongest first).")
     lk_window_px: int = knob(21, "Sparse matcher: Lucas-Kanade window side (px).")

@@ -60,8 +60,9 @@ CORNER_QUALITY = 0.01
 """Sparse matcher: a corner's Shi-Tomasi score is at least this share of the keyframe's strongest."""
 CORNER_SPACING_PX = 5
 """Sparse matcher: corners of a keyframe are at least this far apart (px)."""
-LK_LEVELS = 3
-"""Sparse matcher: pyramid levels above full size that Lucas-Kanade starts from (a start pose off by ~8x its window)."""
+LK_LEVELS = (2, 1)
+"""Sparse matcher: pyramid levels above full size that Lucas-Kanade starts from, in the first round (a start pose
+off by a few times its window) and in later ones (from a pose already refined)."""
 LK_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
 """Sparse matcher: Lucas-Kanade stops after 30 iterations or a step under 0.01 px per level."""
 DEPTH_EDGE_RATIO = 0.05
@@ -71,6 +72,8 @@ PLANE_TOLERANCE = 0.03
 """Sparse matcher: depth cells within this fraction of the median depth of a keyframe's plane belong to it."""
 PLANE_RANSAC_ITERATIONS = 64
 """Sparse matcher: plane hypotheses tried per keyframe."""
+PLANE_SCORE_POINTS = 2000
+"""Sparse matcher: hypotheses are scored on at most this many of the keyframe's depth cells (all refine the best)."""
 ROTATION_WEIGHT = 0.25
 """Weight of the angle between viewing directions against the baseline's parallax (baseline / depth, radians) when
 keyframes are ranked by viewpoint change: a keyframe's depth error moves its warp by the parallax only (a rotation
@@ -219,8 +222,10 @@ def keyframe_plane(kf: Keyframe) -> np.ndarray | None:
     uv = np.stack([first + gx.ravel() * kf.stride, first + gy.ravel() * kf.stride], axis=1)[ok]
     P = kf.intrinsics.unproject(uv, z[ok])
     tol = PLANE_TOLERANCE * float(np.median(z[ok]))
-    idx = np.random.default_rng(0).integers(0, len(P), (PLANE_RANSAC_ITERATIONS, 3))
+    rng = np.random.default_rng(0)
+    idx = rng.integers(0, len(P), (PLANE_RANSAC_ITERATIONS, 3))
     a, b, c = P[idx[:, 0]], P[idx[:, 1]], P[idx[:, 2]]
+    S = P if len(P) <= PLANE_SCORE_POINTS else P[rng.choice(len(P), PLANE_SCORE_POINTS, replace=False)]
     n = np.cross(b - a, c - a)
     norm = np.linalg.norm(n, axis=1)
     good = norm > 1e-12
@@ -228,7 +233,7 @@ def keyframe_plane(kf: Keyframe) -> np.ndarray | None:
         return None
     n, a = n[good] / norm[good, None], a[good]
     d = np.einsum("ij,ij->i", n, a)
-    counts = (np.abs(P @ n.T - d) < tol).sum(axis=0)
+    counts = (np.abs(S @ n.T - d) < tol).sum(axis=0)
     best = int(np.argmax(counts))
     inl = P[np.abs(P @ n[best] - d[best]) < tol]
     if len(inl) < 3:
@@ -258,6 +263,7 @@ def corner_correspondences(
     kf: Keyframe,
     corners: Corners,
     cfg: AlignConfig = KEYFRAME_ALIGN,
+    levels: int = LK_LEVELS[0],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """World points (M, 3) of the keyframe's ``corners`` (keyframe_corners), where the query (H, W) uint8 with
     ``intrinsics`` shows them (M, 2) and the forward-backward error there (M,) px: each corner is tracked by
@@ -279,19 +285,25 @@ def corner_correspondences(
     src, X, p0 = at[front][inside], corners.X[front][inside], p0[inside].astype(np.float32)
     if len(src) == 0:
         return X, p0.astype(np.float64), np.zeros(0)
-    seen, err, keep = track_corners(ref, query, src, p0, cfg)
+    seen, err, keep = track_corners(ref, query, src, p0, cfg, levels)
     return X[keep], seen[keep], err[keep]
 
 
 def track_corners(
-    ref: np.ndarray, query: np.ndarray, src: np.ndarray, start: np.ndarray, cfg: AlignConfig = KEYFRAME_ALIGN
+    ref: np.ndarray,
+    query: np.ndarray,
+    src: np.ndarray,
+    start: np.ndarray,
+    cfg: AlignConfig = KEYFRAME_ALIGN,
+    levels: int = LK_LEVELS[0],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Pixels ``src`` (M, 2) of ``ref`` tracked into ``query`` (both (H, W) uint8) by pyramidal Lucas-Kanade from
     ``start`` (M, 2) and back: where they are seen (M, 2), the forward-backward error (M,) px and the verdict
-    keep (M,) bool (both tracks converged, inside the query, the error within ``cfg.max_fb_error_px``)."""
+    keep (M,) bool (both tracks converged, inside the query, the error within ``cfg.max_fb_error_px``); ``levels``
+    pyramid levels above full size."""
     h, w = query.shape
     win = (cfg.lk_window_px, cfg.lk_window_px)
-    lk = dict(winSize=win, maxLevel=LK_LEVELS, criteria=LK_CRITERIA, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    lk = dict(winSize=win, maxLevel=levels, criteria=LK_CRITERIA, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
     a = np.ascontiguousarray(src, np.float32).reshape(-1, 1, 2)
     seen, ok, _ = cv2.calcOpticalFlowPyrLK(
         ref, query, a, np.ascontiguousarray(start, np.float32).reshape(-1, 1, 2), **lk
@@ -304,43 +316,6 @@ def track_corners(
     if cfg.max_fb_error_px is not None:
         keep &= err < cfg.max_fb_error_px
     return seen, err, keep
-
-
-def query_corner_correspondences(
-    query: np.ndarray,
-    intrinsics: Intrinsics,
-    depth: np.ndarray,
-    stride: int,
-    pose_c2w: np.ndarray,
-    kf: Keyframe,
-    cfg: AlignConfig = KEYFRAME_ALIGN,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """As query_correspondences (the keyframe warped to the estimate by the query's own ``depth``, one remap), with
-    the warped keyframe's corners tracked by Lucas-Kanade (track_corners) instead of a dense flow; each starts where
-    the estimate projects the keyframe's 3D point it shows."""
-    h, w = query.shape
-    kh, kw = kf.gray.shape
-    m = pixel_map(depth, intrinsics, stride, pose_c2w, kf.c2w, kf.intrinsics)  # query pixel -> keyframe x, y, z
-    mx = np.where(np.isfinite(m[..., 0]), m[..., 0], -1.0).astype(np.float32)
-    my = np.where(np.isfinite(m[..., 1]), m[..., 1], -1.0).astype(np.float32)
-    warped = cv2.remap(kf.gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    valid = ((mx >= 0) & (mx <= kw - 1) & (my >= 0) & (my <= kh - 1)).astype(np.uint8)
-    pts = cv2.goodFeaturesToTrack(warped, cfg.corners, CORNER_QUALITY, CORNER_SPACING_PX, mask=valid)
-    if pts is None:
-        return np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0)
-    at = pts.reshape(-1, 2).astype(np.float64)
-    src = bilinear(m, at[:, 0], at[:, 1])  # keyframe x, y and the query depth's z there
-    ok = np.isfinite(src).all(1) & (src[:, 0] >= 0) & (src[:, 0] <= kw - 1) & (src[:, 1] >= 0)
-    ok &= src[:, 1] <= kh - 1
-    at, src = at[ok], src[ok]
-    z = _depth_at(kf, src[:, 0], src[:, 1])
-    ok = (z > 0) & (np.abs(z - src[:, 2]) <= HIDDEN_DEPTH_RATIO * src[:, 2])
-    at, X = at[ok], transform_points(kf.c2w, kf.intrinsics.unproject(src[ok, :2], z[ok]))
-    pc = transform_points(invert_pose(pose_c2w), X)
-    front = pc[:, 2] > 1e-6
-    p0 = pc[front] @ intrinsics.K.T
-    seen, err, keep = track_corners(warped, query, at[front], p0[:, :2] / p0[:, 2:3], cfg)
-    return X[front][keep], seen[keep], err[keep]
 
 
 def query_depth(coords: np.ndarray, pose_c2w: np.ndarray) -> np.ndarray:
@@ -433,20 +408,20 @@ def align_to_keyframes(
     start = np.asarray(pose_c2w, np.float64)
     if not keyframes:
         return Alignment(start, "few_points")
-    by_query = cfg.warp == "query" and coords is not None
-    cameras = set() if by_query or cfg.matcher == "sparse" else {kf.intrinsics for kf in keyframes}
+    sparse = cfg.matcher == "sparse"  # tracks the keyframes' own corners: no warp, no resampling
+    by_query = cfg.warp == "query" and coords is not None and not sparse
+    cameras = set() if by_query or sparse else {kf.intrinsics for kf in keyframes}
     queries = {k: resample_to(gray, intrinsics, k) for k in cameras}  # once per distinct camera
     # keyframes in parallel only when all of them are used anyway (enough_pairs stops at the first that suffice)
     threads = 1 if cfg.enough_pairs else min(cfg.threads, len(keyframes))
 
-    sparse = cfg.matcher == "sparse"
-    corners = {id(kf): keyframe_corners(kf, cfg.corners) for kf in keyframes} if sparse and not by_query else {}
+    corners = {id(kf): keyframe_corners(kf, cfg.corners) for kf in keyframes} if sparse else {}
 
-    def one(kf: Keyframe, pose: np.ndarray, depth: np.ndarray | None, scale: float) -> tuple[np.ndarray, ...]:
-        if sparse and depth is not None:
-            return query_corner_correspondences(gray, intrinsics, depth, coords[1], pose, kf, cfg)
+    def one(kf: Keyframe, pose: np.ndarray, depth: np.ndarray | None, r: int) -> tuple[np.ndarray, ...]:
         if sparse:
-            return corner_correspondences(gray, intrinsics, pose, kf, corners[id(kf)], cfg)
+            levels = LK_LEVELS[min(r, 1)]
+            return corner_correspondences(gray, intrinsics, pose, kf, corners[id(kf)], cfg, levels)
+        scale = cfg.first_flow_scale if r == 0 else 1.0
         flow = dis_flow(cfg)  # DIS holds working buffers: one per call, so threads never share one
         if depth is not None:
             return query_correspondences(gray, intrinsics, depth, coords[1], pose, kf, flow, cfg, scale)
@@ -456,15 +431,14 @@ def align_to_keyframes(
         return X, uvh[:, :2] / uvh[:, 2:3], err
 
     def pairs(pose: np.ndarray, r: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        scale = cfg.first_flow_scale if r == 0 else 1.0
         depth = query_depth(coords[0], pose) if by_query else None
         if threads > 1:
             with ThreadPoolExecutor(threads, thread_name_prefix="acesplat-align") as pool:
-                found = list(pool.map(lambda kf: one(kf, pose, depth, scale), keyframes))
+                found = list(pool.map(lambda kf: one(kf, pose, depth, r), keyframes))
         else:
             found, total = [], 0
             for kf in keyframes:
-                found.append(one(kf, pose, depth, scale))
+                found.append(one(kf, pose, depth, r))
                 total += len(found[-1][0])
                 if cfg.enough_pairs and total >= cfg.enough_pairs:
                     break

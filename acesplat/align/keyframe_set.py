@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from acesplat.align.keyframe_align import KEYFRAMES, Keyframe, nearest_keyframes
+from acesplat.align.keyframe_align import KEYFRAMES, Keyframe, keyframe_corners, nearest_keyframes
 from acesplat.core.atomic import atomic_path
 from acesplat.core.bundle import MANIFEST_NAME, ROLE_KEYFRAMES, Bundle
 from acesplat.core.camera import Intrinsics
@@ -43,6 +43,11 @@ class KeyframeSet:
                 self.gray[i], Intrinsics.from_K(self.K[i], w, h), self.c2w[i], self.depth[i], self.stride
             )
         return self._made[i]
+
+    def prepare_corners(self, count: int) -> None:
+        """Make every keyframe's corners and plane for the sparse matcher now (keyframe_corners)."""
+        for i in range(len(self)):
+            keyframe_corners(self.keyframe(i), count)
 
     def near(self, pose_c2w: np.ndarray, k: int = KEYFRAMES, depth: float | None = None) -> list[Keyframe]:
         """Up to ``k`` keyframes nearest the camera-to-world ``pose_c2w`` (4, 4) and looking the same way (by

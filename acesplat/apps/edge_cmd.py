@@ -12,7 +12,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from acesplat.align.flow_pnp import KEYFRAME_ALIGN, WARPS, AlignConfig
+from acesplat.align.flow_pnp import KEYFRAME_ALIGN, MATCHERS, WARPS, AlignConfig
 from acesplat.apps.refine_cmd import close_session, exit_if_harmed, refine_line, refine_session
 from acesplat.apps.support import PhaseProgress, one_line_errors, option, report_json, stop_on_signals
 from acesplat.core.bundle import PRECISION_ROLES, Bundle, load_bundle
@@ -70,11 +70,13 @@ def _tracking(on: bool, reanchor_every: int) -> TrackingConfig | None:
     return TrackingConfig(reanchor_every=reanchor_every) if on else None
 
 
-def _align_config(warp: str) -> AlignConfig:
-    """The keyframe alignment of --align with --align-warp's warp."""
+def _align_config(warp: str, matcher: str) -> AlignConfig:
+    """The keyframe alignment of --align with --align-warp's warp and --align-matcher's matcher."""
     if warp not in WARPS:
         raise InputError(None, f"--align-warp must be one of {', '.join(WARPS)}, got {warp!r}")
-    return replace(KEYFRAME_ALIGN, warp=warp)
+    if matcher not in MATCHERS:
+        raise InputError(None, f"--align-matcher must be one of {', '.join(MATCHERS)}, got {matcher!r}")
+    return replace(KEYFRAME_ALIGN, warp=warp, matcher=matcher)
 
 
 def _warn(msg: str) -> None:
@@ -159,6 +161,7 @@ def localize_command(
     save_splat: Path | None = option(RefineOptions, "save_path", "--save-splat"),
     align: bool = typer.Option(False, "--align", help=ALIGN_HELP),
     align_warp: str = option(AlignConfig, "warp", "--align-warp"),
+    align_matcher: str = option(AlignConfig, "matcher", "--align-matcher"),
     tracking: bool = option(TrackingConfig, "enabled", "--tracking/--no-tracking"),
     reanchor_every: int = option(TrackingConfig, "reanchor_every", "--reanchor-every"),
     foxglove: int | None = typer.Option(None, "--foxglove", metavar="PORT", help=FOXGLOVE_HELP),
@@ -181,7 +184,7 @@ def localize_command(
         align=align,
         provider=provider,
         tracking=track,
-        align_config=_align_config(align_warp),
+        align_config=_align_config(align_warp, align_matcher),
     )
     src = open_source(source, SourceOptions(calibration=calib, input_size=b.input_size, realtime=realtime))
     fox = _foxglove_tap(loc, foxglove, mcap, foxglove_host)
@@ -303,6 +306,7 @@ def replay_command(
     save_splat: Path | None = option(RefineOptions, "save_path", "--save-splat"),
     align: bool = typer.Option(False, "--align", help=ALIGN_HELP),
     align_warp: str = option(AlignConfig, "warp", "--align-warp"),
+    align_matcher: str = option(AlignConfig, "matcher", "--align-matcher"),
     tracking: bool = option(TrackingConfig, "enabled", "--tracking/--no-tracking"),
     reanchor_every: int = option(TrackingConfig, "reanchor_every", "--reanchor-every"),
     foxglove: int | None = typer.Option(None, "--foxglove", metavar="PORT", help=FOXGLOVE_HELP),
@@ -327,7 +331,7 @@ def replay_command(
         align=align,
         provider=provider,
         tracking=track,
-        align_config=_align_config(align_warp),
+        align_config=_align_config(align_warp, align_matcher),
     )
     fox = _foxglove_tap(loc, foxglove, mcap, foxglove_host)
     refiner = refine_session(refine, loc, b, budget_ms, save_splat, _warn, evaluate=True)
