@@ -63,6 +63,9 @@ CORNER_SPACING_PX = 5
 LK_LEVELS = (2, 1)
 """Sparse matcher: pyramid levels above full size that Lucas-Kanade starts from, in the first round (a start pose
 off by a few times its window) and in later ones (from a pose already refined)."""
+LK_HIGHPASS_SIGMA = 6.0
+"""Sparse matcher: both images lose their blur at this sigma (px) before Lucas-Kanade, which assumes equal
+brightness where DIS compares zero-mean patches (bench/align.md: 0.98 -> 0.78 px median residual on herzjesu25)."""
 LK_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
 """Sparse matcher: Lucas-Kanade stops after 30 iterations or a step under 0.01 px per level."""
 DEPTH_EDGE_RATIO = 0.05
@@ -183,11 +186,13 @@ def keyframe_matches(
 @dataclass(frozen=True)
 class Corners:
     """What the sparse matcher tracks from a keyframe: corner pixels uv (M, 2) float32 with their world points
-    X (M, 3), and the keyframe's dominant plane (4,) (n, d: n . X = d, |n| = 1, in its camera frame) or None."""
+    X (M, 3), the keyframe's dominant plane (4,) (n, d: n . X = d, |n| = 1, in its camera frame) or None."""
 
     uv: np.ndarray
     X: np.ndarray
     plane: np.ndarray | None
+    image: np.ndarray
+    """The keyframe's image as Lucas-Kanade compares it (highpass), (H, W) uint8."""
 
 
 def keyframe_corners(kf: Keyframe, count: int) -> Corners:
@@ -204,7 +209,7 @@ def keyframe_corners(kf: Keyframe, count: int) -> Corners:
         keep = (lo > 0) & np.isfinite(hi) & (hi <= (1.0 + DEPTH_EDGE_RATIO) * lo)
         uv, z = uv[keep], z[keep]
         X = transform_points(kf.c2w, kf.intrinsics.unproject(uv, z))
-        kf.cache[key] = Corners(uv.astype(np.float32), X, keyframe_plane(kf))
+        kf.cache[key] = Corners(uv.astype(np.float32), X, keyframe_plane(kf), highpass(kf.gray))
     return kf.cache[key]
 
 
@@ -266,14 +271,15 @@ def corner_correspondences(
     levels: int = LK_LEVELS[0],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """World points (M, 3) of the keyframe's ``corners`` (keyframe_corners), where the query (H, W) uint8 with
-    ``intrinsics`` shows them (M, 2) and the forward-backward error there (M,) px: each corner is tracked by
+    ``intrinsics`` (its highpass, as ``corners.image``) shows them (M, 2) and the forward-backward error there (M,)
+    px: each corner is tracked by
     pyramidal Lucas-Kanade from the keyframe (warped to the estimate ``pose_c2w`` (4, 4) by its plane with
     ``cfg.lk_plane_warp``) to the query, starting where the estimate projects its point, and back."""
     h, w = query.shape
-    ref, at = kf.gray, corners.uv
+    ref, at = corners.image, corners.uv
     H = plane_homography(kf, corners.plane, intrinsics, pose_c2w) if cfg.lk_plane_warp else None
     if H is not None:  # the keyframe seen from the estimate as if its scene were its dominant plane
-        ref = cv2.warpPerspective(kf.gray, H, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        ref = cv2.warpPerspective(corners.image, H, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         q = np.c_[at, np.ones(len(at))] @ H.T
         at = (q[:, :2] / q[:, 2:3]).astype(np.float32)
     pc = transform_points(invert_pose(pose_c2w), corners.X)
@@ -287,6 +293,12 @@ def corner_correspondences(
         return X, p0.astype(np.float64), np.zeros(0)
     seen, err, keep = track_corners(ref, query, src, p0, cfg, levels)
     return X[keep], seen[keep], err[keep]
+
+
+def highpass(gray: np.ndarray) -> np.ndarray:
+    """The image (H, W) uint8 less its blur at LK_HIGHPASS_SIGMA, doubled around 128: what Lucas-Kanade compares."""
+    blur = cv2.GaussianBlur(gray, (0, 0), LK_HIGHPASS_SIGMA)
+    return cv2.addWeighted(gray, 2.0, blur, -2.0, 128.0)
 
 
 def track_corners(
@@ -416,11 +428,12 @@ def align_to_keyframes(
     threads = 1 if cfg.enough_pairs else min(cfg.threads, len(keyframes))
 
     corners = {id(kf): keyframe_corners(kf, cfg.corners) for kf in keyframes} if sparse else {}
+    lk_query = highpass(gray) if sparse else gray
 
     def one(kf: Keyframe, pose: np.ndarray, depth: np.ndarray | None, r: int) -> tuple[np.ndarray, ...]:
         if sparse:
             levels = LK_LEVELS[min(r, 1)]
-            return corner_correspondences(gray, intrinsics, pose, kf, corners[id(kf)], cfg, levels)
+            return corner_correspondences(lk_query, intrinsics, pose, kf, corners[id(kf)], cfg, levels)
         scale = cfg.first_flow_scale if r == 0 else 1.0
         flow = dis_flow(cfg)  # DIS holds working buffers: one per call, so threads never share one
         if depth is not None:
