@@ -16,7 +16,7 @@ from functools import partial
 
 import numpy as np
 
-from acesplat.align.flow_pnp import KEYFRAME_ALIGN
+from acesplat.align.flow_pnp import DENSE_ALIGN, KEYFRAME_ALIGN
 from acesplat.align.keyframe_align import align_scr_pose
 from acesplat.core.geometry import pose_error
 from acesplat.core.grid import OUTPUT_STRIDE
@@ -26,12 +26,15 @@ from acesplat.scr.keyframes import MapKeyframes
 from acesplat.scr.localize import Localizer
 from acesplat.scr.mapfile import encoder_for_map, load_map
 
-FULL = replace(KEYFRAME_ALIGN, rounds=3, first_flow_scale=1.0, max_pairs=0, thinning="even", enough_pairs=0)
-"""Every keyframe (4), three full-size rounds, every pair: the alignment before its cheaper defaults."""
+FULL = replace(DENSE_ALIGN, rounds=3, first_flow_scale=1.0, max_pairs=0, thinning="even", enough_pairs=0)
+"""Every keyframe (4), three full-size rounds, every pair: the alignment before its cheaper defaults. The options
+'dense', 'query*', 'cap*', 'enough*', 'default_*' (named when the dense matcher was the default), 'thr2' and 'step*'
+are the dense matcher's (DENSE_ALIGN); 'default' and 'sparse_*' the sparse matcher's (KEYFRAME_ALIGN)."""
 OPTIONS = {
     "base": FULL,
+    "dense": DENSE_ALIGN,
     "default": KEYFRAME_ALIGN,
-    "query": replace(KEYFRAME_ALIGN, warp="query"),
+    "query": replace(DENSE_ALIGN, warp="query"),
     "cap2k_even": replace(FULL, max_pairs=2000),
     "cap5k_even": replace(FULL, max_pairs=5000),
     "cap2k_conf": replace(FULL, max_pairs=2000, thinning="confidence"),
@@ -45,33 +48,31 @@ OPTIONS = {
     "enough16k_r2": replace(FULL, enough_pairs=16000, rounds=2),
     "enough16k_r2_cap5k": replace(FULL, enough_pairs=16000, rounds=2, max_pairs=5000, thinning="confidence"),
     "r2_cap5k": replace(FULL, rounds=2, max_pairs=5000, thinning="confidence"),
-    "default_16k": replace(KEYFRAME_ALIGN, enough_pairs=16000),
-    "default_32k": replace(KEYFRAME_ALIGN, enough_pairs=32000),
-    "default_32k_r3": replace(KEYFRAME_ALIGN, enough_pairs=32000, rounds=3),
-    "default_16k_r3": replace(KEYFRAME_ALIGN, enough_pairs=16000, rounds=3),
-    "query_r1": replace(KEYFRAME_ALIGN, warp="query", rounds=1, first_flow_scale=1.0),
-    "query_k2": replace(KEYFRAME_ALIGN, warp="query"),
-    "query_k2_r1": replace(KEYFRAME_ALIGN, warp="query", rounds=1, first_flow_scale=1.0),
-    "query_k1": replace(KEYFRAME_ALIGN, warp="query"),
-    "query_k2_half": replace(KEYFRAME_ALIGN, warp="query", rounds=1, first_flow_scale=0.5),
-    "thr2": replace(KEYFRAME_ALIGN, threads=2),
-    "step4": replace(KEYFRAME_ALIGN, warp_step_px=4),
-    "step2": replace(KEYFRAME_ALIGN, warp_step_px=2),
-    "step4_thr2": replace(KEYFRAME_ALIGN, warp_step_px=4, threads=2),
-    "sparse": replace(KEYFRAME_ALIGN, matcher="sparse"),
-    "sparse_r1": replace(KEYFRAME_ALIGN, matcher="sparse", rounds=1),
-    "sparse_r3": replace(KEYFRAME_ALIGN, matcher="sparse", rounds=3),
-    "sparse_2k": replace(KEYFRAME_ALIGN, matcher="sparse", corners=2000),
-    "sparse_t1": replace(KEYFRAME_ALIGN, matcher="sparse", threads=1),
-    "sparse_noplane": replace(KEYFRAME_ALIGN, matcher="sparse", lk_plane_warp=False),
-    "sparse_w15": replace(KEYFRAME_ALIGN, matcher="sparse", lk_window_px=15),
-    "sparse_w31": replace(KEYFRAME_ALIGN, matcher="sparse", lk_window_px=31),
-    "sparse_k6": replace(KEYFRAME_ALIGN, matcher="sparse"),
-    "sparse_k8": replace(KEYFRAME_ALIGN, matcher="sparse"),
-    "sparse_k8_r1": replace(KEYFRAME_ALIGN, matcher="sparse", rounds=1),
-    "sparse_px2": replace(KEYFRAME_ALIGN, matcher="sparse", reproj_px=2.0),
-    "sparse_fb1": replace(KEYFRAME_ALIGN, matcher="sparse", max_fb_error_px=1.0),
-    "sparse_fb02": replace(KEYFRAME_ALIGN, matcher="sparse", max_fb_error_px=0.2),
+    "default_16k": replace(DENSE_ALIGN, enough_pairs=16000),
+    "default_32k": replace(DENSE_ALIGN, enough_pairs=32000),
+    "default_32k_r3": replace(DENSE_ALIGN, enough_pairs=32000, rounds=3),
+    "default_16k_r3": replace(DENSE_ALIGN, enough_pairs=16000, rounds=3),
+    "query_r1": replace(DENSE_ALIGN, warp="query", rounds=1, first_flow_scale=1.0),
+    "query_k2": replace(DENSE_ALIGN, warp="query"),
+    "query_k2_r1": replace(DENSE_ALIGN, warp="query", rounds=1, first_flow_scale=1.0),
+    "query_k1": replace(DENSE_ALIGN, warp="query"),
+    "query_k2_half": replace(DENSE_ALIGN, warp="query", rounds=1, first_flow_scale=0.5),
+    "thr2": replace(DENSE_ALIGN, threads=2),
+    "step4": replace(DENSE_ALIGN, warp_step_px=4),
+    "step2": replace(DENSE_ALIGN, warp_step_px=2),
+    "step4_thr2": replace(DENSE_ALIGN, warp_step_px=4, threads=2),
+    "sparse_r2": replace(KEYFRAME_ALIGN, rounds=2),
+    "sparse_r3": replace(KEYFRAME_ALIGN, rounds=3),
+    "sparse_2k": replace(KEYFRAME_ALIGN, corners=2000),
+    "sparse_t1": replace(KEYFRAME_ALIGN, threads=1),
+    "sparse_noplane": replace(KEYFRAME_ALIGN, lk_plane_warp=False),
+    "sparse_w15": replace(KEYFRAME_ALIGN, lk_window_px=15),
+    "sparse_w31": replace(KEYFRAME_ALIGN, lk_window_px=31),
+    "sparse_k6": replace(KEYFRAME_ALIGN),
+    "sparse_k8": replace(KEYFRAME_ALIGN),
+    "sparse_px2": replace(KEYFRAME_ALIGN, reproj_px=2.0),
+    "sparse_fb1": replace(KEYFRAME_ALIGN, max_fb_error_px=1.0),
+    "sparse_fb02": replace(KEYFRAME_ALIGN, max_fb_error_px=0.2),
 }
 KEYFRAME_COUNT = {
     "query_k2": 2,
@@ -80,7 +81,6 @@ KEYFRAME_COUNT = {
     "query_k2_half": 2,
     "sparse_k6": 6,
     "sparse_k8": 8,
-    "sparse_k8_r1": 8,
 }
 """Options that align to fewer than acesplat.align.keyframe_align.KEYFRAMES keyframes (nearest first)."""
 
@@ -99,6 +99,7 @@ def main() -> None:
     net = m.network(encoder_for_map(m, a.map, None))
     kfs = MapKeyframes(read_split(a.scene, "train"), net, m.short_side)
     kfs.prepare()
+    kfs.prepare_corners(KEYFRAME_ALIGN.corners)  # made on first use otherwise, inside the first frames' times
     loc = Localizer(net, m.short_side, {}, keyframes=None)
     frames = read_split(a.scene, "test").frames
     if a.frames and len(frames) > a.frames:

@@ -190,20 +190,20 @@ def test_keyframes_ride_in_the_bundle_and_the_edge_aligns_to_them(tiny, tmp_path
     # the views near enough to a keyframe to be aligned land within a few millimetres (measured 1 of 4, 0.8 cm)
     aligned = sorted(f["translation_m"] for f in s["per_frame"])[: s["keyframe_alignment"].get("aligned", 0)]
     assert len(aligned) >= 1 and max(aligned) < 0.02, s["per_frame"]
-    assert s["align_warp"] == "keyframe"
+    assert s["align_warp"] == "keyframe" and s["align_matcher"] == "sparse"
     # the query's own SCR depth warping the keyframes: recorded, and a warp that does not exist is refused
-    r = CliRunner().invoke(
-        edge_app,
-        ["replay", str(tmp_path / "kf"), str(tiny["scene"]), "--align", "--align-warp", "query", "--json", str(out)],
-    )
+    kf_scene = [str(tmp_path / "kf"), str(tiny["scene"])]
+    dense_query = ["--align", "--align-matcher", "dense", "--align-warp", "query"]
+    r = CliRunner().invoke(edge_app, ["replay", *kf_scene, *dense_query, "--json", str(out)])
     assert r.exit_code == 0, r.output
     q = json.loads(out.read_text())
     assert q["align_warp"] == "query" and sum(q["keyframe_alignment"].values()) == q["localized"] == 4
     r = CliRunner().invoke(edge_app, ["replay", str(tmp_path / "kf"), str(tiny["scene"]), "--align-warp", "splat"])
     assert r.exit_code == 2 and "Traceback" not in r.output
     assert "--align-warp must be one of keyframe, query" in r.output
+    r = CliRunner().invoke(edge_app, ["replay", str(tmp_path / "kf"), str(tiny["scene"]), "--align-warp", "query"])
+    assert r.exit_code == 2 and "add --align-matcher dense" in r.output
     # the sparse matcher (keyframe corners tracked by Lucas-Kanade): recorded, and an unknown one refused
-    kf_scene = [str(tmp_path / "kf"), str(tiny["scene"])]
     r = CliRunner().invoke(edge_app, ["replay", *kf_scene, "--align", "--align-matcher", "sparse", "--json", str(out)])
     assert r.exit_code == 0, r.output
     q = json.loads(out.read_text())

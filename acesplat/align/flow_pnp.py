@@ -59,7 +59,10 @@ class AlignConfig:
     min_inlier_ratio: float = knob(0.5, "RANSAC inliers needed, as a share of the pairs PnP was given.")
     max_shift_m: float = knob(0.5, "A correction beyond this (m) means the start pose was wrong, not imprecise.")
     max_shift_deg: float = knob(3.0, "A correction beyond this (deg) means the start pose was wrong, not imprecise.")
-    rounds: int = knob(2, "Warp-flow-PnP rounds (keyframes), each from the last round's pose; a render is one round.")
+    rounds: int = knob(
+        1,
+        "Match-PnP rounds (keyframes), each from the last round's pose (dense: 2, DENSE_ALIGN); a render is one round.",
+    )
     min_anchor_kept: float = knob(
         0.8, "Share of the SCR correspondences' inliers the refined pose must keep (keyframes; bench/herz_gap.md)."
     )
@@ -86,10 +89,10 @@ class AlignConfig:
         "keyframe's depth without SCR coordinates or when it cannot fit; bench/align.md).",
     )
     matcher: str = knob(
-        "dense",
+        "sparse",
         "How keyframe pixels are found in the query: dense (the keyframe warped to the estimate, DIS flow) or sparse "
-        "(the keyframe's corners tracked by pyramidal Lucas-Kanade from where the estimate projects them, the "
-        "keyframe warped by its dominant plane; ignores warp; bench/align.md).",
+        "(the keyframe's corners, triangulated between keyframes, tracked by pyramidal Lucas-Kanade from where the "
+        "estimate projects them, the keyframe warped by its dominant plane; ignores warp; bench/align.md).",
     )
     corners: int = knob(800, "Sparse matcher: corners per keyframe (Shi-Tomasi, strongest first).")
     lk_window_px: int = knob(21, "Sparse matcher: Lucas-Kanade window side (px).")
@@ -127,9 +130,14 @@ class AlignConfig:
 
 
 KEYFRAME_ALIGN = AlignConfig()
-"""Mapping images warped to the estimate with their depth (bench/herz_gap.md)."""
+"""Mapping images' corners, triangulated between them, tracked into the query from the estimate (bench/align.md)."""
+DENSE_ROUNDS = 2
+"""Rounds of the dense matcher (DENSE_ALIGN): its first runs the flow at half size."""
+DENSE_ALIGN = replace(KEYFRAME_ALIGN, matcher="dense", rounds=DENSE_ROUNDS)
+"""Mapping images warped to the estimate with their depth, two rounds of DIS flow (bench/herz_gap.md, bench/align.md:
+as accurate as the sparse matcher on herzjesu25 and fountain11, at 5-8x its time)."""
 RENDER_ALIGN = replace(
-    KEYFRAME_ALIGN,
+    DENSE_ALIGN,
     max_fb_error_px=None,
     ransac_iterations=100,
     refine_lm=False,
@@ -142,7 +150,7 @@ RENDER_ALIGN = replace(
 )
 """The map rendered at the estimate (bench/refine.md): no forward-backward check, RANSAC alone, one round."""
 TRACK_ALIGN = replace(
-    KEYFRAME_ALIGN,
+    DENSE_ALIGN,
     sample_step_px=4,
     max_photo_diff=30.0,
     flow_preset="fast",

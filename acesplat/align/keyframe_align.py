@@ -26,6 +26,7 @@ import numpy as np
 
 from acesplat.align.depth_warp import forward_map, pixel_map, warp_to_camera
 from acesplat.align.flow_pnp import (
+    DENSE_ROUNDS,
     KEYFRAME_ALIGN,
     AlignConfig,
     Alignment,
@@ -50,6 +51,9 @@ MAX_VIEW_ANGLE_DEG = 30.0
 QUERY_DEPTH_MEDIAN = 3
 """Median filter (cells) over the query's SCR depth before it warps a keyframe (``warp`` query): one wrong cell
 would tear the warp around it."""
+DENSE_FALLBACK_STATUSES = ("few_points",)
+"""A sparse alignment that ends so is tried again with the dense matcher: too few corners to track (small or plain
+images), where every textured pixel may still be enough."""
 REWARP_STATUSES = ("few_points", "no_fit")
 """A query-depth warp (``warp`` query) that ends so is tried again with the keyframes' own depth: the SCR depth can be
 wrong over whole regions (bench/align.md), the keyframes' is not."""
@@ -89,7 +93,8 @@ class Keyframe:
 
     gray (H, W) uint8 at the map's resolution; intrinsics of it; c2w (4, 4); depth (h, w) float32 z-depth at
     the prediction cells spaced ``stride`` px apart (acesplat.core.grid.cell_centers), 0 where unknown.
-    cache: what the sparse matcher derives from the keyframe alone (its corners and plane), made on first use.
+    cache: what the sparse matcher derives from the keyframe (its corners and plane), made on first use; a copy
+    (dataclasses.replace) starts without.
     """
 
     gray: np.ndarray
@@ -97,7 +102,7 @@ class Keyframe:
     c2w: np.ndarray
     depth: np.ndarray
     stride: int
-    cache: dict = field(default_factory=dict, compare=False, repr=False)
+    cache: dict = field(default_factory=dict, init=False, compare=False, repr=False)
 
 
 def nearest_keyframes(
@@ -197,7 +202,8 @@ class Corners:
 
 def keyframe_corners(kf: Keyframe, count: int) -> Corners:
     """The keyframe's ``count`` strongest corners with a known depth off depth edges, and its plane; made once per
-    keyframe and count (kept in ``kf.cache``)."""
+    keyframe and count (kept in ``kf.cache``, where a keyframe set may have put them triangulated between
+    keyframes first: acesplat.align.keyframe_depth.triangulate_corners)."""
     key = ("corners", count)
     if key not in kf.cache:
         pts = cv2.goodFeaturesToTrack(kf.gray, count, CORNER_QUALITY, CORNER_SPACING_PX)
@@ -275,6 +281,20 @@ def corner_correspondences(
     px: each corner is tracked by
     pyramidal Lucas-Kanade from the keyframe (warped to the estimate ``pose_c2w`` (4, 4) by its plane with
     ``cfg.lk_plane_warp``) to the query, starting where the estimate projects its point, and back."""
+    idx, seen, err = corner_tracks(query, intrinsics, pose_c2w, kf, corners, cfg, levels)
+    return corners.X[idx], seen, err
+
+
+def corner_tracks(
+    query: np.ndarray,
+    intrinsics: Intrinsics,
+    pose_c2w: np.ndarray,
+    kf: Keyframe,
+    corners: Corners,
+    cfg: AlignConfig = KEYFRAME_ALIGN,
+    levels: int = LK_LEVELS[0],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """As corner_correspondences, with the indices (M,) of the corners found instead of their world points."""
     h, w = query.shape
     ref, at = corners.image, corners.uv
     H = plane_homography(kf, corners.plane, intrinsics, pose_c2w) if cfg.lk_plane_warp else None
@@ -288,11 +308,12 @@ def corner_correspondences(
     p0 = p0[:, :2] / p0[:, 2:3]
     m = cfg.lk_window_px / 2.0
     inside = (p0[:, 0] >= m) & (p0[:, 0] <= w - 1 - m) & (p0[:, 1] >= m) & (p0[:, 1] <= h - 1 - m)
-    src, X, p0 = at[front][inside], corners.X[front][inside], p0[inside].astype(np.float32)
+    idx = np.flatnonzero(front)[inside]
+    src, p0 = at[idx], p0[inside].astype(np.float32)
     if len(src) == 0:
-        return X, p0.astype(np.float64), np.zeros(0)
+        return idx, p0.astype(np.float64), np.zeros(0)
     seen, err, keep = track_corners(ref, query, src, p0, cfg, levels)
-    return X[keep], seen[keep], err[keep]
+    return idx[keep], seen[keep], err[keep]
 
 
 def highpass(gray: np.ndarray) -> np.ndarray:
@@ -458,6 +479,10 @@ def align_to_keyframes(
         return tuple(np.concatenate(parts) for parts in zip(*found, strict=True))
 
     al = refine_pose(start, intrinsics, pairs, cfg)
+    if sparse and al.status in DENSE_FALLBACK_STATUSES:
+        # too few corners to track (small or plain images): every textured pixel of the dense matcher instead
+        dense = replace(cfg, matcher="dense", rounds=DENSE_ROUNDS)
+        return align_to_keyframes(gray, intrinsics, start, keyframes, anchor, dense, coords)
     if by_query and al.status in REWARP_STATUSES:
         # where the query's SCR depth tears the warp (too few pairs agree), the keyframes' own depth warps them
         return align_to_keyframes(gray, intrinsics, start, keyframes, anchor, replace(cfg, warp="keyframe"))
@@ -478,10 +503,12 @@ def align_scr_pose(
     cfg: AlignConfig = KEYFRAME_ALIGN,
 ) -> Alignment:
     """Refine a pose solved from the SCR grid ``coords`` (h, w, 3) (cells ``stride`` px apart) of ``gray``: the
-    keyframes ``near(pose, depth=...)`` gives for the scene's depth in front of it, the grid as the anchor.
+    keyframes ``near(pose, depth=..., corners=...)`` gives for the scene's depth in front of it (with the sparse
+    matcher, carrying its corners triangulated between keyframes), the grid as the anchor.
     One path for the desktop localizer and the edge runtime."""
     anchor = grid_correspondences(coords, stride)
-    keyframes = near(pose_c2w, depth=scene_depth(anchor[0], pose_c2w))
+    corners = cfg.corners if cfg.matcher == "sparse" else 0
+    keyframes = near(pose_c2w, depth=scene_depth(anchor[0], pose_c2w), corners=corners)
     return align_to_keyframes(gray, intrinsics, pose_c2w, keyframes, anchor=anchor, cfg=cfg, coords=(coords, stride))
 
 

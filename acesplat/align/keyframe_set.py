@@ -6,12 +6,14 @@ code; every array's shape and every pose is checked on load, and the error names
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from acesplat.align.keyframe_align import KEYFRAMES, Keyframe, keyframe_corners, nearest_keyframes
+from acesplat.align.keyframe_align import KEYFRAMES, Keyframe, nearest_keyframes
+from acesplat.align.keyframe_depth import CORNER_NEIGHBOURS, depth_neighbours, triangulate_corners
 from acesplat.core.atomic import atomic_path
 from acesplat.core.bundle import MANIFEST_NAME, ROLE_KEYFRAMES, Bundle
 from acesplat.core.camera import Intrinsics
@@ -45,14 +47,20 @@ class KeyframeSet:
         return self._made[i]
 
     def prepare_corners(self, count: int) -> None:
-        """Make every keyframe's corners and plane for the sparse matcher now (keyframe_corners)."""
-        for i in range(len(self)):
-            keyframe_corners(self.keyframe(i), count)
+        """Make every keyframe's corners and plane for the sparse matcher now, each corner's depth triangulated with
+        the keyframe's neighbours (acesplat.align.keyframe_depth.triangulate_corners)."""
+        prepare_corners(self.keyframe, self.c2w, count)
 
-    def near(self, pose_c2w: np.ndarray, k: int = KEYFRAMES, depth: float | None = None) -> list[Keyframe]:
+    def near(
+        self, pose_c2w: np.ndarray, k: int = KEYFRAMES, depth: float | None = None, corners: int = 0
+    ) -> list[Keyframe]:
         """Up to ``k`` keyframes nearest the camera-to-world ``pose_c2w`` (4, 4) and looking the same way (by
-        viewpoint change when the scene ``depth`` in front of the query is given: nearest_keyframes)."""
-        return [self.keyframe(i) for i in nearest_keyframes(self.c2w, pose_c2w, k, depth=depth)]
+        viewpoint change when the scene ``depth`` in front of the query is given: nearest_keyframes); with
+        ``corners``, each carries that many corners triangulated between keyframes (made on first use)."""
+        idx = nearest_keyframes(self.c2w, pose_c2w, k, depth=depth)
+        if corners:
+            prepare_corners(self.keyframe, self.c2w, corners, idx)
+        return [self.keyframe(i) for i in idx]
 
     @classmethod
     def stack(cls, keyframes: list[Keyframe]) -> KeyframeSet:
@@ -68,6 +76,22 @@ class KeyframeSet:
             np.stack([k.intrinsics.K for k in keyframes]),
             strides.pop(),
         )
+
+
+def prepare_corners(
+    keyframe: Callable[[int], Keyframe], c2ws: np.ndarray, count: int, which: Sequence[int] | None = None
+) -> None:
+    """Triangulated corners (acesplat.align.keyframe_depth.triangulate_corners) for the keyframes ``keyframe(i)``
+    (of camera-to-worlds c2ws (N, 4, 4)) of ``which`` (default: all) that have none yet, each with its
+    depth_neighbours."""
+    for i in range(len(c2ws)) if which is None else which:
+        kf = keyframe(i)
+        if kf.cache.get(("triangulated", count)):
+            continue
+        known = kf.depth[kf.depth > 0]
+        nbs = depth_neighbours(c2ws, i, float(np.median(known)), CORNER_NEIGHBOURS) if known.size else []
+        triangulate_corners(kf, [keyframe(j) for j in nbs], count)
+        kf.cache[("triangulated", count)] = True
 
 
 def save_keyframes(path: str | Path, ks: KeyframeSet) -> None:

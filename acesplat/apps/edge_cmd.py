@@ -12,10 +12,11 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from acesplat.align.flow_pnp import KEYFRAME_ALIGN, MATCHERS, WARPS, AlignConfig
+from acesplat.align.flow_pnp import DENSE_ALIGN, KEYFRAME_ALIGN, MATCHERS, WARPS, AlignConfig
 from acesplat.apps.refine_cmd import close_session, exit_if_harmed, refine_line, refine_session
 from acesplat.apps.support import PhaseProgress, one_line_errors, option, report_json, stop_on_signals
 from acesplat.core.bundle import PRECISION_ROLES, Bundle, load_bundle
+from acesplat.core.config import knob_default
 from acesplat.core.errors import InputError
 from acesplat.core.geometry import matrix_to_quat
 from acesplat.core.pose import TrackingState
@@ -76,7 +77,11 @@ def _align_config(warp: str, matcher: str) -> AlignConfig:
         raise InputError(None, f"--align-warp must be one of {', '.join(WARPS)}, got {warp!r}")
     if matcher not in MATCHERS:
         raise InputError(None, f"--align-matcher must be one of {', '.join(MATCHERS)}, got {matcher!r}")
-    return replace(KEYFRAME_ALIGN, warp=warp, matcher=matcher)
+    if matcher == "sparse":
+        if warp != knob_default(AlignConfig, "warp"):
+            raise InputError(None, f"--align-warp {warp} warps for the dense matcher; add --align-matcher dense")
+        return KEYFRAME_ALIGN
+    return replace(DENSE_ALIGN, warp=warp)
 
 
 def _warn(msg: str) -> None:

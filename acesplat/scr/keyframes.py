@@ -14,7 +14,7 @@ import numpy as np
 
 from acesplat.align.keyframe_align import KEYFRAMES, Keyframe, nearest_keyframes
 from acesplat.align.keyframe_depth import depth_neighbours, refine_depth
-from acesplat.align.keyframe_set import KeyframeSet
+from acesplat.align.keyframe_set import KeyframeSet, prepare_corners
 from acesplat.core.grid import DENSE_OUTPUT_STRIDE
 from acesplat.core.preprocess import to_gray_input
 from acesplat.core.scene import SceneSplit
@@ -76,6 +76,10 @@ class MapKeyframes:
             if progress:
                 progress(i + 1, len(self.images))
 
+    def prepare_corners(self, count: int) -> None:
+        """Every keyframe's corners for the sparse matcher, triangulated between keyframes (KeyframeSet's)."""
+        prepare_corners(self.keyframe, self.c2ws, count)
+
     def to_set(self) -> KeyframeSet:
         """Every keyframe with its depth, as the arrays a bundle carries (acesplat.align.keyframe_set)."""
         self.prepare()
@@ -88,7 +92,13 @@ class MapKeyframes:
             self._made[i] = Keyframe(im.gray, im.intrinsics, im.c2w, self.depth(i), DENSE_OUTPUT_STRIDE)
         return self._made[i]
 
-    def near(self, pose_c2w: np.ndarray, depth: float | None = None, k: int | None = None) -> list[Keyframe]:
+    def near(
+        self, pose_c2w: np.ndarray, depth: float | None = None, k: int | None = None, corners: int = 0
+    ) -> list[Keyframe]:
         """Up to ``k`` (default: the set's) keyframes nearest the camera-to-world ``pose_c2w`` (4, 4) and looking the
-        same way (by viewpoint change when the scene ``depth`` in front of the query is given: nearest_keyframes)."""
-        return [self.keyframe(i) for i in nearest_keyframes(self.c2ws, pose_c2w, k or self.k, depth=depth)]
+        same way (by viewpoint change when the scene ``depth`` in front of the query is given: nearest_keyframes);
+        with ``corners``, each carries that many corners triangulated between keyframes (made on first use)."""
+        idx = nearest_keyframes(self.c2ws, pose_c2w, k or self.k, depth=depth)
+        if corners:
+            prepare_corners(self.keyframe, self.c2ws, corners, idx)
+        return [self.keyframe(i) for i in idx]
