@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 
 from acesplat.align.flow_pnp import (
+    DENSE_ALIGN,
     KEYFRAME_ALIGN,
     RENDER_ALIGN,
+    TRACK_ALIGN,
     AlignConfig,
     dis_flow,
     flow_to_query,
@@ -109,10 +111,10 @@ def test_rounds_stop_early_once_converged() -> None:
         calls.append(r)
         return X, uv, np.zeros(len(X))
 
-    refine_pose(true, K, src, replace(KEYFRAME_ALIGN, converged_m=1e-3, converged_deg=0.01))
+    refine_pose(true, K, src, replace(DENSE_ALIGN, converged_m=1e-3, converged_deg=0.01))
     assert calls == [0]
     calls.clear()
-    refine_pose(true, K, src, KEYFRAME_ALIGN)
+    refine_pose(true, K, src, DENSE_ALIGN)
     assert calls == [0, 1]
 
 
@@ -130,9 +132,12 @@ def test_thinning_keeps_the_cap_evenly_or_the_most_confident() -> None:
 
 
 def test_the_presets_hold_the_two_aligners_settings_and_bad_configs_are_refused() -> None:
-    assert (KEYFRAME_ALIGN.min_points, KEYFRAME_ALIGN.ransac_iterations, KEYFRAME_ALIGN.rounds) == (300, 200, 2)
-    assert (KEYFRAME_ALIGN.first_flow_scale, KEYFRAME_ALIGN.max_pairs, KEYFRAME_ALIGN.enough_pairs) == (0.5, 5000, 0)
+    assert (KEYFRAME_ALIGN.min_points, KEYFRAME_ALIGN.ransac_iterations, KEYFRAME_ALIGN.rounds) == (300, 200, 1)
+    assert (KEYFRAME_ALIGN.matcher, KEYFRAME_ALIGN.corners, KEYFRAME_ALIGN.lk_window_px) == ("sparse", 800, 21)
     assert (KEYFRAME_ALIGN.max_fb_error_px, KEYFRAME_ALIGN.max_shift_m, KEYFRAME_ALIGN.refine_lm) == (0.5, 0.5, True)
+    assert (DENSE_ALIGN.matcher, DENSE_ALIGN.rounds) == ("dense", 2)
+    assert (DENSE_ALIGN.first_flow_scale, DENSE_ALIGN.max_pairs, DENSE_ALIGN.enough_pairs) == (0.5, 5000, 0)
+    assert TRACK_ALIGN.matcher == RENDER_ALIGN.matcher == "dense"
     assert (RENDER_ALIGN.min_points, RENDER_ALIGN.ransac_iterations, RENDER_ALIGN.rounds) == (400, 100, 1)
     assert (RENDER_ALIGN.max_fb_error_px, RENDER_ALIGN.max_shift_m, RENDER_ALIGN.refine_lm) == (None, 0.15, False)
     for bad in (
@@ -141,6 +146,9 @@ def test_the_presets_hold_the_two_aligners_settings_and_bad_configs_are_refused(
         dict(flow_preset="slow"),
         dict(max_fb_error_px=None, thinning="confidence"),
         dict(first_flow_scale=2.0),
+        dict(matcher="sift"),
+        dict(corners=2),
+        dict(lk_window_px=3),
     ):
         with pytest.raises(ValueError):
             AlignConfig(**bad)
