@@ -90,7 +90,7 @@ def _warn(msg: str) -> None:
 
 ALIGN_HELP = (
     "Refine each pose against the bundle's keyframes (export --keyframes): "
-    "centimetre poses where SCR alone is a few cm off, at a few hundred ms per frame."
+    "centimetre poses where SCR alone is a few cm off, for about 50 ms more per frame (bench/align.md)."
 )
 FOXGLOVE_HELP = "Serve a live Foxglove WebSocket on this port (Foxglove's usual: 8765; 0 picks a free one)."
 MCAP_HELP = "Log the same channels to this MCAP file (written as PATH.partial, renamed into place at the end)."
