@@ -133,7 +133,7 @@ def test_thinning_keeps_the_cap_evenly_or_the_most_confident() -> None:
 
 def test_the_presets_hold_the_two_aligners_settings_and_bad_configs_are_refused() -> None:
     assert (KEYFRAME_ALIGN.min_points, KEYFRAME_ALIGN.ransac_iterations, KEYFRAME_ALIGN.rounds) == (300, 200, 1)
-    assert (KEYFRAME_ALIGN.matcher, KEYFRAME_ALIGN.corners, KEYFRAME_ALIGN.lk_window_px) == ("sparse", 800, 21)
+    assert (KEYFRAME_ALIGN.matcher, KEYFRAME_ALIGN.corners, KEYFRAME_ALIGN.lk_window_px) == ("sparse", 800, 15)
     assert (KEYFRAME_ALIGN.max_fb_error_px, KEYFRAME_ALIGN.max_shift_m, KEYFRAME_ALIGN.refine_lm) == (0.5, 0.5, True)
     assert (DENSE_ALIGN.matcher, DENSE_ALIGN.rounds) == ("dense", 2)
     assert (DENSE_ALIGN.first_flow_scale, DENSE_ALIGN.max_pairs, DENSE_ALIGN.enough_pairs) == (0.5, 5000, 0)

@@ -95,7 +95,7 @@ class AlignConfig:
         "estimate projects them, the keyframe warped by its dominant plane; ignores warp; bench/align.md).",
     )
     corners: int = knob(800, "Sparse matcher: corners per keyframe (Shi-Tomasi, strongest first).")
-    lk_window_px: int = knob(21, "Sparse matcher: Lucas-Kanade window side (px).")
+    lk_window_px: int = knob(15, "Sparse matcher: Lucas-Kanade window side (px; bench/align.md).")
     lk_plane_warp: bool = knob(
         True, "Sparse matcher: the keyframe is first warped by its dominant plane's homography to the estimate."
     )

@@ -39,6 +39,10 @@ shows the depth at all); at 0.1 px of flow noise and 2 px that is 5% of the dept
 CORNER_NEIGHBOURS = 4
 """Keyframes a keyframe's corners are triangulated with (triangulate_corners; bench/align.md: 2 left herzjesu25's
 sparse alignment at 1.65 cm median, 3-4 brought it to 0.83-0.93 cm)."""
+TRIANGULATION_TRACKING = replace(KEYFRAME_ALIGN, lk_window_px=21)
+"""Lucas-Kanade between keyframes for triangulate_corners: a wider window than the query's, across their wider
+baselines (bench/align.md: 21 px here and 15 px for the query gave herzjesu25 0.87 cm and fountain11 0.28 cm;
+15 px for both 0.90 and 0.50 cm)."""
 MIN_SAMPLES = 2
 """Triangulated samples a cell needs before its depth is replaced (their median); other cells keep theirs."""
 MAX_CHANGE = 0.25
@@ -125,7 +129,7 @@ def triangulate_corners(kf: Keyframe, neighbours: Sequence[Keyframe], count: int
     z_grid = transform_points(invert_pose(kf.c2w), c.X)[:, 2]
     num, den = np.zeros(len(uv)), np.zeros(len(uv))
     for nb in neighbours:
-        idx, seen, _ = corner_tracks(highpass(nb.gray), nb.intrinsics, nb.c2w, kf, c)
+        idx, seen, _ = corner_tracks(highpass(nb.gray), nb.intrinsics, nb.c2w, kf, c, TRIANGULATION_TRACKING)
         if not len(idx):
             continue
         z, sens = triangulate_along_rays(uv[idx], kf, seen, nb.intrinsics.K, nb.c2w)
