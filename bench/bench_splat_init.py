@@ -61,6 +61,8 @@ METHODS = (
     "scr_points_few",
     "scr_points_texture",
     "sift",
+    "scr_corners",
+    "scr_corners_lib",
     "random",
 )
 SCR_VARIANTS = {
@@ -68,6 +70,7 @@ SCR_VARIANTS = {
     "scr_analytic": {"start": "head", "head_warmup": 0.0, "joint_head": False, "fill": False},
     "scr_analytic_fill": {"start": "head", "head_warmup": 0.0, "joint_head": False, "fill": True},
     "scr_cells": {"start": "cells"},
+    "scr_corners_lib": {"start": "corners"},
 }
 """SplatConfig fields of the library's SCR starts: the trained head (the former defaults), its analytic start (no
 training, the fresh head's zero residuals) with or without the filled pixels, and the textured-cell point start."""
@@ -253,6 +256,27 @@ def run_method(method: str, scene: Path, map_path: Path, args, eval_train, eval_
                 else:
                     keep = rng.choice(len(pts), cap, replace=False)
                 pts, cols = pts[keep], cols[keep]
+        elif method == "scr_corners":
+            # Each training image's corners, triangulated with its neighbouring images by the keyframe alignment's
+            # Lucas-Kanade (acesplat.align.keyframe_depth.triangulate_corners), as points: the SCR map gives the
+            # keyframes' depth grid (their first guess and the plane the tracking warps by), the poses the rest.
+            from acesplat.align.flow_pnp import KEYFRAME_ALIGN
+            from acesplat.align.keyframe_align import keyframe_corners
+            from acesplat.scr.keyframes import MapKeyframes
+
+            net = m.network(encoder_for_map(m, map_path, args.encoder))
+            kfs = MapKeyframes(read_split(scene, "train"), net, m.short_side)
+            kfs.prepare_corners(KEYFRAME_ALIGN.corners)
+            pts_l, cols_l = [], []
+            for i, v in enumerate(views):
+                c = keyframe_corners(kfs.keyframe(i), KEYFRAME_ALIGN.corners)
+                if v.rgb.shape[:2] != kfs.images[i].gray.shape:
+                    raise SystemExit(f"{scene}: view {i} is {v.rgb.shape[:2]}, its keyframe {kfs.images[i].gray.shape}")
+                u = np.rint(c.uv).astype(np.int64)
+                pts_l.append(c.X[c.triangulated])
+                cols_l.append(v.rgb[u[c.triangulated, 1], u[c.triangulated, 0]])
+            pts, cols = np.concatenate(pts_l), np.concatenate(cols_l)
+            info["corners"] = int(len(pts))
         elif method == "sift":
             pts, cols = triangulated_points(
                 [v.gray for v in views], [v.rgb for v in views], [v.intrinsics for v in views], list(poses)
@@ -321,6 +345,7 @@ def plot(results: dict, path: Path, minutes: float) -> None:
         "scr_points_few": "tab:olive",
         "scr_points_texture": "tab:cyan",
         "sift": "tab:blue",
+        "scr_corners": "tab:red",
         "random": "tab:gray",
     }
     for ax, name in zip(axes[0], scenes):

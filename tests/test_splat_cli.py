@@ -176,6 +176,16 @@ def test_cells_start_seeds_the_most_textured_trusted_cells(world):
     )
 
 
+def test_corners_start_refuses_views_where_nothing_triangulates(world):
+    """The untrained tiny map's cells are too far off, on 48x64 images, for any corner to triangulate: one line,
+    exit 2, nothing written (the start on real views: tests/test_splatcore_corner_seeds.py)."""
+    root = world["root"]
+    common = ["splat", world["scene"], "--map", world["map"], "--reproj-px", REPROJ, "--start", "corners"]
+    one_line_error(run(*common, "-o", root / "corners", "--iterations", "0"), "corner(s) triangulate between the views")
+    assert not (root / "corners").exists()
+    one_line_error(run(*common, "-o", root / "bad", "--seed-corners", "2"), "seed_corners 4")
+
+
 def test_sparse_protocol_reports_held_out_targets(world):
     out = world["root"] / "sparse"
     res = run(

@@ -198,6 +198,8 @@ class Corners:
     plane: np.ndarray | None
     image: np.ndarray
     """The keyframe's image as Lucas-Kanade compares it (highpass), (H, W) uint8."""
+    triangulated: np.ndarray | None = None
+    """(M,) bool: whose depth neighbouring keyframes triangulated (acesplat.align.keyframe_depth); None: not tried."""
 
 
 def keyframe_corners(kf: Keyframe, count: int) -> Corners:

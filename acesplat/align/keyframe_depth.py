@@ -138,6 +138,6 @@ def triangulate_corners(kf: Keyframe, neighbours: Sequence[Keyframe], count: int
         np.add.at(num, idx[ok], w * z[ok])
         np.add.at(den, idx[ok], w)
     z = np.where(den > 0, num / np.where(den > 0, den, 1.0), z_grid)
-    out = replace(c, X=transform_points(kf.c2w, kf.intrinsics.unproject(uv, z)))
+    out = replace(c, X=transform_points(kf.c2w, kf.intrinsics.unproject(uv, z)), triangulated=den > 0)
     kf.cache[("corners", count)] = out
     return out

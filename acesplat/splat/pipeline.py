@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from acesplat.align.flow_pnp import AlignConfig
 from acesplat.core.config import knob, knob_default
 from acesplat.core.errors import InputError
 from acesplat.core.scene import Frame
@@ -37,6 +38,7 @@ from acesplat.splat.point_init import gaussians_from_points
 from acesplat.splat.schedule import NET_LR_MAX, NET_LR_MIN, one_cycle
 from acesplat.splat.views import SplatView, load_views, run_scr
 from acesplat.splatcore.cell_seeds import cell_points, cell_texture, textured_cells
+from acesplat.splatcore.corner_seeds import cell_depth_grid, corner_seeds
 from acesplat.splatcore.fusion import DEPTH_TOLERANCE
 from acesplat.splatcore.head_io import SceneNorm
 from acesplat.splatcore.validity import (
@@ -55,7 +57,7 @@ SCENE_EXTENT_FACTOR = 1.1
 """3DGS's scene extent: 1.1 x the largest camera distance from their mean."""
 
 ProgressFn = Callable[[str, float, dict], None]
-STARTS = ("cells", "head")
+STARTS = ("cells", "corners", "head")
 
 
 @dataclass
@@ -72,10 +74,15 @@ class SplatConfig:
     start: str = knob(
         "cells",
         "Where Gaussians start: cells (the most textured trusted SCR cells, 3DGS's point start: better on real "
-        "photographs) or head (the init head's Gaussians at pixel resolution, views fused: better on the synthetic "
-        "room; bench/splat_init.md).",
+        "photographs), corners (each view's corners triangulated between the views, the cells their first guess) "
+        "or head (the init head's Gaussians at pixel resolution, views fused: better on the synthetic room; "
+        "bench/splat_init.md).",
     )
     seed_cells: int = knob(12_000, "Cells the 'cells' start seeds (as many points as a sparse SfM start has).")
+    seed_corners: int = knob(
+        knob_default(AlignConfig, "corners"),
+        "Corners per view the 'corners' start triangulates between views (the keyframe alignment's count).",
+    )
     max_initial: int = knob(60_000, "Budget of initial Gaussians: the seeding lattice's stride is chosen to fit it.")
     max_gaussians: int = knob(
         200_000, "Cap on the number of Gaussians (rendering time, hence CPU time, grows with it)."
@@ -126,8 +133,10 @@ class SplatConfig:
                 None,
                 "head_warmup and joint_head train the init head, which seeds with start 'head' only (use --start head)",
             )
-        if self.seed_cells < 2:
-            raise InputError(None, f"seed_cells must be at least 2, got {self.seed_cells}")
+        if self.seed_cells < 2 or self.seed_corners < 4:
+            raise InputError(
+                None, f"seed_cells must be at least 2 and seed_corners 4, got {self.seed_cells}, {self.seed_corners}"
+            )
 
 
 @dataclass
@@ -244,6 +253,9 @@ def splat_scene(
     if cfg.start == "cells":
         params = _cell_start(usable, cfg, source)
         seeding["seed_cells"] = int(params["means"].shape[0])
+    elif cfg.start == "corners":
+        params, per_view = _corner_start(usable, cfg, source)
+        seeding.update(seed_corners=int(params["means"].shape[0]), seed_corners_per_view=per_view)
     else:
         pixels = [head.pixels(i) for i in range(len(usable))]
         tensors, merge = merge_views(
@@ -329,6 +341,28 @@ def _cell_start(views: Sequence[SplatView], cfg: SplatConfig, source: str | Path
     if len(points) < 2:
         raise InputError(source, f"only {len(points)} trusted cell(s) to start from: nothing to seed Gaussians with")
     return params_from_gaussians(gaussians_from_points(points, np.concatenate([c for _, c in parts]), cfg.sh_degree))
+
+
+def _corner_start(
+    views: Sequence[SplatView], cfg: SplatConfig, source: str | Path | None
+) -> tuple[GaussianParams, list[int]]:
+    """3DGS's point start from each view's corners triangulated between the views (acesplat.splatcore.corner_seeds),
+    every SCR cell their first depth guess (only what triangulates seeds, so untrusted cells cost nothing but a
+    corner); and how many each view gave."""
+    depths = [cell_depth_grid(v.coords, v.pose) for v in views]  # type: ignore[arg-type]
+    points, colours, per_view = corner_seeds(
+        [v.gray for v in views],
+        [v.rgb for v in views],
+        [v.intrinsics for v in views],
+        np.stack([v.pose for v in views]),
+        depths,
+        cfg.seed_corners,
+    )
+    if len(points) < 2:
+        raise InputError(
+            source, f"only {len(points)} corner(s) triangulate between the views: nothing to seed Gaussians with"
+        )
+    return params_from_gaussians(gaussians_from_points(points, colours, cfg.sh_degree)), per_view
 
 
 def _valid_depths(v: SplatView) -> np.ndarray:
