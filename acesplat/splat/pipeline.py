@@ -38,7 +38,7 @@ from acesplat.splat.point_init import gaussians_from_points
 from acesplat.splat.schedule import NET_LR_MAX, NET_LR_MIN, one_cycle
 from acesplat.splat.views import SplatView, load_views, run_scr
 from acesplat.splatcore.cell_seeds import cell_points, cell_texture, textured_cells
-from acesplat.splatcore.corner_seeds import cell_depth_grid, corner_seeds
+from acesplat.splatcore.corner_seeds import corner_seeds
 from acesplat.splatcore.fusion import DEPTH_TOLERANCE
 from acesplat.splatcore.head_io import SceneNorm
 from acesplat.splatcore.validity import (
@@ -254,7 +254,7 @@ def splat_scene(
         params = _cell_start(usable, cfg, source)
         seeding["seed_cells"] = int(params["means"].shape[0])
     elif cfg.start == "corners":
-        params, per_view = _corner_start(usable, cfg, source)
+        params, per_view = _corner_start(usable, frames, network, short_side, cfg, source)
         seeding.update(seed_corners=int(params["means"].shape[0]), seed_corners_per_view=per_view)
     else:
         pixels = [head.pixels(i) for i in range(len(usable))]
@@ -344,20 +344,23 @@ def _cell_start(views: Sequence[SplatView], cfg: SplatConfig, source: str | Path
 
 
 def _corner_start(
-    views: Sequence[SplatView], cfg: SplatConfig, source: str | Path | None
+    views: Sequence[SplatView],
+    frames: Sequence[Frame],
+    network: torch.nn.Module,
+    short_side: int,
+    cfg: SplatConfig,
+    source: str | Path | None,
 ) -> tuple[GaussianParams, list[int]]:
     """3DGS's point start from each view's corners triangulated between the views (acesplat.splatcore.corner_seeds),
-    every SCR cell their first depth guess (only what triangulates seeds, so untrusted cells cost nothing but a
-    corner); and how many each view gave."""
-    depths = [cell_depth_grid(v.coords, v.pose) for v in views]  # type: ignore[arg-type]
-    points, colours, per_view = corner_seeds(
-        [v.gray for v in views],
-        [v.rgb for v in views],
-        [v.intrinsics for v in views],
-        np.stack([v.pose for v in views]),
-        depths,
-        cfg.seed_corners,
-    )
+    the views made keyframes as the alignment makes them (acesplat.scr.keyframes: the head's depth re-measured
+    between neighbours, the corners' first guess); and how many each view gave."""
+    from acesplat.core.scene import SceneSplit
+    from acesplat.scr.keyframes import MapKeyframes
+
+    by_name = {f.name: f for f in frames}
+    kfs = MapKeyframes(SceneSplit(Path(source or "."), "train", [by_name[v.name] for v in views]), network, short_side)
+    points, colours, per_view = corner_seeds([kfs.keyframe(i) for i in range(len(views))], [v.rgb for v in views],
+                                             cfg.seed_corners)  # fmt: skip
     if len(points) < 2:
         raise InputError(
             source, f"only {len(points)} corner(s) triangulate between the views: nothing to seed Gaussians with"
