@@ -178,7 +178,7 @@ def test_cells_start_seeds_the_most_textured_trusted_cells(world):
 
 def test_corners_start_refuses_views_where_nothing_triangulates(world):
     """The untrained tiny map's cells are too far off, on 48x64 images, for any corner to triangulate: one line,
-    exit 2, nothing written (the start on real views: tests/test_splatcore_corner_seeds.py)."""
+    exit 2, nothing written (the points on rendered views: tests/test_corner_points.py)."""
     root = world["root"]
     common = ["splat", world["scene"], "--map", world["map"], "--reproj-px", REPROJ, "--start", "corners"]
     one_line_error(run(*common, "-o", root / "corners", "--iterations", "0"), "corner(s) triangulate between the views")

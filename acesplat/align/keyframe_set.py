@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from acesplat.align.keyframe_align import KEYFRAMES, Keyframe, nearest_keyframes
+from acesplat.align.keyframe_align import KEYFRAMES, Keyframe, keyframe_corners, nearest_keyframes
 from acesplat.align.keyframe_depth import CORNER_NEIGHBOURS, depth_neighbours, triangulate_corners
 from acesplat.core.atomic import atomic_path
 from acesplat.core.bundle import MANIFEST_NAME, ROLE_KEYFRAMES, Bundle
@@ -92,6 +92,32 @@ def prepare_corners(
         nbs = depth_neighbours(c2ws, i, float(np.median(known)), CORNER_NEIGHBOURS) if known.size else []
         triangulate_corners(kf, [keyframe(j) for j in nbs], count)
         kf.cache[("triangulated", count)] = True
+
+
+def triangulated_points(
+    keyframes: Sequence[Keyframe], rgbs: Sequence[np.ndarray], count: int
+) -> tuple[np.ndarray, np.ndarray, list[int]]:
+    """Points (N, 3) and colours (N, 3) of every keyframe's ``count`` strongest corners that its neighbouring
+    keyframes triangulate (acesplat.align.keyframe_depth.triangulate_corners), and how many each gave: places
+    matched between the images and triangulated with their poses, as SfM points are (Stage 2's 'corners' start;
+    the keyframes' depth grids are only the first guess).
+
+    ``rgbs`` (H, W, 3) per keyframe, at its image's size: the seeds' colours."""
+    if len(rgbs) != len(keyframes) or not keyframes:
+        raise ValueError(f"need one colour image per keyframe, got {len(rgbs)} for {len(keyframes)}")
+    for kf, rgb in zip(keyframes, rgbs, strict=True):
+        if np.shape(rgb) != (*kf.gray.shape, 3):
+            raise ValueError(f"a colour image is {np.shape(rgb)}, its keyframe {kf.gray.shape}")
+    prepare_corners(keyframes.__getitem__, np.stack([kf.c2w for kf in keyframes]), count)
+    points, colours, per_view = [], [], []
+    for kf, rgb in zip(keyframes, rgbs, strict=True):
+        c = keyframe_corners(kf, count)
+        keep = c.triangulated if c.triangulated is not None else np.zeros(len(c.uv), bool)
+        u = np.rint(c.uv[keep]).astype(np.int64)
+        points.append(c.X[keep])
+        colours.append(np.asarray(rgb)[u[:, 1], u[:, 0]].astype(np.float32))
+        per_view.append(int(keep.sum()))
+    return np.concatenate(points), np.concatenate(colours), per_view
 
 
 def save_keyframes(path: str | Path, ks: KeyframeSet) -> None:

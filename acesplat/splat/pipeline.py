@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from acesplat.align.flow_pnp import AlignConfig
+from acesplat.align.keyframe_set import triangulated_points
 from acesplat.core.config import knob, knob_default
 from acesplat.core.errors import InputError
 from acesplat.core.scene import Frame
@@ -38,7 +39,6 @@ from acesplat.splat.point_init import gaussians_from_points
 from acesplat.splat.schedule import NET_LR_MAX, NET_LR_MIN, one_cycle
 from acesplat.splat.views import SplatView, load_views, run_scr
 from acesplat.splatcore.cell_seeds import cell_points, cell_texture, textured_cells
-from acesplat.splatcore.corner_seeds import corner_seeds
 from acesplat.splatcore.fusion import DEPTH_TOLERANCE
 from acesplat.splatcore.head_io import SceneNorm
 from acesplat.splatcore.validity import (
@@ -351,7 +351,7 @@ def _corner_start(
     cfg: SplatConfig,
     source: str | Path | None,
 ) -> tuple[GaussianParams, list[int]]:
-    """3DGS's point start from each view's corners triangulated between the views (acesplat.splatcore.corner_seeds),
+    """3DGS's point start from each view's corners triangulated between the views (keyframe_set.triangulated_points),
     the views made keyframes as the alignment makes them (acesplat.scr.keyframes: the head's depth re-measured
     between neighbours, the corners' first guess); and how many each view gave."""
     from acesplat.core.scene import SceneSplit
@@ -359,8 +359,8 @@ def _corner_start(
 
     by_name = {f.name: f for f in frames}
     kfs = MapKeyframes(SceneSplit(Path(source or "."), "train", [by_name[v.name] for v in views]), network, short_side)
-    points, colours, per_view = corner_seeds([kfs.keyframe(i) for i in range(len(views))], [v.rgb for v in views],
-                                             cfg.seed_corners)  # fmt: skip
+    keyframes = [kfs.keyframe(i) for i in range(len(views))]
+    points, colours, per_view = triangulated_points(keyframes, [v.rgb for v in views], cfg.seed_corners)
     if len(points) < 2:
         raise InputError(
             source, f"only {len(points)} corner(s) triangulate between the views: nothing to seed Gaussians with"

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from acesplat.align.keyframe_align import Keyframe
+from acesplat.align.keyframe_set import triangulated_points
 from acesplat.core.geometry import invert_pose, transform_points
 from acesplat.core.grid import cell_centers
-from acesplat.splatcore.corner_seeds import corner_seeds
 from acesplat.synth import default_intrinsics, make_room, make_trajectory, render_view
 from acesplat.synth.dataset import texel_density_for
 
@@ -34,9 +34,9 @@ def views():
     return K, kfs, rgbs, depths
 
 
-def test_corner_seeds_lie_on_the_surface_though_the_first_depth_is_off(views) -> None:
+def test_triangulated_points_lie_on_the_surface_though_the_first_depth_is_off(views) -> None:
     K, kfs, rgbs, depths = views
-    pts, cols, per_view = corner_seeds(kfs, rgbs, 300)
+    pts, cols, per_view = triangulated_points(kfs, rgbs, 300)
     assert len(pts) == len(cols) == sum(per_view) and min(per_view) > 50  # measured 141-289 of 300
     assert cols.min() >= 0.0 and cols.max() <= 1.0
     # each seed against the true depth where the first view's camera sees it
@@ -48,6 +48,6 @@ def test_corner_seeds_lie_on_the_surface_though_the_first_depth_is_off(views) ->
     rel = np.abs(pc[inside, 2] / depths[0][u[:, 1], u[:, 0]] - 1.0)
     assert inside.sum() > 100 and np.median(rel) < 0.005, np.median(rel)  # measured 0.14% (p90 0.48%), from 5%
     with pytest.raises(ValueError, match="one colour image per keyframe"):
-        corner_seeds(kfs, rgbs[:2], 300)
+        triangulated_points(kfs, rgbs[:2], 300)
     with pytest.raises(ValueError, match="a colour image is"):
-        corner_seeds(kfs[:1], [rgbs[0][:10]], 300)
+        triangulated_points(kfs[:1], [rgbs[0][:10]], 300)
