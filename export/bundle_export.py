@@ -146,6 +146,19 @@ def _write_check_frames(tmp: Path, frames: list, size: tuple[int, int], stride: 
     return out
 
 
+def _quantize(tmp: Path, name: str, calib: list, opts: ExportOptions) -> None:
+    """The FP32 graph at ``tmp`` quantized into ``tmp / name`` with ``opts``' INT8 scheme, calibrated on ``calib``."""
+    quantize_int8(
+        tmp / FP32_FILE,
+        tmp / name,
+        [c.gray for c in calib],
+        quant_format=opts.int8_format,
+        types=opts.int8_types,
+        per_channel=opts.int8_per_channel,
+        reduce_range=opts.int8_reduce_range,
+    )
+
+
 def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: ProgressFn | None = None) -> ExportReport:
     """Export ``map_path`` to the bundle directory ``out``; returns the manifest written."""
     t_start = time.monotonic()
@@ -216,30 +229,14 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
             calib = prepare_frames(evenly(train.frames, opts.calibration_frames), size)
             if progress:
                 progress("quantize int8", 0.0, {"images": len(calib)})
-            quantize_int8(
-                tmp / FP32_FILE,
-                tmp / INT8_FILE,
-                [c.gray for c in calib],
-                quant_format=opts.int8_format,
-                types=opts.int8_types,
-                per_channel=opts.int8_per_channel,
-                reduce_range=opts.int8_reduce_range,
-            )
+            _quantize(tmp, INT8_FILE, calib, opts)
             timings["quantize_int8_s"] = time.monotonic() - t0
             if progress:
                 progress("quantize int8", 1.0, {"images": len(calib)})
             files.append(describe_file(tmp, INT8_FILE, ROLE_SCR_INT8))
             if vnni is not None:
                 t0 = time.monotonic()
-                quantize_int8(
-                    tmp / FP32_FILE,
-                    tmp / INT8_VNNI_FILE,
-                    [c.gray for c in calib],
-                    quant_format=vnni.int8_format,
-                    types=vnni.int8_types,
-                    per_channel=vnni.int8_per_channel,
-                    reduce_range=vnni.int8_reduce_range,
-                )
+                _quantize(tmp, INT8_VNNI_FILE, calib, vnni)
                 timings["quantize_int8_vnni_s"] = time.monotonic() - t0
                 files.append(describe_file(tmp, INT8_VNNI_FILE, ROLE_SCR_INT8_VNNI))
             checks["int8_calibration_frames"] = len(calib)

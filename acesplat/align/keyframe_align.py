@@ -269,24 +269,6 @@ def plane_homography(
     return H / H[2, 2] if abs(H[2, 2]) > 1e-12 else None
 
 
-def corner_correspondences(
-    query: np.ndarray,
-    intrinsics: Intrinsics,
-    pose_c2w: np.ndarray,
-    kf: Keyframe,
-    corners: Corners,
-    cfg: AlignConfig = KEYFRAME_ALIGN,
-    levels: int = LK_LEVELS[0],
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """World points (M, 3) of the keyframe's ``corners`` (keyframe_corners), where the query (H, W) uint8 with
-    ``intrinsics`` (its highpass, as ``corners.image``) shows them (M, 2) and the forward-backward error there (M,)
-    px: each corner is tracked by
-    pyramidal Lucas-Kanade from the keyframe (warped to the estimate ``pose_c2w`` (4, 4) by its plane with
-    ``cfg.lk_plane_warp``) to the query, starting where the estimate projects its point, and back."""
-    idx, seen, err = corner_tracks(query, intrinsics, pose_c2w, kf, corners, cfg, levels)
-    return corners.X[idx], seen, err
-
-
 def corner_tracks(
     query: np.ndarray,
     intrinsics: Intrinsics,
@@ -296,7 +278,11 @@ def corner_tracks(
     cfg: AlignConfig = KEYFRAME_ALIGN,
     levels: int = LK_LEVELS[0],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """As corner_correspondences, with the indices (M,) of the corners found instead of their world points."""
+    """Indices (M,) of the keyframe's ``corners`` (keyframe_corners) found in the query (H, W) uint8 with
+    ``intrinsics`` (its highpass, as ``corners.image``), where it shows them (M, 2) and the forward-backward error
+    there (M,) px: each corner is tracked by pyramidal Lucas-Kanade from the keyframe (warped to the estimate
+    ``pose_c2w`` (4, 4) by its plane with ``cfg.lk_plane_warp``) to the query, starting where the estimate projects
+    its point, and back; ``levels`` pyramid levels above full size."""
     h, w = query.shape
     ref, at = corners.image, corners.uv
     H = plane_homography(kf, corners.plane, intrinsics, pose_c2w) if cfg.lk_plane_warp else None
@@ -456,7 +442,9 @@ def align_to_keyframes(
     def one(kf: Keyframe, pose: np.ndarray, depth: np.ndarray | None, r: int) -> tuple[np.ndarray, ...]:
         if sparse:
             levels = LK_LEVELS[min(r, 1)]
-            return corner_correspondences(lk_query, intrinsics, pose, kf, corners[id(kf)], cfg, levels)
+            c = corners[id(kf)]
+            idx, seen, err = corner_tracks(lk_query, intrinsics, pose, kf, c, cfg, levels)
+            return c.X[idx], seen, err
         scale = cfg.first_flow_scale if r == 0 else 1.0
         flow = dis_flow(cfg)  # DIS holds working buffers: one per call, so threads never share one
         if depth is not None:
