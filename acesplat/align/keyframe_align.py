@@ -196,8 +196,6 @@ class Corners:
     uv: np.ndarray
     X: np.ndarray
     plane: np.ndarray | None
-    image: np.ndarray
-    """The keyframe's image as Lucas-Kanade compares it (highpass), (H, W) uint8."""
     triangulated: np.ndarray | None = None
     """(M,) bool: whose depth neighbouring keyframes triangulated (acesplat.align.keyframe_depth); None: not tried."""
 
@@ -217,8 +215,15 @@ def keyframe_corners(kf: Keyframe, count: int) -> Corners:
         keep = (lo > 0) & np.isfinite(hi) & (hi <= (1.0 + DEPTH_EDGE_RATIO) * lo)
         uv, z = uv[keep], z[keep]
         X = transform_points(kf.c2w, kf.intrinsics.unproject(uv, z))
-        kf.cache[key] = Corners(uv.astype(np.float32), X, keyframe_plane(kf), highpass(kf.gray))
+        kf.cache[key] = Corners(uv.astype(np.float32), X, keyframe_plane(kf))
     return kf.cache[key]
+
+
+def keyframe_highpass(kf: Keyframe) -> np.ndarray:
+    """The keyframe's image (H, W) uint8 as Lucas-Kanade compares it (highpass), made once (kept in ``kf.cache``)."""
+    if "highpass" not in kf.cache:
+        kf.cache["highpass"] = highpass(kf.gray)
+    return kf.cache["highpass"]
 
 
 def keyframe_plane(kf: Keyframe) -> np.ndarray | None:
@@ -279,15 +284,15 @@ def corner_tracks(
     levels: int = LK_LEVELS[0],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Indices (M,) of the keyframe's ``corners`` (keyframe_corners) found in the query (H, W) uint8 with
-    ``intrinsics`` (its highpass, as ``corners.image``), where it shows them (M, 2) and the forward-backward error
+    ``intrinsics`` (its highpass, as keyframe_highpass), where it shows them (M, 2) and the forward-backward error
     there (M,) px: each corner is tracked by pyramidal Lucas-Kanade from the keyframe (warped to the estimate
     ``pose_c2w`` (4, 4) by its plane with ``cfg.lk_plane_warp``) to the query, starting where the estimate projects
     its point, and back; ``levels`` pyramid levels above full size."""
     h, w = query.shape
-    ref, at = corners.image, corners.uv
+    ref, at = keyframe_highpass(kf), corners.uv
     H = plane_homography(kf, corners.plane, intrinsics, pose_c2w) if cfg.lk_plane_warp else None
     if H is not None:  # the keyframe seen from the estimate as if its scene were its dominant plane
-        ref = cv2.warpPerspective(corners.image, H, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        ref = cv2.warpPerspective(ref, H, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         q = np.c_[at, np.ones(len(at))] @ H.T
         at = (q[:, :2] / q[:, 2:3]).astype(np.float32)
     pc = transform_points(invert_pose(pose_c2w), corners.X)

@@ -20,8 +20,8 @@ from acesplat.align.keyframe_align import (
     Corners,
     Keyframe,
     corner_tracks,
-    highpass,
     keyframe_corners,
+    keyframe_highpass,
     keyframe_matches,
     resample_to,
 )
@@ -121,15 +121,18 @@ def triangulate_corners(kf: Keyframe, neighbours: Sequence[Keyframe], count: int
     from where Lucas-Kanade finds it in ``neighbours`` (their images and exact poses), stored in ``kf.cache`` for
     the sparse matcher: the depth grid is interpolated between cells, and corners sit where depth and texture
     change within one. A corner keeps its grid depth where no neighbour shows it with enough parallax or the
-    triangulation strays past MAX_CHANGE; several neighbours' depths are averaged, weighted by parallax squared."""
+    triangulation strays past MAX_CHANGE; several neighbours' depths are averaged, weighted by parallax squared.
+    The result's ``triangulated`` is set (all False without corners or neighbours), so it is made once."""
     c = keyframe_corners(kf, count)
     if not len(c.uv) or not neighbours:
-        return c
+        out = replace(c, triangulated=np.zeros(len(c.uv), bool))
+        kf.cache[("corners", count)] = out
+        return out
     uv = c.uv.astype(np.float64)
     z_grid = transform_points(invert_pose(kf.c2w), c.X)[:, 2]
     num, den = np.zeros(len(uv)), np.zeros(len(uv))
     for nb in neighbours:
-        idx, seen, _ = corner_tracks(highpass(nb.gray), nb.intrinsics, nb.c2w, kf, c, TRIANGULATION_TRACKING)
+        idx, seen, _ = corner_tracks(keyframe_highpass(nb), nb.intrinsics, nb.c2w, kf, c, TRIANGULATION_TRACKING)
         if not len(idx):
             continue
         z, sens = triangulate_along_rays(uv[idx], kf, seen, nb.intrinsics.K, nb.c2w)

@@ -86,12 +86,12 @@ def prepare_corners(
     depth_neighbours."""
     for i in range(len(c2ws)) if which is None else which:
         kf = keyframe(i)
-        if kf.cache.get(("triangulated", count)):
+        made = kf.cache.get(("corners", count))
+        if made is not None and made.triangulated is not None:
             continue
         known = kf.depth[kf.depth > 0]
         nbs = depth_neighbours(c2ws, i, float(np.median(known)), CORNER_NEIGHBOURS) if known.size else []
         triangulate_corners(kf, [keyframe(j) for j in nbs], count)
-        kf.cache[("triangulated", count)] = True
 
 
 def triangulated_points(
@@ -112,7 +112,7 @@ def triangulated_points(
     points, colours, per_view = [], [], []
     for kf, rgb in zip(keyframes, rgbs, strict=True):
         c = keyframe_corners(kf, count)
-        keep = c.triangulated if c.triangulated is not None else np.zeros(len(c.uv), bool)
+        keep = c.triangulated  # set by prepare_corners
         u = np.rint(c.uv[keep]).astype(np.int64)
         points.append(c.X[keep])
         colours.append(np.asarray(rgb)[u[:, 1], u[:, 0]].astype(np.float32))

@@ -74,8 +74,8 @@ class SplatConfig:
     start: str = knob(
         "cells",
         "Where Gaussians start: cells (the most textured trusted SCR cells, 3DGS's point start: better on real "
-        "photographs), corners (each view's corners triangulated between the views, the cells their first guess) "
-        "or head (the init head's Gaussians at pixel resolution, views fused: better on the synthetic room; "
+        "photographs), corners (each view's corners triangulated between the views, the head's depth their first "
+        "guess) or head (the init head's Gaussians at pixel resolution, views fused: better on the synthetic room; "
         "bench/splat_init.md).",
     )
     seed_cells: int = knob(12_000, "Cells the 'cells' start seeds (as many points as a sparse SfM start has).")
