@@ -145,7 +145,8 @@ def run_profile(
     }
     if refine is not None:
         out["refine"] = refine
-    if {"fp32", "int8"} <= set(out["fps"]):
-        a, b = out["stages"]["fp32"]["inference"]["p50"], out["stages"]["int8"]["inference"]["p50"]
+    int8 = [p for p in out["precision"] if p.startswith("int8")]
+    if "fp32" in out["fps"] and int8:
+        a, b = out["stages"]["fp32"]["inference"]["p50"], out["stages"][int8[0]]["inference"]["p50"]
         out["int8_inference_speedup_p50"] = a / b if b > 0 else None
     return out

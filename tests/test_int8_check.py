@@ -213,6 +213,17 @@ def test_a_bad_u8s8_twin_is_refused_and_the_default_runs(tiny, tmp_path: Path) -
     bad2 = _perturbed_bundle(tiny, tmp_path / "bad2", ("int8",))
     chosen, reports = choose_int8(load_bundle(bad2), Int8CheckConfig(frames=2), threads=1)
     assert chosen == "int8_vnni" and not reports[0].passed and reports[1].passed
+    # profile measures the graph --int8 runs, not the default one
+    r = CliRunner().invoke(app, ["profile", str(bad2), "--int8", "--frames", "2", "--warmup", "0", "--threads", "1",
+                                 "--json", str(tmp_path / "p.json")])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    p = json.loads((tmp_path / "p.json").read_text())
+    assert p["precision"] == "int8_vnni" and len(p["header"]["model_sha256"]["int8_vnni"]) == 64
+    r = CliRunner().invoke(app, ["profile", str(bad2), "--compare", "--frames", "2", "--warmup", "0", "--threads",
+                                 "1", "--json", str(tmp_path / "c.json")])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    c = json.loads((tmp_path / "c.json").read_text())
+    assert c["precision"] == ["fp32", "int8_vnni"] and c["int8_inference_speedup_p50"] > 0
 
 
 def test_the_fastest_passing_graph_runs(monkeypatch) -> None:

@@ -403,8 +403,13 @@ def profile_command(
     intrinsics: Path | None = typer.Option(None, help="Calibration file for sources without one."),
     frames: int = option(ProfileOptions, "frames"),
     warmup: int = option(ProfileOptions, "warmup"),
-    compare: bool = typer.Option(False, "--compare", help="FP32 and INT8 side by side on the same frames."),
-    int8: bool = typer.Option(False, "--int8", help="Profile INT8 (without --compare)."),
+    compare: bool = typer.Option(
+        False, "--compare", help="FP32 and INT8 (the graph --int8 would run) side by side on the same frames."
+    ),
+    int8: bool = typer.Option(
+        False, "--int8", help="Profile INT8 (without --compare): the graph the device check picks, as replay runs."
+    ),
+    skip_int8_check: bool = option(Int8CheckConfig, "skip", "--skip-int8-check"),
     threads: int | None = typer.Option(None, help="onnxruntime intra-op threads (default: all cores)."),
     provider: str = option(SessionSettings, "provider"),
     pnp: str | None = option(PnPSettings, "method", "--pnp", default=None),
@@ -420,8 +425,9 @@ def profile_command(
     if frames <= 0 or warmup < 0:
         raise InputError(None, f"--frames must be positive and --warmup non-negative, got {frames} and {warmup}")
     check_provider(provider)
-    precisions = ["fp32", "int8"] if compare else (["int8"] if int8 else ["fp32"])
-    b = open_bundle(bundle, precisions)
+    b = open_bundle(bundle, ["fp32", "int8"] if compare or int8 else ["fp32"])
+    chosen = int8_gate(b, compare or int8, skip_int8_check, threads, provider)
+    precisions = ["fp32", chosen] if compare else [chosen]
     if source is None:
         scene = b.scene_path
         if not scene or not Path(scene).is_dir():
