@@ -100,6 +100,30 @@ def test_deadline_and_cost_estimate_with_a_fake_clock() -> None:
     assert d2.at == pytest.approx(10.0)
 
 
+def test_a_granted_piece_is_timed_to_the_next_request() -> None:
+    """What a piece costs is all the batch runs before it asks again, not only its main call: work after that call
+    (culls, copies) is learned by the piece's estimate; a refused piece records nothing."""
+    from edge.refine.refiner import grant
+
+    clock = FakeClock(0.0)
+    main, after = CostEstimate(0.01, name="main"), CostEstimate(0.0, name="after")
+
+    def batch():
+        if (yield ("must", main, 0.0)):
+            clock.t += 0.01  # the main call
+            clock.t += 0.04  # what follows it before the next request
+        yield ("option", after, 0.0)
+
+    gen = batch()
+    kind, est, _ = next(gen)
+    assert (kind, est.name, est.predict()) == ("must", "main", 0.01)
+    kind, est, _ = grant(gen, True, est, clock)
+    assert est is after and main.last_s == pytest.approx(0.05) and main.predict() == pytest.approx(1.2 * 0.05)
+    with pytest.raises(StopIteration):
+        grant(gen, False, est, clock)
+    assert after.count == 0
+
+
 # ----------------------------------------------------------------------------------- Adam
 class _Grads:
     def __init__(self, g: Gaussians, value: float) -> None:

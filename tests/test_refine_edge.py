@@ -17,6 +17,7 @@ from acesplat.apps.edge_cli import app
 from acesplat.core.gaussians import Gaussians, concat_gaussians
 from acesplat.core.ply import read_ply, write_ply
 from acesplat.core.scene import read_split
+from edge.refine.deadline import CostEstimate
 from edge.refine.keyframes import KeyframePolicy, KeyframeSelector
 from edge.refine.refiner import BatchReport
 from edge.refine.worker import Candidate, RefineWorker
@@ -117,7 +118,8 @@ class _StepRefiner:
     def batch(self, kf, rep: BatchReport):
         self.names.append(kf.name)
         self.started.set()
-        while (yield ("step", 0.001, 0.0)):
+        step = CostEstimate(0.001, name="step")
+        while (yield ("step", step, 0.0)):
             time.sleep(0.001)
         rep.outcome = "committed"
 
@@ -380,7 +382,8 @@ def test_wait_parked_returns_only_after_the_running_piece_and_no_piece_starts_un
     class SlowSteps(_StepRefiner):
         def batch(self, kf, rep: BatchReport):
             self.started.set()
-            while (yield ("step", 0.001, 0.0)):
+            step = CostEstimate(0.001, name="step")
+            while (yield ("step", step, 0.0)):
                 events.append(("start", time.perf_counter()))
                 time.sleep(0.03)
                 events.append(("end", time.perf_counter()))

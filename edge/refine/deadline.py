@@ -47,9 +47,11 @@ class Deadline:
 class CostEstimate:
     """Predicted duration (seconds) of a recurring piece of work."""
 
-    def __init__(self, prior_s: float, safety: float = SAFETY, window: int = 5) -> None:
+    def __init__(self, prior_s: float, safety: float = SAFETY, window: int = 5, name: str = "") -> None:
         if prior_s < 0:
             raise ValueError(f"prior must be non-negative, got {prior_s}")
+        self.name = name
+        """What the work is (reports name late pieces by it)."""
         self.prior_s = prior_s
         self.safety = safety
         self.recent: deque[float] = deque(maxlen=window)

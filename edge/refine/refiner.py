@@ -9,10 +9,12 @@ crops of the keyframe at full resolution (fitting the whole view at the refineme
 detail the low-resolution loss cannot see), so the keyframe is checked with one more render after
 them; with no full-resolution image the steps fit the whole view and the best measured state is kept.
 
-Time: the batch is a generator that announces each piece of work with its predicted cost (from
-earlier measurements) before doing it; the driver (``refine`` for one deadline, the worker across
-several frames' windows) answers whether it may run, so work that would overrun is never started.
-Renders are split into tiles so each piece fits in what a frame's localization leaves of the budget.
+Time: the batch is a generator that announces each piece of work with the estimate of its cost
+before doing it; the driver (``refine`` for one deadline, the worker across several frames' windows)
+answers whether it may run, so work that would overrun is never started. A granted piece is timed by
+the driver (``grant``) up to the batch's next request, so its estimate learns all it runs, not only
+its main call. Renders are split into tiles so each piece fits in what a frame's localization leaves
+of the budget.
 """
 
 from __future__ import annotations
@@ -245,26 +247,30 @@ class Refiner:
         self.covered_history: deque[float] = deque(maxlen=POSE_CHECK_HISTORY)
         self.version = 0
         """Bumped at every commit: held views' cached errors are valid for one version."""
-        self.step_cost = CostEstimate(cfg.step_prior_s)
-        self.render_cost = CostEstimate(cfg.render_prior_s)
+        self.step_cost = CostEstimate(cfg.step_prior_s, name="step")
+        self.render_cost = CostEstimate(cfg.render_prior_s, name="render")
         self.step_per_render = STEP_PER_RENDER
         """Step cost / keyframe render cost, measured at warm-up. Renders happen on every keyframe, steps only
         when they fit: a step estimate left from slower times would never be corrected, so after a batch
         without steps each render adds this multiple of its own cost as a step sample."""
         self.stepless_batches = 0
-        self.commit_cost = CostEstimate(0.0)
-        self.seed_cost = CostEstimate(0.0)
-        self.scr_seed_cost = CostEstimate(0.0)
-        self.cull_cost = CostEstimate(0.0)
-        self.setup_cost = CostEstimate(0.0)
+        self.commit_cost = CostEstimate(0.0, name="commit")
+        self.seed_cost = CostEstimate(0.0, name="seed")
+        self.scr_seed_cost = CostEstimate(0.0, name="scr_seed")
+        self.cull_cost = CostEstimate(0.0, name="cull")
+        """Selecting the map's Gaussians in a keyframe's view (then the render's first tile is set up)."""
+        self.setup_cost = CostEstimate(0.0, name="setup")
         """A batch's private copy of the Gaussians in view and its optimiser state."""
-        self.align_render_cost = CostEstimate(cfg.render_prior_s)
+        self.align_render_cost = CostEstimate(cfg.render_prior_s, name="align_render")
         """One tile of the full-resolution render the pose alignment compares with the keyframe."""
-        self.align_cost = CostEstimate(cfg.render_prior_s)
+        self.align_cost = CostEstimate(cfg.render_prior_s, name="align")
         """Optical flow and PnP of the pose alignment."""
-        """Selecting the map's Gaussians in a keyframe's view (a copy of them)."""
-        self.guard_view_cost = CostEstimate(cfg.render_prior_s)
+        self.guard_view_cost = CostEstimate(cfg.render_prior_s, name="guard_view")
         """One held-view render at guard resolution."""
+        self.guard_prep_cost = CostEstimate(0.0, name="guard_prep")
+        """What a guarded view's render needs first: culling the map (and the batch's rows) to the view, the copy."""
+        self.prune_cost = CostEstimate(0.0, name="prune")
+        """After the steps: the batch's transparent Gaussians dropped (a copy of the rest), the guard's first copy."""
         self.totals = {
             "keyframes": 0,
             "committed": 0,
@@ -341,6 +347,7 @@ class Refiner:
         self.step_cost.record(step_s)
         self.step_per_render = step_s / max(render_s, 1e-6)
         self.guard_view_cost.record(guard_s)
+        self.guard_prep_cost.record(cull_s)
         return {
             "cull_ms": 1000 * cull_s,
             "tile_render_ms": 1000 * render_s,
@@ -359,14 +366,14 @@ class Refiner:
         rep = BatchReport(name=kf.name, outcome="no_time")
         gen = self.batch(kf, rep)
         try:
-            kind, cost, reserve = next(gen)
+            kind, est, reserve = next(gen)
             while True:
-                ok = deadline.allows(cost, reserve)
+                ok = deadline.allows(est.predict(), reserve)
                 if not ok and kind == "must":
                     return self.abandon(gen, rep)
                 if not ok and kind == "step":
                     rep.stopped_by_deadline = True
-                kind, cost, reserve = gen.send(ok)
+                kind, est, reserve = grant(gen, ok, est, self.clock)
         except StopIteration:
             return rep
 
@@ -381,7 +388,7 @@ class Refiner:
     def batch(self, kf: Keyframe, rep: BatchReport):
         """One keyframe's batch as a generator of work requests.
 
-        Yields (kind, predicted seconds, seconds to keep after it) before each piece of work and receives
+        Yields (kind, the CostEstimate of the piece, seconds to keep after it) before each piece of work and receives
         whether to do it: kind 'must' (the batch cannot go on without it), 'step' (one optimisation step;
         False ends the optimisation), 'option' (the ONNX seeder; False seeds from SCR coordinates). Fills
         ``rep``; the map changes only in the last piece, the commit. Steps: look at the map from the keyframe
@@ -415,7 +422,7 @@ class Refiner:
         covers the view; None (``rep`` says why) when the keyframe's pose is taken for wrong."""
         cfg, clock = self.cfg, self.clock
         kf_px = kf.k.width * kf.k.height
-        yield ("must", self.cull_cost.predict(), self.guard_reserve(kf_px) + 2 * self.kf_check_reserve())
+        yield ("must", self.cull_cost, self.guard_reserve(kf_px) + 2 * self.kf_check_reserve())
         # Rendered tile by tile: each tile is a piece of work small enough for one frame's window.
         t0 = clock()
         reserve = self.guard_reserve(kf_px) + self.kf_check_reserve()
@@ -439,7 +446,7 @@ class Refiner:
                 return None
             if al.status == "aligned":
                 kf = replace(kf, pose=al.pose)
-                yield ("must", self.cull_cost.predict(), 0.0)
+                yield ("must", self.cull_cost, 0.0)
                 in_view, color, alpha, seen, an = yield from self._analyse(kf, reserve)
             rep.ms["align"] = 1000.0 * (clock() - t0)
         rep.mse_before, rep.coverage = an.mse, an.coverage
@@ -455,18 +462,16 @@ class Refiner:
     def _align(self, kf: Keyframe):
         """The keyframe's pose aligned to the map (acesplat.align.flow_pnp.Alignment), from a render at the
         alignment's size."""
-        cfg, clock = self.cfg, self.clock
-        yield ("must", self.cull_cost.predict(), 0.0)
+        cfg = self.cfg
+        yield ("must", self.cull_cost, 0.0)
         k_al, img = _align_image(kf, cfg.align_side)
         near = np.flatnonzero(frustum_mask(self.map.means, self.map.log_scales, kf.pose, k_al))
         c_al, a_al, _, d_al = yield from self._render_tiles(
             self.map, kf.pose, k_al, 0.0, near, cfg.align_tiles, self.align_render_cost
         )
-        yield ("must", self.align_cost.predict(), 0.0)
-        t1 = clock()
+        yield ("must", self.align_cost, 0.0)
         al_cfg = replace(RENDER_ALIGN, max_shift_m=cfg.align_max_m, max_shift_deg=cfg.align_max_deg)
         al = align_to_render(c_al, a_al, d_al, img, k_al, kf.pose, al_cfg)
-        self.align_cost.record(clock() - t1)
         return al
 
     def _pose_disagrees(self, kf: Keyframe, color: np.ndarray, alpha: np.ndarray, rep: BatchReport) -> bool:
@@ -491,19 +496,18 @@ class Refiner:
         new = Gaussians.empty(self.map.sh_degree)
         if room and view.an.need.any():  # nothing to seed: no piece (an empty run would spoil the seeders' estimates)
             primary = self.seeder is not self.scr_seeder and (
-                yield ("option", self.seed_cost.predict(), self.guard_reserve(view.kf_px) + self.kf_check_reserve())
+                yield ("option", self.seed_cost, self.guard_reserve(view.kf_px) + self.kf_check_reserve())
             )
             if not primary:
-                yield ("must", self.scr_seed_cost.predict(), 0.0)
+                yield ("must", self.scr_seed_cost, 0.0)
             t0 = clock()
-            seeder, cost = (self.seeder, self.seed_cost) if primary else (self.scr_seeder, self.scr_seed_cost)
+            seeder = self.seeder if primary else self.scr_seeder
             new = seeder(kf, view.an.need, room, self.map.sh_degree, self.rng)
             new = (
                 new.with_sh_degree(self.map.sh_degree).astype(np.float32)
                 if len(new)
                 else Gaussians.empty(self.map.sh_degree)
             )
-            cost.record(clock() - t0)
             rep.seeded_by = "primary" if primary else "scr"
             rep.ms["seed"] = 1000.0 * (clock() - t0)
         return new
@@ -511,8 +515,7 @@ class Refiner:
     def _set_up(self, view: _View, new: Gaussians):
         """The batch's private copy (the map's rows the keyframe sees, then ``new``) and its optimiser state: a piece
         of its own (copies of every row in view); None when there is nothing to optimise."""
-        yield ("must", self.setup_cost.predict(), 0.0)
-        t0 = self.clock()
+        yield ("must", self.setup_cost, 0.0)
         active_idx = view.in_view[view.seen]
         active = concat_gaussians([self.map.subset(active_idx), new])
         if len(active) == 0:
@@ -522,7 +525,6 @@ class Refiner:
         # best step.
         crops = view.kf.detail is not None and view.kf.k_detail is not None
         work = _Work(active_idx, active.copy() if not crops else active, active, RowAdam(active, self.cfg.lr), crops)
-        self.setup_cost.record(self.clock() - t0)
         return work
 
     def _optimise(self, view: _View, work: _Work, rep: BatchReport):
@@ -533,7 +535,7 @@ class Refiner:
         target = np.ascontiguousarray(kf.detail if crops else kf.rgb, np.float32)
         while rep.steps + rep.nonfinite_skipped < cfg.max_steps:
             reserve = self.guard_reserve(view.kf_px) + (0.0 if work.measured and not crops else self.kf_check_reserve())
-            if not (yield ("step", self.step_cost.predict(), reserve)):
+            if not (yield ("step", self.step_cost, reserve)):
                 break
             ts = clock()
             if crops:
@@ -552,12 +554,10 @@ class Refiner:
                     work.best = active.copy()
                 elif mse > DIVERGE * work.best_mse:
                     rep.diverged = True
-                    self.step_cost.record(clock() - ts)
                     break
             grads = rasterize_backward(r, (2.0 / diff.size) * diff)
             if not all_finite(grads):
                 rep.nonfinite_skipped += 1
-                self.step_cost.record(clock() - ts)
                 continue
             if crops:
                 vis = r.visible
@@ -566,13 +566,12 @@ class Refiner:
                 )
             else:
                 work.opt.step(active, grads, rows=r.visible)
-            dt = clock() - ts
-            self.step_cost.record(dt)
-            rep.step_ms.append(1000.0 * dt)
+            rep.step_ms.append(1000.0 * (clock() - ts))
             rep.steps += 1
+        rep.ms["optimise"] = 1000.0 * (clock() - t0)
+        yield ("must", self.prune_cost, 0.0)
         if crops:
             work.best = active
-        rep.ms["optimise"] = 1000.0 * (clock() - t0)
         self.stepless_batches = 0 if rep.steps else self.stepless_batches + 1
         work.gone = transparent(work.best, cfg.prune_opacity)
         rep.pruned = int(work.gone.sum())
@@ -616,6 +615,7 @@ class Refiner:
             # Each held-view render is a piece of its own at guard size, so the checks spread over frames' windows.
             t0 = clock()
             if hv.version != self.version or hv.mse is None:  # its error under the current map
+                yield ("must", self.guard_prep_cost, 0.0)
                 idx = np.flatnonzero(frustum_mask(self.map.means, self.map.log_scales, hv.pose, hv.k))
                 c, _, _, _ = yield from self._guard_render(self.map, hv, idx)
                 hv.mse, hv.version = float(np.mean((c - hv.target) ** 2)), self.version
@@ -639,6 +639,7 @@ class Refiner:
         """Fill ``hv.loaded_mse`` (its error under the map as loaded) if not known yet: one tiled render."""
         if hv.loaded_mse is not None:
             return
+        yield ("must", self.guard_prep_cost, 0.0)
         idx = np.flatnonzero(frustum_mask(self.loaded.means, self.loaded.log_scales, hv.pose, hv.k))
         c, _, _, _ = yield from self._guard_render(self.loaded, hv, idx)
         hv.loaded_mse = float(np.mean((c - hv.target) ** 2))
@@ -647,6 +648,7 @@ class Refiner:
         """The error of guarded view ``hv`` under the map as the commit would leave it: the map's rows the batch did not
         touch plus its ``kept`` ones (``is_active`` (M,) marks the touched rows); no render when nothing the batch
         changed can reach the view (its current error stands)."""
+        yield ("must", self.guard_prep_cost, 0.0)
         mine = frustum_mask(kept.means, kept.log_scales, hv.pose, hv.k) if len(kept) else np.zeros(0, bool)
         touched = bool(is_active.any()) and bool(
             np.any(frustum_mask(self.map.means[is_active], self.map.log_scales[is_active], hv.pose, hv.k))
@@ -666,7 +668,7 @@ class Refiner:
         """The batch's rows replace theirs, new ones join, pruned ones leave, the cap holds; the keyframe becomes a
         held view."""
         cfg, clock, kf = self.cfg, self.clock, view.kf
-        yield ("must", self.commit_cost.predict(), 0.0)
+        yield ("must", self.commit_cost, 0.0)
         t0 = clock()
         best, gone, active_idx = work.best, work.gone, work.active_idx
         n_old = active_idx.size
@@ -688,7 +690,6 @@ class Refiner:
             kv.mse = None
         self.held.add(kv)
         rep.outcome = "committed"
-        self.commit_cost.record(clock() - t0)
         if np.isfinite(rep.covered_mse):
             self.covered_history.append(rep.covered_mse)
         rep.ms["commit"] = 1000.0 * (clock() - t0)
@@ -748,13 +749,11 @@ class Refiner:
     def _analyse(self, kf: Keyframe, reserve: float):
         """Cull the map to the keyframe's view and render it there (tiled); returns (in_view (M,) rows, color, alpha,
         seen (M,), the RenderAnalysis). The first piece (the cull) was granted by the caller."""
-        t0 = self.clock()
         in_view = (
             np.flatnonzero(frustum_mask(self.map.means, self.map.log_scales, kf.pose, kf.k))
             if len(self.map)
             else np.zeros(0, np.int64)
         )
-        self.cull_cost.record(self.clock() - t0)
         color, alpha, seen, _ = yield from self._render_tiles(self.map, kf.pose, kf.k, reserve, in_view)
         an = analyse_render(color, alpha, kf.rgb, self.cfg.alpha_min, self.cfg.error_max)
         return in_view, color, alpha, seen, an
@@ -780,8 +779,7 @@ class Refiner:
         depth = np.zeros((k.height, k.width), np.float32)
         seen = np.zeros(idx.size, bool)
         for y0, y1, x0, x1 in tile_bounds(k.height, k.width, tiles or self.cfg.tiles):
-            yield ("must", cost.predict(), reserve)
-            t0 = self.clock()
+            yield ("must", cost, reserve)
             kt = window_intrinsics(k, y0, y1, x0, x1)
             m = frustum_mask(g.means[idx], g.log_scales[idx], pose, kt) if idx.size else np.zeros(0, bool)
             if m.any():
@@ -790,14 +788,15 @@ class Refiner:
                 seen[np.flatnonzero(m)[r.visible]] = True
             else:
                 color[y0:y1, x0:x1] = self.bg.astype(np.float32)
-            cost.record(self.clock() - t0)
         return color, alpha, seen, depth
 
     def guard_reserve(self, kf_pixels: int) -> float:
-        """Time kept for the guard (renders at guard size: the keyframe under the loaded map and after; one per held
-        view, one more when its cached error is stale, one more when its loaded error is unknown) and the commit."""
+        """Time kept for the pruning after the steps, the guard (renders at guard size, each after its culls: the
+        keyframe under the loaded map and after; one per held view, one more when its cached error is stale, one more
+        when its loaded error is unknown) and the commit."""
         renders = 2 + sum(1 + (h.version != self.version or h.mse is None) + (h.loaded_mse is None) for h in self.held)
-        return renders * self.guard_view_cost.predict() + self.commit_cost.predict()
+        per_render = self.guard_view_cost.predict() + self.guard_prep_cost.predict()
+        return renders * per_render + self.prune_cost.predict() + self.commit_cost.predict()
 
     def _count(self, rep: BatchReport) -> None:
         self.totals["steps"] += rep.steps
@@ -859,6 +858,23 @@ def tile_bounds(height: int, width: int, tiles: int) -> list[tuple[int, int, int
 def window_intrinsics(k: Intrinsics, y0: int, y1: int, x0: int, x1: int) -> Intrinsics:
     """Intrinsics rendering exactly the pixels [y0, y1) x [x0, x1) of an image of ``k``."""
     return Intrinsics(k.fx, k.fy, k.cx - x0, k.cy - y0, x1 - x0, y1 - y0)
+
+
+Request = tuple[str, CostEstimate, float]
+"""What a batch yields before a piece of work: (kind, the estimate of its cost, seconds to keep after it)."""
+
+
+def grant(gen, ok: bool, estimate: CostEstimate, clock: Clock) -> Request:
+    """Answer a batch's request (``ok``: the piece may run) and return its next request (StopIteration when the batch
+    ends). Granted work is timed up to the next request and recorded in the request's estimate: a piece costs
+    everything the batch runs before it asks again."""
+    if not ok:
+        return gen.send(False)
+    t0 = clock()
+    try:
+        return gen.send(True)
+    finally:
+        estimate.record(clock() - t0)
 
 
 def _check_keyframe(kf: Keyframe) -> None:

@@ -319,7 +319,7 @@ class RefineSession(FrameTap):
             "pieces_past_deadline": int(sum(v > 0 for v in ws.piece_spill_ms)),
             "batches_over_deadline": int(sum(v > 0 for v in ws.overrun_ms)),
             "late_pieces": [
-                {"kind": k, "predicted_ms": p, "took_ms": t, "late_ms": late} for k, p, t, late in ws.late_pieces[:20]
+                {"piece": k, "predicted_ms": p, "took_ms": t, "late_ms": late} for k, p, t, late in ws.late_pieces[:20]
             ],
             "alignment": {
                 k: sum(r.align == k for r in reps) for k in ("aligned", "unlike", "few_points", "no_fit", "too_far")

@@ -28,7 +28,7 @@ from edge.refine.coverage import projected_coverage
 from edge.refine.deadline import Clock, Deadline
 from edge.refine.keyframes import KeyframeSelector
 from edge.refine.persist import SplatSaver
-from edge.refine.refiner import BatchReport, Keyframe, Refiner
+from edge.refine.refiner import BatchReport, Keyframe, Refiner, grant
 
 
 @dataclass
@@ -66,7 +66,8 @@ class WorkerStats:
     that ends late overlaps the next frame's localization)."""
     """For each keyframe batch: how long after its deadline it finished (0 when on time)."""
     late_pieces: list[tuple[str, float, float, float]] = field(default_factory=list)
-    """Pieces that ended past their window: (kind, predicted ms, took ms, past the deadline ms), the first 200."""
+    """Pieces that ended past their window: (the piece's estimate's name, predicted ms, took ms, past the deadline
+    ms), the first 200."""
 
 
 NICE = 5
@@ -224,8 +225,9 @@ class RefineWorker:
         window_s = deadline.remaining()
         self.stats.window_work_ms.append(0.0)
         try:
-            kind, cost, reserve = next(gen)
+            kind, est, reserve = next(gen)
             while True:
+                cost = est.predict()
                 # The reserve (what must follow) matters only in the last window: required work (the guard, tile
                 # renders) waits for later windows like any other piece.
                 last = rep.windows >= self.max_windows
@@ -236,7 +238,7 @@ class RefineWorker:
                     # than every window seen so far abandons the batch.
                     if kind == "step" and (last or rep.windows >= self.step_windows or cost > window_s):
                         rep.stopped_by_deadline = True
-                        kind, cost, reserve = gen.send(False)
+                        kind, est, reserve = grant(gen, False, est, self.clock)
                         continue
                     if kind == "must" and (last or (rep.windows > 1 and cost > window_s)):
                         return self.refiner.abandon(gen, rep)
@@ -248,10 +250,9 @@ class RefineWorker:
                     rep.windows += 1
                     self.stats.window_work_ms.append(0.0)
                     continue
-                t_piece = self.clock()
-                piece_kind, piece_cost = kind, cost
+                t_piece, name = self.clock(), est.name or kind
                 try:
-                    kind, cost, reserve = gen.send(ok)
+                    kind, est, reserve = grant(gen, ok, est, self.clock)
                 finally:
                     if ok:
                         now = self.clock()
@@ -259,9 +260,7 @@ class RefineWorker:
                         self.stats.piece_spill_ms.append(spill)
                         self.stats.window_work_ms[-1] += 1000.0 * (now - t_piece)
                         if spill > 0 and len(self.stats.late_pieces) < 200:
-                            self.stats.late_pieces.append(
-                                (piece_kind, 1000.0 * piece_cost, 1000.0 * (now - t_piece), spill)
-                            )
+                            self.stats.late_pieces.append((name, 1000.0 * cost, 1000.0 * (now - t_piece), spill))
         except StopIteration:
             return rep
 
