@@ -196,15 +196,18 @@ def test_export_writes_the_u8s8_twin_with_its_figures(tiny, tmp_path: Path) -> N
     assert "int8_vnni_vs_fp32" not in b.manifest["checks"]
 
 
-def test_a_bad_u8s8_twin_is_refused_and_the_default_runs(tiny, tmp_path: Path) -> None:
+def test_a_bad_u8s8_twin_is_refused_and_the_default_runs(tiny, tmp_path: Path, monkeypatch) -> None:
     from acesplat.apps.edge_cli import app
     from acesplat.core.bundle import load_bundle
+    from edge import int8_check
     from edge.int8_check import choose_int8
 
+    monkeypatch.setattr(int8_check, "u8s8_probe_error", lambda provider="cpu": 0.0)  # as on a VNNI CPU
     bad = _perturbed_bundle(tiny, tmp_path / "bad", ("int8_vnni",))
     chosen, reports = choose_int8(load_bundle(bad), Int8CheckConfig(frames=2), threads=1)
     assert chosen == "int8" and reports[0].passed and not reports[1].passed
-    assert any("the default INT8 graph's bound" in f for f in reports[1].failures)
+    assert any("x the default graph's" in f for f in reports[1].failures)
+    assert reports[1].u8s8_probe_error == 0.0 and reports[0].u8s8_probe_error is None  # the default is U8U8
     r = CliRunner().invoke(app, ["replay", str(bad), str(tiny["scene"]), "--int8", "--threads", "1", "--no-tracking",
                                  "--json", str(tmp_path / "r.json")])  # fmt: skip
     assert r.exit_code == 0, r.output
@@ -276,3 +279,72 @@ def test_unknown_int8_types_are_refused_in_one_line(tiny, tmp_path: Path) -> Non
                                  "s8u8"])  # fmt: skip
     assert r.exit_code == 2 and "--int8-types must be one of u8s8, s8s8, u8u8" in r.output
     assert not (tmp_path / "b").exists()
+
+
+def test_the_shipped_u8s8_probe_is_the_generators_and_its_exact_output_is_analytic() -> None:
+    """edge/u8s8_probe.onnx holds export.u8s8_probe's graph; its U8U8 output is 255 x the column sums of the weights
+    on every CPU; the U8S8 output is exact or off by a large fraction (saturated), never slightly."""
+    import onnx
+    import onnxruntime as ort
+
+    from edge import int8_check
+    from export.u8s8_probe import PROBE_INPUT, probe_model, probe_weights
+
+    shipped, made = onnx.load(str(int8_check.U8S8_PROBE)), probe_model()
+    assert [n.op_type for n in shipped.graph.node] == [n.op_type for n in made.graph.node] == ["MatMulInteger"] * 2
+    for a, b in zip(shipped.graph.initializer, made.graph.initializer, strict=True):
+        np.testing.assert_array_equal(onnx.numpy_helper.to_array(a), onnx.numpy_helper.to_array(b))
+    assert PROBE_INPUT == int8_check.U8S8_PROBE_INPUT
+    sess = ort.InferenceSession(str(int8_check.U8S8_PROBE), providers=["CPUExecutionProvider"])
+    a = np.full(sess.get_inputs()[0].shape, PROBE_INPUT, dtype=np.uint8)
+    (exact,) = sess.run(["Y_exact"], {"A": a})
+    b = probe_weights().astype(np.int64)
+    np.testing.assert_array_equal(exact, np.broadcast_to(PROBE_INPUT * b.sum(0), exact.shape))
+    assert (PROBE_INPUT * (b[0::2] + b[1::2]) > 32767).all()  # every pair sum overflows int16
+    err = int8_check.u8s8_probe_error("cpu")
+    assert err == 0.0 or err > 0.1, err
+    assert int8_check.u8s8_probe_error("cuda") is None  # the probe reaches the CPU's kernels only
+
+
+def test_a_saturating_cpu_refuses_the_u8s8_twin_by_name(tiny, tmp_path: Path, monkeypatch) -> None:
+    """On a CPU whose U8S8 products saturate (x86 without VNNI), the twin is refused before its figures are weighed,
+    the U8U8 default runs, and the report and the check's JSON carry the probe."""
+    from acesplat.apps.edge_cli import app
+    from acesplat.core.bundle import load_bundle
+    from edge import int8_check
+
+    monkeypatch.setattr(int8_check, "u8s8_probe_error", lambda provider="cpu": 0.38)
+    chosen, reports = int8_check.choose_int8(load_bundle(tiny["bundle"]), Int8CheckConfig(frames=2), threads=1)
+    assert chosen == "int8" and reports[0].passed and not reports[1].passed
+    assert "U8S8 products saturate" in reports[1].failures[0] and "38%" in reports[1].failures[0]
+    r = CliRunner().invoke(app, ["check", str(tiny["bundle"]), "--json", str(tmp_path / "c.json"), "--threads", "1",
+                                 "--frames", "2"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    rep = json.loads((tmp_path / "c.json").read_text())
+    assert rep["chosen"] == "int8" and rep["reports"][1]["u8s8_probe_error"] == 0.38
+    assert "--int8 runs int8 on this CPU" in r.output and "saturates (38% off)" in r.output
+
+
+def test_a_graph_other_than_the_default_must_be_as_close_as_the_default_on_this_cpu(tiny) -> None:
+    """judge_graphs against synthetic grids: a twin 10% further from FP32 than the default passes, 60% fails on its
+    p90, even where both stay inside the export's own (loose) figures; a twin alone is a caller's error."""
+    from acesplat.core.bundle import load_bundle
+    from acesplat.core.check_frames import bundle_check_frames
+    from edge.int8_check import judge_graphs
+
+    b = load_bundle(tiny["bundle"])
+    frames = bundle_check_frames(b)
+    ref = [frames.coords[i] for i in range(2)]
+    rng = np.random.default_rng(1)
+    noise = [rng.normal(scale=0.02, size=r.shape).astype(np.float32) for r in ref]
+    loose = Int8CheckConfig(tolerance=1000.0, slack=1.0, slack_deg=90.0)
+    out = judge_graphs(b, frames, ref, {"int8": [r + e for r, e in zip(ref, noise, strict=True)],
+                                        "int8_vnni": [r + 1.1 * e for r, e in zip(ref, noise, strict=True)]},
+                       Int8CheckConfig(tolerance=1000.0, slack=0.0, slack_deg=90.0))  # fmt: skip
+    assert out["int8"][3] == [] and out["int8_vnni"][3] == []
+    out = judge_graphs(b, frames, ref, {"int8": [r + e for r, e in zip(ref, noise, strict=True)],
+                                        "int8_vnni": [r + 1.6 * e for r, e in zip(ref, noise, strict=True)]},
+                       Int8CheckConfig(tolerance=1000.0, slack=0.0, slack_deg=90.0))  # fmt: skip
+    assert out["int8"][3] == [] and any("p90" in f and "1.2 x the default graph's" in f for f in out["int8_vnni"][3])
+    with pytest.raises(ValueError, match="beside the default"):
+        judge_graphs(b, frames, ref, {"int8_vnni": ref}, loose)

@@ -544,6 +544,7 @@ def check_command(
     tolerance: float = option(Int8CheckConfig, "tolerance"),
     slack: float = option(Int8CheckConfig, "slack"),
     slack_deg: float = option(Int8CheckConfig, "slack_deg", "--slack-deg"),
+    other_tolerance: float = option(Int8CheckConfig, "other_tolerance", "--other-tolerance"),
     threads: int | None = typer.Option(None, help="onnxruntime intra-op threads (default: all cores)."),
     provider: str = option(SessionSettings, "provider"),
 ) -> None:
@@ -553,7 +554,9 @@ def check_command(
 
     check_provider(provider)
     b = _for_check(bundle)
-    cfg = Int8CheckConfig(frames=frames, tolerance=tolerance, slack=slack, slack_deg=slack_deg)
+    cfg = Int8CheckConfig(
+        frames=frames, tolerance=tolerance, slack=slack, slack_deg=slack_deg, other_tolerance=other_tolerance
+    )
     chosen, reports = choose_int8(b, cfg, threads, provider)
     for rep in reports:
         _print_check(b, rep)
@@ -595,6 +598,9 @@ def _print_check(b: Bundle, rep) -> None:
     )
     t.add_row("inference ms FP32 / INT8", f"{rep.inference_ms['fp32']:.1f} / {rep.inference_ms['int8']:.1f}", "", "")
     t.add_row("FP32 vs export's FP32 (median)", _check_fmt(rep.fp32_vs_export["coord_median"], "coord"), "", "")
+    if rep.u8s8_probe_error is not None:
+        probe = "exact" if rep.u8s8_probe_error == 0.0 else f"saturates ({100 * rep.u8s8_probe_error:.0f}% off)"
+        t.add_row("U8S8 probe", probe, "", "exact")
     Console().print(t)
     console.print(rep.line())
     for f in rep.failures:
