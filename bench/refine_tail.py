@@ -1,0 +1,73 @@
+"""Where localization's p95 goes when refinement runs beside it: paced replays of a demo workdir's test split in an
+interleaved order, plain and with refinement variants, each run's total and inference p95.
+
+    python bench/refine_tail.py runs/demo [--bundle B] [--budget-ms 100] [--order PNSRMPNSRM]
+
+Run letters: P plain (no refinement, paced at the budget); R refinement as `replay --refine` runs it; N the
+refinement session with no keyframe ever taken (its thread, pacing and feature output, no work); S refinement
+seeding at SCR depths (no ONNX initializer); M refinement with 15% of each frame's budget left free before the next
+frame (RefineOptions.margin). bench/refine.md has the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+from dataclasses import replace
+from pathlib import Path
+
+from acesplat.core.bundle import load_bundle
+from acesplat.core.machine import machine_line
+from edge.refine.session import RefineOptions, start_refinement
+from edge.replay import replay_split
+from edge.runtime import EdgeLocalizer
+
+
+def options(kind: str, budget_ms: float) -> RefineOptions:
+    o = RefineOptions(budget_ms=budget_ms)
+    if kind == "N":
+        return replace(o, policy=replace(o.policy, min_inliers=10**9))
+    if kind == "S":
+        return replace(o, use_initializer=False)
+    if kind == "M":
+        return replace(o, margin=0.15)
+    return o
+
+
+def run(kind: str, bundle, scene: Path, budget_ms: float) -> dict:
+    if kind == "P":
+        return replay_split(EdgeLocalizer(bundle, "int8", pace_ms=budget_ms), scene, "test", lambda i, n: None)
+    loc = EdgeLocalizer(bundle, "int8")
+    s = start_refinement(loc, bundle, options(kind, budget_ms), lambda *a: None)
+    try:
+        return replay_split(loc, scene, "test", lambda i, n: None)
+    finally:
+        s.close()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("workdir", type=Path)
+    ap.add_argument("--bundle", type=Path, default=None)
+    ap.add_argument("--budget-ms", type=float, default=100.0)
+    ap.add_argument("--order", default="PNSRMPNSRM")
+    args = ap.parse_args()
+    if set(args.order) - set("PRNSM"):
+        ap.error("--order takes the letters P, R, N, S, M")
+    bundle = load_bundle(args.bundle or args.workdir / "bundle")
+    print(f"# {machine_line()}")
+    res: dict[str, list[tuple[float, float]]] = {}
+    for kind in args.order:
+        t = run(kind, bundle, args.workdir / "scene", args.budget_ms)["timing_ms"]
+        res.setdefault(kind, []).append((t["total"]["p95"], t["inference"]["p95"]))
+        print(f"{kind}: total p95 {t['total']['p95']:.1f} ms, inference p95 {t['inference']['p95']:.1f} ms", flush=True)
+    base = statistics.median(v[0] for v in res.get("P", [(float("nan"), 0.0)]))
+    print("| run | total p95 (median of runs) | ratio to P | inference p95 (median) | runs |")
+    print("|---|---|---|---|---|")
+    for kind, v in res.items():
+        tot, inf = statistics.median(x[0] for x in v), statistics.median(x[1] for x in v)
+        print(f"| {kind} | {tot:.1f} ms | {tot / base:.2f}x | {inf:.1f} ms | {' '.join(f'{x[0]:.1f}' for x in v)} |")
+
+
+if __name__ == "__main__":
+    main()
