@@ -6,13 +6,17 @@ interleaved order, plain and with refinement variants, each run's total and infe
 Run letters: P plain (no refinement, paced at the budget); R refinement as `replay --refine` runs it; N the
 refinement session with no keyframe ever taken (its thread, pacing and feature output, no work); S refinement
 seeding at SCR depths (no ONNX initializer); M refinement with 15% of each frame's budget left free before the next
-frame (RefineOptions.margin). bench/refine.md has the figures.
+frame (RefineOptions.margin); F as R with every object made before the replay frozen out of garbage collection
+(gc.freeze). bench/refine.md has the figures.
 """
 
 from __future__ import annotations
 
 import argparse
+import gc
 import statistics
+import threading
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -39,10 +43,38 @@ def run(kind: str, bundle, scene: Path, budget_ms: float) -> dict:
         return replay_split(EdgeLocalizer(bundle, "int8", pace_ms=budget_ms), scene, "test", lambda i, n: None)
     loc = EdgeLocalizer(bundle, "int8")
     s = start_refinement(loc, bundle, options(kind, budget_ms), lambda *a: None)
+    if kind == "F":  # what exists now is never collected: a collection scans only what the run makes
+        gc.collect()
+        gc.freeze()
     try:
         return replay_split(loc, scene, "test", lambda i, n: None)
     finally:
         s.close()
+        gc.unfreeze()
+
+
+class GcLog:
+    """Python's garbage collections while installed: (thread name, generation, ms) each."""
+
+    def __init__(self) -> None:
+        self.items: list[tuple[str, int, float]] = []
+        self._t0 = 0.0
+
+    def __call__(self, phase: str, info: dict) -> None:
+        if phase == "start":
+            self._t0 = time.perf_counter()
+        else:
+            ms = 1000.0 * (time.perf_counter() - self._t0)
+            self.items.append((threading.current_thread().name, int(info["generation"]), ms))
+
+    def summary(self) -> str:
+        parts = []
+        for main in (True, False):
+            for g in (0, 1, 2):
+                ms = [x[2] for x in self.items if x[1] == g and (x[0] == "MainThread") == main]
+                if ms:
+                    parts.append(f"{'main' if main else 'other'} gen{g} {len(ms)}x max {max(ms):.1f} ms")
+        return "; ".join(parts) or "no collections"
 
 
 def main() -> None:
@@ -51,16 +83,26 @@ def main() -> None:
     ap.add_argument("--bundle", type=Path, default=None)
     ap.add_argument("--budget-ms", type=float, default=100.0)
     ap.add_argument("--order", default="PNSRMPNSRM")
+    ap.add_argument("--gc-log", action="store_true", help="print each run's garbage collections by thread")
     args = ap.parse_args()
-    if set(args.order) - set("PRNSM"):
-        ap.error("--order takes the letters P, R, N, S, M")
+    if set(args.order) - set("PRNSMF"):
+        ap.error("--order takes the letters P, R, N, S, M, F")
     bundle = load_bundle(args.bundle or args.workdir / "bundle")
     print(f"# {machine_line()}")
     res: dict[str, list[tuple[float, float]]] = {}
     for kind in args.order:
-        t = run(kind, bundle, args.workdir / "scene", args.budget_ms)["timing_ms"]
+        log = GcLog()
+        if args.gc_log:
+            gc.callbacks.append(log)
+        try:
+            t = run(kind, bundle, args.workdir / "scene", args.budget_ms)["timing_ms"]
+        finally:
+            if args.gc_log:
+                gc.callbacks.remove(log)
         res.setdefault(kind, []).append((t["total"]["p95"], t["inference"]["p95"]))
         print(f"{kind}: total p95 {t['total']['p95']:.1f} ms, inference p95 {t['inference']['p95']:.1f} ms", flush=True)
+        if args.gc_log:
+            print(f"   gc: {log.summary()}", flush=True)
     base = statistics.median(v[0] for v in res.get("P", [(float("nan"), 0.0)]))
     print("| run | total p95 (median of runs) | ratio to P | inference p95 (median) | runs |")
     print("|---|---|---|---|---|")
