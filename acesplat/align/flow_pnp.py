@@ -4,11 +4,11 @@ One method for two kinds of reference: a mapping image warped to the estimated p
 (acesplat.align.keyframe_align: ``acesplat eval --align``, the edge's ``--align``) and the map rendered from the
 estimated pose (``align_to_render``: the edge refiner's keyframes). Either way the reference shows the scene from
 (nearly) the query's viewpoint with a 3D point at each pixel; its textured pixels are sampled, DIS optical flow
-carries them to where the query shows them (forward-backward checked), PnP-RANSAC (+ LM) on the (3D point, query
-pixel) pairs gives the pose, and guards keep the start pose when there are too few points or inliers or the
-correction is too large to be a refinement. The thresholds are an ``AlignConfig``; ``KEYFRAME_ALIGN`` and
-``RENDER_ALIGN`` are the two references' settings (bench/herz_gap.md, bench/refine.md; costs in bench/align.md),
-``TRACK_ALIGN`` the edge tracker's cheap per-frame one (edge/tracking.py; bench/tracking.md).
+carries them to where the query shows them (forward-backward checked), PnP-RANSAC (+ LM, then a Cauchy polish over
+all pairs) on the (3D point, query pixel) pairs gives the pose, and guards keep the start pose when there are too few
+points or inliers or the correction is too large to be a refinement. The thresholds are an ``AlignConfig``;
+``KEYFRAME_ALIGN`` and ``RENDER_ALIGN`` are the two references' settings (bench/herz_gap.md, bench/refine.md; costs
+in bench/align.md), ``TRACK_ALIGN`` the edge tracker's cheap per-frame one (edge/tracking.py; bench/tracking.md).
 """
 
 from __future__ import annotations
