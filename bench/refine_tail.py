@@ -50,7 +50,8 @@ def run(kind: str, bundle, scene: Path, budget_ms: float) -> dict:
         return replay_split(loc, scene, "test", lambda i, n: None)
     finally:
         s.close()
-        gc.unfreeze()
+        if kind == "F":
+            gc.unfreeze()
 
 
 class GcLog:
@@ -91,17 +92,17 @@ def main() -> None:
     print(f"# {machine_line()}")
     res: dict[str, list[tuple[float, float]]] = {}
     for kind in args.order:
-        log = GcLog()
-        if args.gc_log:
+        log = GcLog() if args.gc_log else None
+        if log is not None:
             gc.callbacks.append(log)
         try:
             t = run(kind, bundle, args.workdir / "scene", args.budget_ms)["timing_ms"]
         finally:
-            if args.gc_log:
+            if log is not None:
                 gc.callbacks.remove(log)
         res.setdefault(kind, []).append((t["total"]["p95"], t["inference"]["p95"]))
         print(f"{kind}: total p95 {t['total']['p95']:.1f} ms, inference p95 {t['inference']['p95']:.1f} ms", flush=True)
-        if args.gc_log:
+        if log is not None:
             print(f"   gc: {log.summary()}", flush=True)
     base = statistics.median(v[0] for v in res.get("P", [(float("nan"), 0.0)]))
     print("| run | total p95 (median of runs) | ratio to P | inference p95 (median) | runs |")

@@ -293,20 +293,9 @@ def thin(count: int, err: np.ndarray, cfg: AlignConfig) -> np.ndarray:
 
 
 ROBUST_SCALE_STEPS = (4.0, 2.0, 1.0)
-"""robust_polish anneals its Cauchy scale through these multiples of the final one."""
+"""The polish (AlignConfig.robust_px) anneals its Cauchy scale through these multiples of the final one."""
 ROBUST_STEPS = 10
 """Gauss-Newton steps per scale at most (each scale stops once a step moves the pose by nothing)."""
-
-
-def robust_polish(
-    X: np.ndarray, uv: np.ndarray, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, scale_px: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """World-to-camera rvec, tvec (3, 1) refined over all pairs, world points X (N, 3) and pixels uv (N, 2), by
-    Cauchy-weighted Gauss-Newton annealed down to ``scale_px`` (acesplat.core.pose_refine.refine_pose_robust)."""
-    r, t = refine_pose_robust(
-        uv, X, K, rvec.reshape(3), tvec.reshape(3), tuple(m * scale_px for m in ROBUST_SCALE_STEPS), ROBUST_STEPS
-    )
-    return r.reshape(3, 1), t.reshape(3, 1)
 
 
 PairSource = Callable[[np.ndarray, int], tuple[np.ndarray, np.ndarray, np.ndarray]]
@@ -353,13 +342,13 @@ def refine_pose(
         used = X[idx], uv[idx]
         if cfg.refine_lm:
             rvec, tvec = cv2.solvePnPRefineLM(X[idx], uv[idx], K, None, rvec, tvec)
-        if cfg.robust_px is not None and np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec)):
-            rvec, tvec = robust_polish(X, uv, K, rvec, tvec, cfg.robust_px)
-            _, _, e = reprojection(X, uv, K, cv2.Rodrigues(rvec)[0], tvec.reshape(3))
-            near = e < cfg.reproj_px
-            used = X[near], uv[near]
         if not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
             return Alignment(start, "no_fit", points, inliers)
+        if cfg.robust_px is not None:  # over all pairs: its steps only lower the cost, so the pose stays finite
+            scales = tuple(m * cfg.robust_px for m in ROBUST_SCALE_STEPS)
+            rvec, tvec = refine_pose_robust(uv, X, K, rvec.reshape(3), tvec.reshape(3), scales, ROBUST_STEPS)
+            _, _, e = reprojection(X, uv, K, cv2.Rodrigues(rvec)[0], tvec)
+            used = X[e < cfg.reproj_px], uv[e < cfg.reproj_px]
         last, pose = pose, invert_pose(make_pose(cv2.Rodrigues(rvec)[0], tvec.reshape(3)))
         dt, dr = pose_error(pose, start)
         if dt > cfg.max_shift_m or dr > cfg.max_shift_deg:
