@@ -137,7 +137,9 @@ class ScrSession:
         self._features = SCR_FEATURES_OUTPUT if SCR_FEATURES_OUTPUT in outputs else None
         self.input_size = (int(input_size[0]), int(input_size[1]))
         shape = list(inp.shape)
-        if len(shape) != 4 or [shape[2], shape[3]] != list(self.input_size):
+        self.dynamic = len(shape) == 4 and not any(isinstance(d, int) for d in shape[2:])
+        """Whether the graph takes any multiple of 8 in H and W (bundles exported since the dynamic graph)."""
+        if len(shape) != 4 or not (self.dynamic or [shape[2], shape[3]] == list(self.input_size)):
             raise InputError(
                 self.path, f"model input shape {shape} does not match the bundle input size {self.input_size}"
             )
@@ -147,13 +149,20 @@ class ScrSession:
         """Whether the graph also outputs the encoder's features (bundle format 2)."""
         return self._features is not None
 
+    def accepts(self, size_hw: tuple[int, int]) -> bool:
+        """Whether the graph runs at ``size_hw`` (H, W): its input size, or any multiple of 8 if it is dynamic."""
+        if self.dynamic:
+            return len(size_hw) == 2 and all(int(v) > 0 and int(v) % 8 == 0 for v in size_hw)
+        return tuple(size_hw) == self.input_size
+
     def _feed(self, gray: np.ndarray) -> dict[str, np.ndarray]:
-        if gray.shape != self.input_size:
-            raise ValueError(f"image must be {self.input_size} (H, W) grayscale, got {gray.shape}")
+        if gray.ndim != 2 or not self.accepts(gray.shape):
+            want = "(H, W) multiples of 8" if self.dynamic else f"{self.input_size} (H, W)"
+            raise ValueError(f"image must be {want} grayscale, got {gray.shape}")
         return {self._input: np.ascontiguousarray(gray, dtype=np.float32)[None, None]}
 
     def run(self, gray: np.ndarray) -> np.ndarray:
-        """Scene coordinates (h, w, 3) float32 for a grayscale image (H, W) at the model's input size."""
+        """Scene coordinates (h, w, 3) float32 for a grayscale image (H, W) the graph accepts (``accepts``)."""
         out = self._sess.run([self._output], self._feed(gray))[0]
         return np.ascontiguousarray(np.moveaxis(out[0], 0, -1))
 

@@ -16,6 +16,7 @@ import time
 from dataclasses import dataclass, replace
 from typing import Any
 
+import cv2
 import numpy as np
 
 from acesplat.align.flow_pnp import KEYFRAME_ALIGN, AlignConfig
@@ -122,6 +123,23 @@ class PnPSettings:
         return replace(PnPConfig(), **self.kwargs())
 
 
+@dataclass
+class PreciseSettings:
+    """The precise path (--align): SCR + PnP seeds the keyframe alignment, which measures the pose at full size."""
+
+    scr_short_side: int = knob(
+        240, "With --align, SCR runs at this shorter side (never above the bundle's); the alignment keeps precision."
+    )
+
+
+def size_for_scr(size_hw: tuple[int, int], short_side: int) -> tuple[int, int]:
+    """``size_hw`` (H, W) scaled to the shorter side ``short_side`` (never up), sides rounded to multiples of 8."""
+    if short_side < 8:
+        raise ValueError(f"short side must be at least 8, got {short_side}")
+    scale = min(1.0, short_side / min(size_hw))
+    return tuple(max(8, int(round(v * scale / 8)) * 8) for v in size_hw)  # type: ignore[return-value]
+
+
 class EdgeLocalizer:
     """A bundle's SCR model (FP32 or INT8) plus frame preparation and the shared PnP solver."""
 
@@ -137,6 +155,7 @@ class EdgeLocalizer:
         gate: GateConfig | None = None,
         tracking: TrackingConfig | None = None,
         align_config: AlignConfig = KEYFRAME_ALIGN,
+        scr_short_side: int = knob_default(PreciseSettings, "scr_short_side"),
     ) -> None:
         if pace_ms is not None and not pace_ms > 0:
             raise ValueError(f"pace must be positive, got {pace_ms} ms")
@@ -146,6 +165,11 @@ class EdgeLocalizer:
         self.stride = bundle.output_stride
         self.session = ScrSession(bundle.scr_model(precision), self.input_size, threads, provider)
         self.prep = FramePrep(self.input_size)
+        self.scr_size = self.input_size
+        """(H, W) SCR runs at: the bundle's size, or with --align and a dynamic graph the smaller size of
+        PreciseSettings.scr_short_side (frames whose features a tap needs run at the bundle's size)."""
+        if align and self.session.dynamic:
+            self.scr_size = size_for_scr(self.input_size, scr_short_side)
         self.pnp = pnp or PnPSettings()
         self.gate = gate or GateConfig()
         """When a pose is TRACKING (acesplat.core.gate): the same decision as the desktop's."""
@@ -220,10 +244,16 @@ class EdgeLocalizer:
         t_start = time.perf_counter() - capture_ms / 1000.0 if t_start is None else t_start
         t0 = time.perf_counter()
         gray, intr = self.prep(frame.image, frame.intrinsics, frame.distortion)
+        needs_coords = any(t.needs_features for t in self.taps)  # e.g. refinement's keyframes
+        view = None
+        if self.scr_size != self.input_size and not needs_coords:
+            view = (gray, intr)
+            h, w = self.scr_size
+            gray, intr = cv2.resize(gray, (w, h), interpolation=cv2.INTER_AREA), intr.resized(w, h)
         t1 = time.perf_counter()
         plan = self.tracker.plan() if self.tracker is not None else Plan("scr")
         p = Prepared(frame, gray, intr, plan, t_start, {"capture": capture_ms, "preprocess": (t1 - t0) * 1000.0})
-        needs_coords = any(t.needs_features for t in self.taps)  # e.g. refinement's keyframes
+        p.view = view
         if plan.mode != "track" or self.tracker.config.infer_tracked or needs_coords:
             self._infer(p)
         else:
@@ -275,7 +305,7 @@ class EdgeLocalizer:
         if res.localized and res.T_c2w is not None:
             if self.keyframes is not None:
                 al = align_scr_pose(
-                    p.gray, p.intr, p.coords, self.stride, res.T_c2w, self.keyframes.near, self.align_config
+                    p.gray, p.intr, p.coords, self.stride, res.T_c2w, self.keyframes.near, self.align_config, p.view
                 )
                 res, status = replace(res, T_c2w=al.pose), al.status
                 cov = al.covariance if al.status == "aligned" else cov
@@ -303,7 +333,11 @@ class EdgeLocalizer:
         else:
             refs = [self._anchor] if self._anchor is not None else []
         anchor = grid_correspondences(p.coords, self.stride) if p.coords is not None else None
-        return track_to_keyframes(p.gray, p.intr, start, refs, cfg.align, anchor)
+        gray, intr = p.gray, p.intr
+        if p.view is not None:  # SCR ran on a smaller copy: align the full-size image, the cells mapped there
+            gray, intr = p.view
+            anchor = None if anchor is None else (anchor[0], p.intr.pixels_to(anchor[1], intr))
+        return track_to_keyframes(gray, intr, start, refs, cfg.align, anchor)
 
     def _outcome(
         self,
@@ -337,6 +371,8 @@ class Prepared:
     times: dict[str, float]
     coords: np.ndarray | None = None
     features: np.ndarray | None = None
+    view: tuple[np.ndarray, Intrinsics] | None = None
+    """The frame at the bundle's size (gray (H, W), intrinsics) when SCR runs on a smaller ``gray``; None: same."""
 
 
 def grid_covariance(

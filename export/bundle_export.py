@@ -298,6 +298,7 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
             "source_map": {"path": str(map_path.resolve()), "sha256": sha256_of(map_path)},
             "scr": {
                 "input_size": [size[0], size[1]],
+                "dynamic_size": True,
                 "output_stride": stride,
                 "output_size": [size[0] // stride, size[1] // stride],
                 "input": {

@@ -1,5 +1,7 @@
-"""SCR network -> one static-shape ONNX graph: grayscale image (1, 1, H, W) in [0, 255] in; coordinates
-(1, 3, H/s, W/s) and the encoder's features (1, C, H/s, W/s) out, s the output stride (8, or 4 for a dense bundle).
+"""SCR network -> one ONNX graph: grayscale image (1, 1, H, W) in [0, 255] in; coordinates (1, 3, H/s, W/s) and the
+encoder's features (1, C, H/s, W/s) out, s the output stride (8, or 4 for a dense bundle). H and W are dynamic
+(any multiple of 8): the bundle's input size is the one it was checked at, and the edge may run the same graph
+smaller where a later stage recovers the precision (edge.runtime.PreciseSettings).
 
 Normalisation and the mean offset live inside the network, so the graph needs nothing but pixels. The
 features are the head's input, a second output at no extra compute: the edge's splat initializer takes
@@ -13,6 +15,7 @@ import warnings
 from pathlib import Path
 
 import torch
+from torch.export import Dim
 
 from acesplat.core.atomic import atomic_path
 from acesplat.core.bundle import SCR_COORDS_OUTPUT, SCR_FEATURES_OUTPUT
@@ -40,10 +43,14 @@ class ScrWithFeatures(torch.nn.Module):
 
 
 def export_scr_onnx(
-    net: SCRNetwork, size_hw: tuple[int, int], out_path: str | Path, output_stride: int = OUTPUT_STRIDE
+    net: SCRNetwork,
+    size_hw: tuple[int, int],
+    out_path: str | Path,
+    output_stride: int = OUTPUT_STRIDE,
+    dynamic: bool = True,
 ) -> Path:
-    """Write ``net`` at the fixed input size ``size_hw`` (H, W) and ``output_stride`` to ``out_path`` as a
-    single-file ONNX model."""
+    """Write ``net`` traced at the input size ``size_hw`` (H, W) and ``output_stride`` to ``out_path`` as a
+    single-file ONNX model; ``dynamic``: H and W are symbolic multiples of 8 (else fixed at ``size_hw``)."""
     h, w = size_hw
     if h % 8 or w % 8:
         raise ValueError(f"input size must be a multiple of 8 in both sides, got {h}x{w}")
@@ -62,6 +69,7 @@ def export_scr_onnx(
             opset_version=OPSET,
             input_names=[INPUT_NAME],
             output_names=[OUTPUT_NAME, FEATURES_NAME],
+            dynamic_shapes={"gray": {2: 8 * Dim("rows8", min=1), 3: 8 * Dim("cols8", min=1)}} if dynamic else None,
             verbose=False,
         )
     return out_path

@@ -90,3 +90,15 @@ def test_resized_matches_cv2_resize(size: tuple[int, int], interp: int) -> None:
     naive = np.array([uv[0] * w / CAM.width, uv[1] * h / CAM.height])  # cx * s, the pixel-corner mistake
     if (w, h) != (CAM.width, CAM.height):
         assert np.abs(measured - naive).max() > 0.2
+
+
+@pytest.mark.parametrize("size", [(64, 48), (200, 150), (90, 96)])
+def test_pixels_to_follows_the_rays(size: tuple[int, int]) -> None:
+    """A point's pixel in one image maps to its pixel in a resized copy (reference: projecting the point there)."""
+    w, h = size
+    other = CAM.resized(w, h)
+    X = np.random.default_rng(3).uniform([-1, -1, 1], [1, 1, 5], size=(40, 3))
+    np.testing.assert_allclose(CAM.pixels_to(CAM.project(X), other), other.project(X), atol=1e-10)
+    np.testing.assert_allclose(other.pixels_to(other.project(X), CAM), CAM.project(X), atol=1e-10)
+    with pytest.raises(ValueError, match=r"\(N, 2\)"):
+        CAM.pixels_to(np.zeros((3, 3)), other)

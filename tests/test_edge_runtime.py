@@ -488,6 +488,29 @@ def test_taps_see_every_frame_with_its_arrays_and_the_loop_events(tiny) -> None:
     assert with_features == [loc.session.has_features] * stats.frames
 
 
+def test_scr_on_a_smaller_copy_keeps_the_full_frame_and_taps_needing_features_get_the_full_size(tiny) -> None:
+    """With a smaller SCR size (as --align sets it) the network sees a resized copy with its own intrinsics and the
+    frame at the bundle's size rides along for the alignment; a tap that needs features gets the bundle's size."""
+    from edge.runtime import FrameTap
+
+    loc = EdgeLocalizer(load_bundle(tiny["bundle"]), "fp32", threads=1)
+    assert loc.scr_size == loc.input_size == (64, 80)  # no --align: the bundle's size
+    loc.scr_size = (56, 72)
+    frame = ReplaySource(Path(tiny["scene"]) / "test").read()
+    p = loc.prepare(frame)
+    assert p.gray.shape == (56, 72) and p.coords.shape == (7, 9, 3) and p.view is not None
+    full_gray, full_intr = p.view
+    assert full_gray.shape == (64, 80) and (full_intr.width, full_intr.height) == (80, 64)
+    assert p.intr == full_intr.resized(72, 56)
+
+    class NeedsFeatures(FrameTap):
+        needs_features = True
+
+    loc.add_tap(NeedsFeatures())
+    q = loc.prepare(frame)
+    assert q.gray.shape == (64, 80) and q.view is None and q.coords.shape == (8, 10, 3)
+
+
 def test_out_of_order_and_repeated_timestamps_are_refused_and_counted(tiny, localizer) -> None:
     """A frame whose timestamp does not move forward is not localized (tracking's motion model needs time to
     advance): one event line each, counted apart in the summary, and the run goes on."""

@@ -60,6 +60,35 @@ def test_fp32_graph_matches_torch(tiny) -> None:
     assert feats.shape == (32, 8, 10) and np.abs(feats - ref_feats).max() < 1e-4 * max(1.0, np.abs(ref_feats).max())
 
 
+def test_graph_takes_other_multiples_of_8_and_a_static_one_only_its_size(tiny, tmp_path: Path) -> None:
+    """The bundle's graph is dynamic in H and W (the edge runs it smaller under --align): at 48x56 it equals the
+    map in torch at 48x56; a graph exported static takes its own size only, and both refuse a size off the grid."""
+    import torch
+
+    from acesplat.scr.mapfile import encoder_for_map, load_map
+    from edge.inference import ScrSession
+    from export.onnx_graph import export_scr_onnx
+
+    assert load_bundle(tiny["bundle"]).dynamic_size and tiny["manifest"]["scr"]["dynamic_size"] is True
+    m = load_map(tiny["map"])
+    net = m.network(encoder_for_map(m, tiny["map"]))
+    sess = ScrSession(Path(tiny["bundle"]) / "scr.onnx", (64, 80), threads=1)
+    gray = np.random.default_rng(5).integers(0, 256, (48, 56), dtype=np.uint8)
+    with torch.no_grad():
+        ref = net(torch.from_numpy(gray).float()[None, None])[0].permute(1, 2, 0).numpy()
+    assert sess.dynamic and sess.accepts((48, 56)) and not sess.accepts((48, 60))
+    out = sess.run(gray)
+    assert out.shape == (6, 7, 3) and np.abs(out - ref).max() < 1e-4
+    with pytest.raises(ValueError, match="multiples of 8"):
+        sess.run(np.zeros((48, 60), np.uint8))
+    static = ScrSession(export_scr_onnx(net, (64, 80), tmp_path / "static.onnx", dynamic=False), (64, 80), threads=1)
+    assert not static.dynamic and static.accepts((64, 80)) and not static.accepts((48, 56))
+    with pytest.raises(ValueError, match=r"\(64, 80\)"):
+        static.run(gray)
+    with pytest.raises(InputError, match="does not match the bundle input size"):
+        ScrSession(tmp_path / "static.onnx", (48, 56), threads=1)
+
+
 def test_int8_self_check_keeps_most_frames_localized(tiny) -> None:
     acc = tiny["manifest"]["checks"]["test_split"]
     fp32, int8 = acc["fp32"], acc["int8"]
@@ -170,6 +199,7 @@ def test_dense_bundles_carry_no_gaussians_and_other_strides_are_refused(tiny, tm
 
 def test_keyframes_ride_in_the_bundle_and_the_edge_aligns_to_them(tiny, tmp_path: Path) -> None:
     from acesplat.apps.edge_cli import app as edge_app
+    from edge.runtime import size_for_scr
     from export.bundle_export import ExportOptions, export_bundle
 
     rep = export_bundle(tiny["map"], tmp_path / "kf", ExportOptions(keyframes=True))
@@ -191,6 +221,20 @@ def test_keyframes_ride_in_the_bundle_and_the_edge_aligns_to_them(tiny, tmp_path
     aligned = sorted(f["translation_m"] for f in s["per_frame"])[: s["keyframe_alignment"].get("aligned", 0)]
     assert len(aligned) >= 1 and max(aligned) < 0.02, s["per_frame"]
     assert s["align_warp"] == "keyframe" and s["align_matcher"] == "sparse"
+    assert s["scr_size"] == s["input_size"] == [64, 80]  # at most PreciseSettings.scr_short_side: not made smaller
+    # SCR on a smaller copy (48x64), the alignment on the full image
+    r = CliRunner().invoke(
+        edge_app,
+        ["replay", str(tmp_path / "kf"), str(tiny["scene"]), "--align", "--align-scr-side", "56", "--json", str(out)],
+    )
+    assert r.exit_code == 0 and "SCR at 56x72" in r.output, r.output
+    small = json.loads(out.read_text())
+    assert small["scr_size"] == [56, 72] and small["input_size"] == [64, 80]
+    assert sum(small["keyframe_alignment"].values()) == small["localized"]  # the tiny map at 56x72 is 65 cm off
+    with pytest.raises(ValueError, match="at least 8"):
+        size_for_scr((64, 80), 4)
+    assert size_for_scr((360, 544), 240) == (240, 360) and size_for_scr((240, 320), 240) == (240, 320)
+    assert size_for_scr((240, 320), 480) == (240, 320)  # never up
     # the query's own SCR depth warping the keyframes: recorded, and a warp that does not exist is refused
     kf_scene = [str(tmp_path / "kf"), str(tiny["scene"])]
     dense_query = ["--align", "--align-matcher", "dense", "--align-warp", "query"]

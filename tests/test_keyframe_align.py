@@ -16,6 +16,7 @@ from acesplat.align.flow_pnp import DENSE_ALIGN, KEYFRAME_ALIGN
 from acesplat.align.keyframe_align import (
     Keyframe,
     _depth_at,
+    align_scr_pose,
     align_to_keyframes,
     keyframe_corners,
     keyframe_plane,
@@ -134,6 +135,29 @@ def test_the_query_depth_warp_brings_a_perturbed_pose_back_as_well(room, other: 
     # without coordinates the keyframes' own depth warps them: the same pose as the keyframe warp gives
     plain = align_to_keyframes(query, k, start, kfs[:4], cfg=cfg)
     assert plain.status == "aligned" and np.array_equal(plain.pose, exact.pose)
+
+
+def test_scr_on_a_smaller_copy_aligns_the_full_image_with_the_cells_mapped_there(room) -> None:
+    """SCR at two thirds of the size (its grid's pixels in the small image), the alignment on the full image: the
+    pose comes back as from the full-size grid, and the cells, mapped, are the anchor it keeps."""
+    scene, K, kfs, true_pose, query = room
+    small = K.resized(216, 160)
+    small_gray = cv2.resize(query, (216, 160), interpolation=cv2.INTER_AREA)
+    coords = scr_like_coords(scene, true_pose, small, 0.02, 4)
+    start = perturb(true_pose, [0.04, -0.03, 0.02], [0.004, -0.006, 0.003])
+
+    def near(pose, depth=None, corners=0):
+        return [kfs[i] for i in nearest_keyframes(np.stack([k.c2w for k in kfs]), pose)]
+
+    al = align_scr_pose(small_gray, small, coords, 8, start, near, KEYFRAME_ALIGN, view=(query, K))
+    e1 = pose_error(al.pose, true_pose)
+    assert al.status == "aligned" and e1[0] < 0.003 and e1[1] < 0.05, (al, e1)
+    full = align_scr_pose(query, K, scr_like_coords(scene, true_pose, K, 0.02, 4), 8, start, near, KEYFRAME_ALIGN)
+    assert full.status == "aligned" and pose_error(al.pose, full.pose)[0] < 0.002
+    # the anchor it kept is the small grid's cells at their full-size pixels
+    pts, pix = coords.reshape(-1, 3), small.pixels_to(cell_centers(20, 27), K)
+    again = align_to_keyframes(query, K, start, near(start), anchor=(pts, pix), cfg=KEYFRAME_ALIGN)
+    assert np.array_equal(again.pose, al.pose) and again.inliers == al.inliers
 
 
 def test_query_depth_is_the_camera_z_of_the_coordinates_median_filtered() -> None:

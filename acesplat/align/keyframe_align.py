@@ -496,15 +496,23 @@ def align_scr_pose(
     pose_c2w: np.ndarray,
     near: Callable[..., Sequence[Keyframe]],
     cfg: AlignConfig = KEYFRAME_ALIGN,
+    view: tuple[np.ndarray, Intrinsics] | None = None,
 ) -> Alignment:
     """Refine a pose solved from the SCR grid ``coords`` (h, w, 3) (cells ``stride`` px apart) of ``gray``: the
     keyframes ``near(pose, depth=..., corners=...)`` gives for the scene's depth in front of it (with the sparse
     matcher, carrying its corners triangulated between keyframes), the grid as the anchor.
-    One path for the desktop localizer and the edge runtime."""
+    ``view``: a larger image of the same frame (H', W') uint8 with its intrinsics when SCR ran on a smaller copy;
+    the alignment then runs on it, the grid's pixels mapped there (without the query-depth warp, which needs the
+    grid at the view's own stride). One path for the desktop localizer and the edge runtime."""
     anchor = grid_correspondences(coords, stride)
     corners = cfg.corners if cfg.matcher == "sparse" else 0
     keyframes = near(pose_c2w, depth=scene_depth(anchor[0], pose_c2w), corners=corners)
-    return align_to_keyframes(gray, intrinsics, pose_c2w, keyframes, anchor=anchor, cfg=cfg, coords=(coords, stride))
+    query_coords: tuple[np.ndarray, int] | None = (coords, stride)
+    if view is not None:
+        gray_v, intr_v = view
+        anchor = (anchor[0], intrinsics.pixels_to(anchor[1], intr_v))
+        gray, intrinsics, query_coords = gray_v, intr_v, None
+    return align_to_keyframes(gray, intrinsics, pose_c2w, keyframes, anchor=anchor, cfg=cfg, coords=query_coords)
 
 
 def anchor_inliers(anchor: tuple[np.ndarray, np.ndarray], intrinsics: Intrinsics, pose_c2w: np.ndarray) -> int:

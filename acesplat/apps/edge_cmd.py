@@ -27,7 +27,7 @@ from edge.int8_check import Int8CheckConfig
 from edge.loop import LoopEvent, run_loop
 from edge.profile import ProfileOptions
 from edge.refine.session import RefineOptions
-from edge.runtime import STAGES, EdgeLocalizer, FrameOutcome, FrameTap, PnPSettings
+from edge.runtime import STAGES, EdgeLocalizer, FrameOutcome, FrameTap, PnPSettings, PreciseSettings
 from edge.sources import SourceOptions, open_source
 from edge.tracking import TrackingConfig
 from firmware_bridge.sink import SinkConfig
@@ -71,6 +71,21 @@ def _tracking(on: bool, reanchor_every: int) -> TrackingConfig | None:
     return TrackingConfig(reanchor_every=reanchor_every) if on else None
 
 
+def _size_text(loc: EdgeLocalizer) -> str:
+    """The network input size, and the SCR size where --align runs SCR smaller."""
+    h, w = loc.input_size
+    if loc.scr_size == loc.input_size:
+        return f"{h}x{w}"
+    return f"{h}x{w}, SCR at {loc.scr_size[0]}x{loc.scr_size[1]}"
+
+
+def _scr_side(side: int) -> int:
+    """--align-scr-side, checked."""
+    if side < 8:
+        raise InputError(None, f"--align-scr-side must be at least 8 pixels, got {side}")
+    return side
+
+
 def _align_config(warp: str, matcher: str) -> AlignConfig:
     """The keyframe alignment of --align with --align-warp's warp and --align-matcher's matcher."""
     if warp not in WARPS:
@@ -90,7 +105,8 @@ def _warn(msg: str) -> None:
 
 ALIGN_HELP = (
     "Refine each pose against the bundle's keyframes (export --keyframes): "
-    "centimetre poses where SCR alone is a few cm off, for about 50 ms more per frame (bench/align.md)."
+    "centimetre poses where SCR alone is a few cm off; SCR then runs smaller (--align-scr-side), the alignment "
+    "adds about 50 ms (bench/align.md)."
 )
 FOXGLOVE_HELP = "Serve a live Foxglove WebSocket on this port (Foxglove's usual: 8765; 0 picks a free one)."
 MCAP_HELP = "Log the same channels to this MCAP file (written as PATH.partial, renamed into place at the end)."
@@ -167,6 +183,7 @@ def localize_command(
     align: bool = typer.Option(False, "--align", help=ALIGN_HELP),
     align_warp: str = option(AlignConfig, "warp", "--align-warp"),
     align_matcher: str = option(AlignConfig, "matcher", "--align-matcher"),
+    align_scr_side: int = option(PreciseSettings, "scr_short_side", "--align-scr-side"),
     tracking: bool = option(TrackingConfig, "enabled", "--tracking/--no-tracking"),
     reanchor_every: int = option(TrackingConfig, "reanchor_every", "--reanchor-every"),
     foxglove: int | None = typer.Option(None, "--foxglove", metavar="PORT", help=FOXGLOVE_HELP),
@@ -190,6 +207,7 @@ def localize_command(
         provider=provider,
         tracking=track,
         align_config=_align_config(align_warp, align_matcher),
+        scr_short_side=_scr_side(align_scr_side),
     )
     src = open_source(source, SourceOptions(calibration=calib, input_size=b.input_size, realtime=realtime))
     fox = _foxglove_tap(loc, foxglove, mcap, foxglove_host)
@@ -222,7 +240,7 @@ def localize_command(
 
     rt = runtime_info(provider)
     console.print(
-        f"localizing {src.description} with {b.root} ({precision}, {b.input_size[0]}x{b.input_size[1]}, "
+        f"localizing {src.description} with {b.root} ({precision}, {_size_text(loc)}, "
         f"{loc.session.threads} threads, PnP {loc.pnp.method}; provider {provider}, onnxruntime {rt['onnxruntime']}, "
         f"ISA {' '.join(rt['cpu_isa']) or '-'}); Ctrl-C to stop"
     )
@@ -312,6 +330,7 @@ def replay_command(
     align: bool = typer.Option(False, "--align", help=ALIGN_HELP),
     align_warp: str = option(AlignConfig, "warp", "--align-warp"),
     align_matcher: str = option(AlignConfig, "matcher", "--align-matcher"),
+    align_scr_side: int = option(PreciseSettings, "scr_short_side", "--align-scr-side"),
     tracking: bool = option(TrackingConfig, "enabled", "--tracking/--no-tracking"),
     reanchor_every: int = option(TrackingConfig, "reanchor_every", "--reanchor-every"),
     foxglove: int | None = typer.Option(None, "--foxglove", metavar="PORT", help=FOXGLOVE_HELP),
@@ -337,6 +356,7 @@ def replay_command(
         provider=provider,
         tracking=track,
         align_config=_align_config(align_warp, align_matcher),
+        scr_short_side=_scr_side(align_scr_side),
     )
     fox = _foxglove_tap(loc, foxglove, mcap, foxglove_host)
     refiner = refine_session(refine, loc, b, budget_ms, save_splat, _warn, evaluate=True)
@@ -352,9 +372,7 @@ def replay_command(
     if refiner is not None:
         s["refine"] = refiner.summary
         s["timing_ms"]["refine"] = refiner.summary["timing_ms"]["window"]
-    t = Table(
-        title=f"{Path(scene).name} / {split} ({precision}, {b.input_size[0]}x{b.input_size[1]}, provider {provider})"
-    )
+    t = Table(title=f"{Path(scene).name} / {split} ({precision}, {_size_text(loc)}, provider {provider})")
     keys = (
         "frames",
         "localized",

@@ -113,6 +113,12 @@ class Bundle:
         return int(h), int(w)
 
     @property
+    def dynamic_size(self) -> bool:
+        """Whether the SCR graphs also take other multiples of 8 than ``input_size`` (bundles since the dynamic
+        graph; ``input_size`` is still the size the export checked)."""
+        return bool(self.scr.get("dynamic_size", False))
+
+    @property
     def output_stride(self) -> int:
         return int(self.scr["output_stride"])
 

@@ -44,6 +44,15 @@ class Intrinsics:
             self.fx * sx, self.fy * sy, (self.cx + 0.5) * sx - 0.5, (self.cy + 0.5) * sy - 0.5, int(width), int(height)
         )
 
+    def pixels_to(self, pixels: np.ndarray, other: Intrinsics) -> np.ndarray:
+        """Pixels (N, 2) of this image at the same rays in ``other``, an image of the same camera (resized or
+        cropped): u' = fx' (u - cx) / fx + cx', v' likewise."""
+        uv = np.asarray(pixels, dtype=np.float64)
+        if uv.ndim != 2 or uv.shape[1] != 2:
+            raise ValueError(f"pixels must be (N, 2), got {uv.shape}")
+        sx, sy = other.fx / self.fx, other.fy / self.fy
+        return np.stack([(uv[:, 0] - self.cx) * sx + other.cx, (uv[:, 1] - self.cy) * sy + other.cy], axis=1)
+
     def project(self, X_cam: np.ndarray) -> np.ndarray:
         """Pixel coordinates (N, 2) of camera-frame points ``X_cam`` (N, 3)."""
         z = X_cam[:, 2:3]
