@@ -1,6 +1,7 @@
 """The tracking gate on true, foreign and synthetic bad frames (bench/gate.md).
 
     collect: PYTHONPATH=. python bench/gate_foreign.py collect MAP SCENE --foreign SCENE2 SCENE3 --out RAW.npz
+             [--short-side 240]   (the network smaller than the map's side, as the edge's --align runs it)
     report:  PYTHONPATH=. python bench/gate_foreign.py report RAW1.npz RAW2.npz ...
 
 ``collect`` localizes, with a map, the own scene's test split (true frames), every image of the foreign scenes
@@ -51,7 +52,7 @@ def collect(args: argparse.Namespace) -> None:
 
     torch.set_num_threads(1)
     m = load_map(args.map)
-    loc = Localizer(m.network(encoder_for_map(m, args.map)), m.short_side, {})
+    loc = Localizer(m.network(encoder_for_map(m, args.map)), args.short_side or m.short_side, {})
     test = read_split(args.scene, "test")
     H, W = test.frames[0].load_rgb().shape[:2]
     cam = test.frames[0].intrinsics
@@ -173,6 +174,7 @@ def main() -> None:
     c.add_argument("--foreign-every", type=int, default=1, help="Every n-th image of a foreign split.")
     c.add_argument("--synth-every", type=int, default=1, help="Synthetic bad frames of every n-th true frame.")
     c.add_argument("--out", type=Path, required=True)
+    c.add_argument("--short-side", type=int, default=0, help="Network input's shorter side (0: the map's).")
     r = sub.add_parser("report")
     r.add_argument("raw", type=Path, nargs="+")
     r.add_argument("--gate", default="", help="GateConfig fields as JSON, e.g. '{\"min_score\": 0.1}'.")
