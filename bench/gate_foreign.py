@@ -21,8 +21,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from acesplat.core.gate import GateConfig, gate_grid
-from acesplat.core.pnp import PnPConfig, solve_from_grid
+from acesplat.core.gate import GateConfig, gate_grid, mirror_frame, mirror_result, needs_mirror_check
+from acesplat.core.pnp import PnPConfig, PnPResult, solve_from_grid
 
 SYNTH = ("blank", "dark", "saturated", "blurred", "mirrored")
 
@@ -70,12 +70,16 @@ def collect(args: argparse.Namespace) -> None:
             for f in fr:
                 rgb = cv2.resize(f.load_rgb(), (W, H), interpolation=cv2.INTER_AREA)
                 rows.append(("foreign", f"{Path(scene).name}/{split}/{f.name}", rgb, cam))
-    coords, poses, Ks, kinds, names, sizes, ms = [], [], [], [], [], [], []
+    coords, poses, Ks, kinds, names, sizes, ms, mcoords, mKs = [], [], [], [], [], [], [], [], []
     for i, (kind, name, rgb, intr) in enumerate(rows):
         t0 = time.perf_counter()
-        c, ni = loc.predict(rgb, intr)
+        gray, ni = loc.network_input(rgb, intr)
+        c = loc.coordinates(gray)
         res = solve_from_grid(c, ni, config=PnPConfig())
         ms.append((time.perf_counter() - t0) * 1000)
+        m_gray, m_intr = mirror_frame(gray, ni)  # the mirror check's input, for report to apply it
+        mcoords.append(loc.coordinates(m_gray).astype(np.float32))
+        mKs.append([m_intr.fx, m_intr.fy, m_intr.cx, m_intr.cy, m_intr.width, m_intr.height])
         coords.append(c.astype(np.float32))
         poses.append(res.T_c2w if res.T_c2w is not None else np.full((4, 4), np.nan))
         Ks.append([ni.fx, ni.fy, ni.cx, ni.cy, ni.width, ni.height])
@@ -94,6 +98,8 @@ def collect(args: argparse.Namespace) -> None:
         names=np.array(names),
         gt=np.stack([f.pose for f in test.frames]),
         ms=np.array(ms),
+        mcoords=np.stack(mcoords),
+        mK=np.array(mKs),
     )
     print(f"wrote {args.out}: {len(rows)} frames")
 
@@ -103,10 +109,15 @@ def verdicts(raw: dict, gate: GateConfig, pnp: PnPConfig) -> list[dict]:
     from acesplat.core.camera import Intrinsics
 
     out = []
-    for c, T, k, kind, name in zip(raw["coords"], raw["poses"], raw["K"], raw["kinds"], raw["names"]):
+    for i, (c, T, k, kind, name) in enumerate(zip(raw["coords"], raw["poses"], raw["K"], raw["kinds"], raw["names"])):
         intr = Intrinsics(k[0], k[1], k[2], k[3], int(k[4]), int(k[5]))
         pose = None if np.isnan(T).any() else T
         v = gate_grid(c, intr, pose, pnp.threshold_px, config=gate, min_inliers=pnp.min_inliers)
+        res = PnPResult(pose, v.inliers, v.valid, v.passed, v)
+        if "mcoords" in raw and needs_mirror_check(res, gate):
+            mk = raw["mK"][i]
+            m_intr = Intrinsics(mk[0], mk[1], mk[2], mk[3], int(mk[4]), int(mk[5]))
+            v = mirror_result(res, raw["mcoords"][i], m_intr, pnp, config=gate).gate
         d = v.as_dict()
         d.update(kind=str(kind), name=str(name), old=pose is not None and v.inliers >= pnp.min_inliers)
         out.append(d)
@@ -120,8 +131,11 @@ def report(args: argparse.Namespace) -> None:
     gate_off = replace(gate, min_score=0.0, min_ratio=0.0, min_coverage=0.0, max_residual=1.0)
     pnp = PnPConfig()
     print(f"gate: {gate}")
-    print("| map | frames | n | TRACKING (fixed 50) | TRACKING (gate) | max score | max inliers | max ratio |")
-    print("|---|---|---|---|---|---|---|---|")
+    print(
+        "| map | frames | n | TRACKING (fixed 50) | TRACKING (gate) | max score | max inliers | max ratio "
+        "| LOST by the mirror check | score over the mirror's (true: min; others: max) |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|")
     worst_foreign = 0.0
     for path in args.raw:
         raw = dict(np.load(path, allow_pickle=False))
@@ -141,6 +155,10 @@ def report(args: argparse.Namespace) -> None:
             ms = max(vs[i]["score"] for i in idx)
             mi = max(vs[i]["inliers"] for i in idx)
             mr = max(vs[i]["ratio"] for i in idx)
+            checked = [i for i in idx if vs[i]["mirror_score"] is not None]
+            by_mirror = sum(not vs[i]["passed"] and vs[i]["reasons"][-1].startswith("the mirrored") for i in checked)
+            over = [vs[i]["score"] / max(vs[i]["mirror_score"], 1e-9) for i in checked]
+            over_s = "-" if not over else f"{(min(over) if kind == 'true' else max(over)):.2f} ({len(over)} checked)"
             extra = ""
             if kind == "true":
                 ok5 = 0
@@ -153,13 +171,17 @@ def report(args: argparse.Namespace) -> None:
                 extra = f" (5cm/5deg among TRACKING: {ok5}; min score of the fixed-50 TRACKING: {lo:.3f})"
             else:
                 worst_foreign = max(worst_foreign, ms)
-            print(f"| {label} | {kind}{extra} | {len(idx)} | {old} | {new} | {ms:.3f} | {mi} | {mr:.3f} |")
+            print(
+                f"| {label} | {kind}{extra} | {len(idx)} | {old} | {new} | {ms:.3f} | {mi} | {mr:.3f} "
+                f"| {by_mirror} | {over_s} |"
+            )
         if args.verbose:
             for v in vs:
                 print(
                     f"  {v['kind']:9s} {v['name']:40s} in {v['inliers']:5d} ratio {v['ratio']:.3f} "
                     f"cov {v['coverage']:.2f} hull {v['hull']:.2f} res {v['residual']:.2f} score {v['score']:.3f} "
                     f"{'TRACK' if v['passed'] else 'LOST'} {'old-TRACK' if v['old'] else ''}"
+                    + (f" mirror {v['mirror_score']:.3f}" if v["mirror_score"] is not None else "")
                 )
     print(f"largest non-true score {worst_foreign:.3f} (threshold {gate.min_score}, half {gate.min_score / 2})")
 

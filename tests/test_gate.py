@@ -124,3 +124,57 @@ def test_tiny_scene_true_frames_track_bad_frames_are_lost(tiny) -> None:
             assert bad.record.state == TrackingState.LOST, (kind, bad.result.gate)
             assert bad.result.gate is not None and bad.result.gate.reasons, kind
             loc.previous = out.result.T_c2w  # each bad frame follows the true one
+
+
+def test_mirror_frame_is_the_image_of_the_mirrored_world() -> None:
+    """Analytic: a point's pixel u in the frame is at W - 1 - u in the mirrored frame, which its intrinsics give for
+    the point mirrored in the camera's x; the pixels move with it."""
+    from acesplat.core.gate import mirror_frame
+
+    gray = np.zeros((K_IN.height, K_IN.width), np.uint8)
+    gray[100, 37] = 255
+    flipped, m = mirror_frame(gray, K_IN)
+    assert flipped[100, K_IN.width - 1 - 37] == 255 and flipped.flags.c_contiguous
+    X = np.random.default_rng(4).uniform([-1, -1, 2], [1, 1, 6], (20, 3))
+    uv = K_IN.project(X)
+    np.testing.assert_allclose(m.project(X * [-1, 1, 1]), np.c_[K_IN.width - 1 - uv[:, 0], uv[:, 1]], atol=1e-9)
+    with pytest.raises(ValueError, match="matching its intrinsics"):
+        mirror_frame(gray[:, :100], K_IN)
+
+
+def _grid(good_fraction: float, seed: int) -> np.ndarray:
+    """A (30, 40, 3) grid of POSE's view of the wall with ``good_fraction`` of the cells right."""
+    px = cell_centers(30, 40)
+    rng = np.random.default_rng(seed)
+    return _scene(px, rng.random(len(px)) < good_fraction, rng, noise_px=0.5).reshape(30, 40, 3)
+
+
+@pytest.mark.parametrize("own, mirror, tracking", [(0.3, 0.05, True), (0.3, 0.7, False), (0.9, 0.99, True)])
+def test_a_pose_must_beat_its_mirror_image_when_its_score_is_middling(own, mirror, tracking) -> None:
+    """A middling frame (30% of cells right) keeps TRACKING when its mirror image explains the map worse, and is LOST
+    when the mirror explains it better (a mirrored stream); a clear frame (90%) is not checked at all."""
+    from acesplat.core.gate import mirror_frame, mirror_result, needs_mirror_check
+    from acesplat.core.pnp import solve_from_grid
+
+    pnp = PnPConfig()
+    grid = _grid(own, 5)
+    res = gate_result(solve_from_grid(grid, K_IN, config=pnp), grid, K_IN, pnp)
+    assert res.localized
+    _, m_intr = mirror_frame(np.zeros((K_IN.height, K_IN.width), np.uint8), K_IN)
+    if not needs_mirror_check(res):
+        assert own == 0.9 and res.gate.score >= GateConfig().mirror_below
+        return
+    out = mirror_result(res, _grid(mirror, 6), m_intr, pnp)
+    assert out.localized is tracking and out.gate.mirror_score is not None
+    assert (out.gate.mirror_score < out.gate.score) is tracking
+    if not tracking:
+        assert out.gate.reasons[-1].startswith("the mirrored frame fits the map as well"), out.gate.reasons
+    assert not needs_mirror_check(res, GateConfig(mirror_below=0.0))
+    with pytest.raises(ValueError, match="gated result"):
+        mirror_result(replace_gate(res), _grid(mirror, 6), m_intr, pnp)
+
+
+def replace_gate(res: PnPResult) -> PnPResult:
+    from dataclasses import replace
+
+    return replace(res, gate=None)

@@ -4,7 +4,10 @@ A fixed inlier count is fooled by frames of another scene: a few dozen random pr
 pose. The gate instead asks how much of the prediction agrees (the inlier ratio over the cells with a valid
 prediction), whether the agreeing cells cover the image (coverage of a coarse grid: a pose pinned by one cluster is
 not trustworthy), how tightly they agree (the inliers' median residual against the PnP threshold), and, when the
-caller has one, whether the pose agrees with the previous one. Calibration and margins: bench/gate.md.
+caller has one, whether the pose agrees with the previous one. A pose that passes with a middling score must also
+beat the frame's mirror image: a mirrored camera stream, or a photograph of a nearly symmetric facade, explains the
+map from the mirrored position almost as well as a true view, and only the asymmetric details tell them apart.
+Calibration and margins: bench/gate.md.
 """
 
 from __future__ import annotations
@@ -37,11 +40,14 @@ class GateConfig:
     max_residual: float = knob(0.8, "Median inlier residual as a fraction of the PnP threshold, at most.")
     max_motion_m: float | None = knob(None, "Translation from the previous pose (m), at most; None: not checked.")
     max_motion_deg: float | None = knob(None, "Rotation from the previous pose (deg), at most; None: not checked.")
+    mirror_below: float = knob(
+        0.4, "A pose scoring below this must also beat the mirrored frame's score (0: never checked; bench/gate.md)."
+    )
 
     def __post_init__(self) -> None:
         if self.coarse_grid < 1:
             raise ValueError(f"coarse_grid must be >= 1, got {self.coarse_grid}")
-        for name in ("min_score", "min_ratio", "min_coverage", "cell_ratio", "max_residual"):
+        for name in ("min_score", "min_ratio", "min_coverage", "cell_ratio", "max_residual", "mirror_below"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
 
@@ -67,6 +73,8 @@ class GateVerdict:
     motion: tuple[float, float] | None = None
     """Translation (m) and rotation (deg) from the previous pose, when one was given."""
     reasons: tuple[str, ...] = field(default=())
+    mirror_score: float | None = None
+    """The mirrored frame's score, when the mirror check ran (GateConfig.mirror_below)."""
 
     def as_dict(self) -> dict:
         return {
@@ -80,6 +88,7 @@ class GateVerdict:
             "residual": self.residual,
             "motion": list(self.motion) if self.motion is not None else None,
             "reasons": list(self.reasons),
+            "mirror_score": self.mirror_score,
         }
 
 
@@ -184,4 +193,42 @@ def gate_result(
     attached: the one TRACKING/LOST decision of the desktop and the edge. ``pnp`` gives the inlier threshold and
     the min_inliers floor."""
     v = gate_grid(coords, intrinsics, res.T_c2w, pnp.threshold_px, stride, config, pnp.min_inliers, previous)
+    return replace(res, localized=bool(res.localized and v.passed), gate=v)
+
+
+def mirror_frame(gray: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, Intrinsics]:
+    """The frame (H, W) mirrored left to right, and the intrinsics that image has: pixel u goes to W - 1 - u, so
+    cx goes to W - 1 - cx (it is the image of the world mirrored in the camera's x)."""
+    if gray.ndim != 2 or gray.shape != (intrinsics.height, intrinsics.width):
+        raise ValueError(f"frame must be (H, W) matching its intrinsics, got {gray.shape}")
+    flipped = np.ascontiguousarray(gray[:, ::-1])
+    return flipped, replace(intrinsics, cx=intrinsics.width - 1 - intrinsics.cx)
+
+
+def needs_mirror_check(res: PnPResult, config: GateConfig | None = None) -> bool:
+    """Whether ``res`` (gated) is TRACKING with a score below GateConfig.mirror_below."""
+    cfg = config or GateConfig()
+    return bool(res.localized and res.gate is not None and res.gate.score < cfg.mirror_below)
+
+
+def mirror_result(
+    res: PnPResult,
+    mirror_coords: np.ndarray,
+    mirror_intrinsics: Intrinsics,
+    pnp: PnPConfig,
+    stride: int = OUTPUT_STRIDE,
+    config: GateConfig | None = None,
+) -> PnPResult:
+    """``res`` (gated) after the mirror check: the network's grid ``mirror_coords`` (h, w, 3) of the mirrored frame
+    (mirror_frame) is solved and scored like the frame; if it scores at least as high, the frame is LOST."""
+    from acesplat.core.pnp import solve_from_grid
+
+    if res.gate is None:
+        raise ValueError("the mirror check needs a gated result (gate_result)")
+    m = solve_from_grid(mirror_coords, mirror_intrinsics, stride=stride, config=pnp)
+    mv = gate_grid(mirror_coords, mirror_intrinsics, m.T_c2w, pnp.threshold_px, stride, config)
+    v = replace(res.gate, mirror_score=mv.score)
+    if mv.score >= v.score:
+        reason = f"the mirrored frame fits the map as well (score {mv.score:.3f} >= {v.score:.3f})"
+        v = replace(v, passed=False, reasons=(*v.reasons, reason))
     return replace(res, localized=bool(res.localized and v.passed), gate=v)
