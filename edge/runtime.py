@@ -125,10 +125,11 @@ class PnPSettings:
 
 @dataclass
 class PreciseSettings:
-    """The precise path (--align): SCR + PnP seeds the keyframe alignment, which measures the pose at full size."""
+    """SCR poses refined against keyframes (--align, or tracking with a keyframe bundle): SCR + PnP seeds the
+    keyframe alignment, which measures the pose at full size."""
 
     scr_short_side: int = knob(
-        240, "With --align, SCR runs at this shorter side (never above the bundle's); the alignment keeps precision."
+        240, "Shorter side of SCR that keyframes refine (never above the bundle's); the alignment restores precision."
     )
 
 
@@ -165,30 +166,29 @@ class EdgeLocalizer:
         self.stride = bundle.output_stride
         self.session = ScrSession(bundle.scr_model(precision), self.input_size, threads, provider)
         self.prep = FramePrep(self.input_size)
-        self.scr_size = self.input_size
-        """(H, W) SCR runs at: the bundle's size, or with --align and a dynamic graph the smaller size of
-        PreciseSettings.scr_short_side (frames whose features a tap needs run at the bundle's size)."""
-        if align and self.session.dynamic:
-            self.scr_size = size_for_scr(self.input_size, scr_short_side)
         self.pnp = pnp or PnPSettings()
         self.gate = gate or GateConfig()
         """When a pose is TRACKING (acesplat.core.gate): the same decision as the desktop's."""
         self.previous: np.ndarray | None = None
         """The last frame's camera-to-world pose if it was TRACKING (the gate's motion check), else None."""
-        self.keyframes = bundle_keyframes(bundle) if align else None
-        """The bundle's keyframes when poses are refined against them (InputError at start if it has none)."""
-        self.align_config = align_config
-        """How --align refines a pose against the keyframes (acesplat.align.flow_pnp.AlignConfig)."""
-        if self.keyframes is not None and align_config.matcher == "sparse":
-            self.keyframes.prepare_corners(align_config.corners)  # at start, not on the first frames near each
         self.tracker = Tracker(tracking) if tracking is not None and tracking.enabled else None
         """Tracking between frames (edge.tracking), None: every frame solved alone."""
-        self.track_keyframes = (
-            (self.keyframes if self.keyframes is not None else bundle_keyframes(bundle))
-            if self.tracker and bundle.has(ROLE_KEYFRAMES)
-            else None
-        )
+        refined = align or (self.tracker is not None and bundle.has(ROLE_KEYFRAMES))
+        self.keyframes = bundle_keyframes(bundle) if refined else None
+        """The bundle's keyframes when SCR poses are refined against them: with --align (InputError at start if it
+        has none), and while tracking when it has them (re-anchors and fallbacks get the same precise alignment)."""
+        self.align_config = align_config
+        """How SCR poses are refined against the keyframes (acesplat.align.flow_pnp.AlignConfig)."""
+        if self.keyframes is not None and align_config.matcher == "sparse":
+            self.keyframes.prepare_corners(align_config.corners)  # at start, not on the first frames near each
+        self.track_keyframes = self.keyframes if self.tracker is not None else None
         """The keyframes tracked frames align to; None: the last frame SCR solved is the reference."""
+        self.scr_size = self.input_size
+        """(H, W) SCR runs at: the bundle's size, or, when the keyframe alignment refines SCR poses and the graph is
+        dynamic, the smaller size of PreciseSettings.scr_short_side (frames whose features a tap needs: the
+        bundle's size)."""
+        if self.keyframes is not None and self.session.dynamic:
+            self.scr_size = size_for_scr(self.input_size, scr_short_side)
         self._anchor: Keyframe | None = None
         self._depth: float | None = None
         self.pace_ms = pace_ms
@@ -315,10 +315,6 @@ class EdgeLocalizer:
                 al = align_scr_pose(
                     p.gray, p.intr, p.coords, self.stride, res.T_c2w, self.keyframes.near, self.align_config, p.view
                 )
-                res, status = replace(res, T_c2w=al.pose), al.status
-                cov = al.covariance if al.status == "aligned" else cov
-            elif self.track_keyframes is not None:
-                al = self._track(p, res.T_c2w)
                 res, status = replace(res, T_c2w=al.pose), al.status
                 cov = al.covariance if al.status == "aligned" else cov
         times["align"] += (time.perf_counter() - t3) * 1000.0

@@ -5,7 +5,8 @@ alignment (acesplat.align.flow_pnp.TRACK_ALIGN) of the frame against the nearest
 without keyframes, against the last frame SCR solved (its depth from its scene coordinates). SCR + PnP + the gate run
 to initialize, every ``reanchor_every`` frames to re-anchor, and whenever the tracked alignment is unsure (it keeps
 the predicted pose: too few pairs or inliers, a correction too large) or the prediction moves farther than a frame is
-tracked (the history is then kept: frames stay SCR until the motion slows). A re-anchor farther than
+tracked (the history is then kept: frames stay SCR until the motion slows); with keyframes, an SCR pose is refined
+by the precise keyframe alignment of --align (KEYFRAME_ALIGN), not the cheap one. A re-anchor farther than
 ``reset_m``/``reset_deg`` from a moving prediction (two poses known) increments the pose record's
 ``reset_counter``. When SCR is unsure (the gate) the frame is LOST and tracking starts again from SCR.
 

@@ -222,6 +222,12 @@ def test_keyframes_ride_in_the_bundle_and_the_edge_aligns_to_them(tiny, tmp_path
     assert len(aligned) >= 1 and max(aligned) < 0.02, s["per_frame"]
     assert s["align_warp"] == "keyframe" and s["align_matcher"] == "sparse"
     assert s["scr_size"] == s["input_size"] == [64, 80]  # at most PreciseSettings.scr_short_side: not made smaller
+    # tracking (no --align): the SCR frames of a keyframe bundle get the same precise keyframe alignment
+    r = CliRunner().invoke(edge_app, ["replay", str(tmp_path / "kf"), str(tiny["scene"]), "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    t = json.loads(out.read_text())
+    assert t["tracking_enabled"] and t["align_matcher"] == "sparse" and t["scr"] + t["reanchors"] >= 1
+    assert sum(t["keyframe_alignment"].values()) >= t["scr"] + t["reanchors"]
     # SCR on a smaller copy (48x64), the alignment on the full image
     r = CliRunner().invoke(
         edge_app,
