@@ -178,3 +178,51 @@ def replace_gate(res: PnPResult) -> PnPResult:
     from dataclasses import replace
 
     return replace(res, gate=None)
+
+
+def test_the_edge_runs_the_mirror_check_and_loses_a_frame_its_mirror_beats(tiny) -> None:
+    """End to end on the edge (every imperfect frame checked: mirror_below 1). A frame whose grid is partly wrong
+    still beats the network's grid of its mirror image: TRACKING, both scores recorded. When the frame's grid is mostly
+    wrong and its mirror image's right (what a mirrored stream gives), the mirror check makes it LOST. The mirrored
+    inference counts as inference."""
+    from acesplat.core.bundle import load_bundle
+    from acesplat.core.scene import read_split
+    from edge.runtime import EdgeLocalizer, PnPSettings
+    from edge.sources import SourceFrame
+
+    # the tiny bundle has 80 cells: a floor of 10 inliers lets a mostly wrong grid reach the mirror check
+    gate = GateConfig(mirror_below=1.0)
+    loc = EdgeLocalizer(load_bundle(tiny["bundle"]), "fp32", threads=1, pnp=PnPSettings(min_inliers=10), gate=gate)
+    f = read_split(tiny["scene"], "test").frames[0]
+    frame = SourceFrame(f.load_rgb(), 0.0, f.intrinsics, 0)
+    good = loc.localize(frame).coords
+    rng = np.random.default_rng(7)
+
+    def spoil(fraction: float) -> np.ndarray:
+        hit = (rng.random(good.shape[:2]) < fraction)[..., None]
+        return (good + hit * rng.normal(0.0, 2.0, good.shape)).astype(np.float32)
+
+    real_run = loc.session.run
+    seen: list[np.ndarray] = []
+
+    def run_with(frame_grid: np.ndarray, mirror_grid: np.ndarray | None):
+        def run(gray: np.ndarray) -> np.ndarray:
+            seen.append(gray)
+            real = real_run(gray)  # a real inference's time, and the real grid of the mirror image
+            if len(seen) % 2 == 1:
+                return frame_grid
+            return real if mirror_grid is None else mirror_grid
+
+        return run
+
+    loc.session.run = run_with(spoil(0.3), None)
+    kept = loc.localize(frame)
+    g = kept.result.gate
+    assert len(seen) == 2 and np.array_equal(seen[1], seen[0][:, ::-1])
+    assert kept.record.state == TrackingState.TRACKING and g.mirror_score is not None and g.mirror_score < g.score, g
+    loc.session.run = run_with(spoil(0.8), good)
+    loc.previous = None
+    lost = loc.localize(frame)
+    assert len(seen) == 4 and lost.record.state == TrackingState.LOST, lost.result.gate
+    assert lost.result.gate.reasons[-1].startswith("the mirrored frame fits the map as well"), lost.result.gate
+    assert lost.times_ms["inference"] > 0 and lost.times_ms["pnp"] > 0
