@@ -288,36 +288,36 @@ class EdgeLocalizer:
             if p.coords is None:
                 self._infer(p)
                 times["inference"] = p.times["inference"]
-        t2 = time.perf_counter()
         pnp = self.pnp.config()
         # A scheduled re-anchor starts from the prediction (RANSAC is skipped only if the prediction explains the
         # cells: acesplat.core.pnp); a fallback or a first frame solves from scratch.
         prior = plan.prediction if plan.mode == "reanchor" and fallback is None else None
-        res = solve_from_grid(p.coords, p.intr, stride=self.stride, config=pnp, prior_c2w=prior)
-        res = gate_result(res, p.coords, p.intr, pnp, self.stride, self.gate, self.previous)
-        mirror_ms = 0.0
-        if needs_mirror_check(res, self.gate):  # a middling score: the frame must beat its mirror image
-            t_m = time.perf_counter()
-            m_gray, m_intr = mirror_frame(p.gray, p.intr)
-            m_coords = self.session.run(m_gray)
-            mirror_ms = (time.perf_counter() - t_m) * 1000.0
-            res = mirror_result(res, m_coords, m_intr, pnp, self.stride, self.gate)
-        self.previous = res.T_c2w if res.localized else None
-        cov = None
-        if res.localized and res.T_c2w is not None:
-            cov = grid_covariance(p.coords, p.intr, self.stride, res.T_c2w, pnp.threshold_px)
-        t3 = time.perf_counter()
-        times["pnp"] = (t3 - t2) * 1000.0 - mirror_ms
-        times["inference"] = times.get("inference", 0.0) + mirror_ms
+        res, cov = self._solve_scr(p, pnp, prior, times)
         status = None
-        if res.localized and res.T_c2w is not None:
-            if self.keyframes is not None:
-                al = align_scr_pose(
-                    p.gray, p.intr, p.coords, self.stride, res.T_c2w, self.keyframes.near, self.align_config, p.view
-                )
+        if res.localized and res.T_c2w is not None and self.keyframes is not None:
+            t3 = time.perf_counter()
+            al = align_scr_pose(
+                p.gray, p.intr, p.coords, self.stride, res.T_c2w, self.keyframes.near, self.align_config, p.view
+            )
+            times["align"] += (time.perf_counter() - t3) * 1000.0
+            if al.status != "aligned" and p.view is not None:
+                # the smaller copy's start was not close enough: SCR at the bundle's size, and the alignment again
+                p.gray, p.intr = p.view
+                p.view = None
+                t4 = time.perf_counter()
+                p.coords = self.session.run(p.gray)
+                times["inference"] += (time.perf_counter() - t4) * 1000.0
+                res, cov = self._solve_scr(p, pnp, prior, times)
+                if res.localized and res.T_c2w is not None:
+                    t5 = time.perf_counter()
+                    al = align_scr_pose(
+                        p.gray, p.intr, p.coords, self.stride, res.T_c2w, self.keyframes.near, self.align_config
+                    )
+                    times["align"] += (time.perf_counter() - t5) * 1000.0
+            if res.localized and res.T_c2w is not None:
                 res, status = replace(res, T_c2w=al.pose), al.status
                 cov = al.covariance if al.status == "aligned" else cov
-        times["align"] += (time.perf_counter() - t3) * 1000.0
+        self.previous = res.T_c2w if res.localized else None
         reset = False
         if self.tracker is not None:
             reset = self.tracker.solved(res.T_c2w if res.localized else None, plan)
@@ -328,6 +328,28 @@ class EdgeLocalizer:
         rc = self.tracker.reset_counter if self.tracker is not None else 0
         rec = to_record(p.frame, res, cov, rc)
         return self._outcome(p, rec, res, times, mode, status, fallback, reset)
+
+    def _solve_scr(
+        self, p: Prepared, pnp: PnPConfig, prior: np.ndarray | None, times: dict[str, float]
+    ) -> tuple[PnPResult, np.ndarray | None]:
+        """PnP + gate (+ the mirror check) of the prepared frame's grid, and the pose's covariance; adds its time to
+        ``times`` (the mirrored inference to 'inference', the rest to 'pnp')."""
+        t0 = time.perf_counter()
+        res = solve_from_grid(p.coords, p.intr, stride=self.stride, config=pnp, prior_c2w=prior)
+        res = gate_result(res, p.coords, p.intr, pnp, self.stride, self.gate, self.previous)
+        mirror_ms = 0.0
+        if needs_mirror_check(res, self.gate):  # a middling score: the frame must beat its mirror image
+            t_m = time.perf_counter()
+            m_gray, m_intr = mirror_frame(p.gray, p.intr)
+            m_coords = self.session.run(m_gray)
+            mirror_ms = (time.perf_counter() - t_m) * 1000.0
+            res = mirror_result(res, m_coords, m_intr, pnp, self.stride, self.gate)
+        cov = None
+        if res.localized and res.T_c2w is not None:
+            cov = grid_covariance(p.coords, p.intr, self.stride, res.T_c2w, pnp.threshold_px)
+        times["pnp"] += (time.perf_counter() - t0) * 1000.0 - mirror_ms
+        times["inference"] = times.get("inference", 0.0) + mirror_ms
+        return res, cov
 
     def _track(self, p: Prepared, start: np.ndarray):
         """The tracked alignment of the prepared frame from ``start`` (4, 4) (acesplat.align.flow_pnp.Alignment)."""
