@@ -16,11 +16,10 @@ import time
 from dataclasses import dataclass, replace
 from typing import Any
 
-import cv2
 import numpy as np
 
 from acesplat.align.flow_pnp import KEYFRAME_ALIGN, AlignConfig
-from acesplat.align.keyframe_align import Keyframe, align_scr_pose, scene_depth
+from acesplat.align.keyframe_align import Keyframe, PreciseSettings, align_scr_pose, scene_depth, scr_copy, size_for_scr
 from acesplat.align.keyframe_set import bundle_keyframes
 from acesplat.core.bundle import ROLE_KEYFRAMES, Bundle
 from acesplat.core.camera import Intrinsics
@@ -121,24 +120,6 @@ class PnPSettings:
     def config(self) -> PnPConfig:
         """The same settings as a PnPConfig (its defaults for the rest)."""
         return replace(PnPConfig(), **self.kwargs())
-
-
-@dataclass
-class PreciseSettings:
-    """SCR poses refined against keyframes (--align, or tracking with a keyframe bundle): SCR + PnP seeds the
-    keyframe alignment, which measures the pose at full size."""
-
-    scr_short_side: int = knob(
-        240, "Shorter side of SCR that keyframes refine (never above the bundle's); the alignment restores precision."
-    )
-
-
-def size_for_scr(size_hw: tuple[int, int], short_side: int) -> tuple[int, int]:
-    """``size_hw`` (H, W) scaled to the shorter side ``short_side`` (never up), sides rounded to multiples of 8."""
-    if short_side < 8:
-        raise ValueError(f"short side must be at least 8, got {short_side}")
-    scale = min(1.0, short_side / min(size_hw))
-    return tuple(max(8, int(round(v * scale / 8)) * 8) for v in size_hw)  # type: ignore[return-value]
 
 
 class EdgeLocalizer:
@@ -248,8 +229,7 @@ class EdgeLocalizer:
         view = None
         if self.scr_size != self.input_size and not needs_coords:
             view = (gray, intr)
-            h, w = self.scr_size
-            gray, intr = cv2.resize(gray, (w, h), interpolation=cv2.INTER_AREA), intr.resized(w, h)
+            gray, intr = scr_copy(gray, intr, self.scr_size)
         t1 = time.perf_counter()
         plan = self.tracker.plan() if self.tracker is not None else Plan("scr")
         p = Prepared(frame, gray, intr, plan, t_start, {"capture": capture_ms, "preprocess": (t1 - t0) * 1000.0})

@@ -1,7 +1,7 @@
 """SCR network -> one ONNX graph: grayscale image (1, 1, H, W) in [0, 255] in; coordinates (1, 3, H/s, W/s) and the
 encoder's features (1, C, H/s, W/s) out, s the output stride (8, or 4 for a dense bundle). H and W are dynamic
 (any multiple of 8): the bundle's input size is the one it was checked at, and the edge may run the same graph
-smaller where a later stage recovers the precision (edge.runtime.PreciseSettings).
+smaller where a later stage recovers the precision (acesplat.align.keyframe_align.PreciseSettings).
 
 Normalisation and the mean offset live inside the network, so the graph needs nothing but pixels. The
 features are the head's input, a second output at no extra compute: the edge's splat initializer takes

@@ -198,8 +198,8 @@ def test_dense_bundles_carry_no_gaussians_and_other_strides_are_refused(tiny, tm
 
 
 def test_keyframes_ride_in_the_bundle_and_the_edge_aligns_to_them(tiny, tmp_path: Path) -> None:
+    from acesplat.align.keyframe_align import size_for_scr
     from acesplat.apps.edge_cli import app as edge_app
-    from edge.runtime import size_for_scr
     from export.bundle_export import ExportOptions, export_bundle
 
     rep = export_bundle(tiny["map"], tmp_path / "kf", ExportOptions(keyframes=True))

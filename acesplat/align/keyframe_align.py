@@ -38,7 +38,7 @@ from acesplat.align.flow_pnp import (
     sample_grid,
 )
 from acesplat.core.camera import Intrinsics
-from acesplat.core.config import knob_default
+from acesplat.core.config import knob, knob_default
 from acesplat.core.geometry import invert_pose, transform_points
 from acesplat.core.grid import OUTPUT_STRIDE, grid_correspondences
 from acesplat.core.pnp import PnPConfig
@@ -486,6 +486,30 @@ def align_to_keyframes(
     if anchor_inliers(anchor, intrinsics, al.pose) < cfg.min_anchor_kept * anchor_inliers(anchor, intrinsics, start):
         return replace(al, pose=start, status="disagrees")
     return al
+
+
+@dataclass
+class PreciseSettings:
+    """SCR poses refined against keyframes (--align; on the edge also while tracking with a keyframe bundle): SCR +
+    PnP seeds the keyframe alignment, which measures the pose on the full-size frame."""
+
+    scr_short_side: int = knob(
+        240, "Shorter side of SCR that keyframes refine (never above the input's); the alignment restores precision."
+    )
+
+
+def size_for_scr(size_hw: tuple[int, int], short_side: int) -> tuple[int, int]:
+    """``size_hw`` (H, W) scaled to the shorter side ``short_side`` (never up), sides rounded to multiples of 8."""
+    if short_side < 8:
+        raise ValueError(f"short side must be at least 8, got {short_side}")
+    scale = min(1.0, short_side / min(size_hw))
+    return tuple(max(8, int(round(v * scale / 8)) * 8) for v in size_hw)  # type: ignore[return-value]
+
+
+def scr_copy(gray: np.ndarray, intrinsics: Intrinsics, size_hw: tuple[int, int]) -> tuple[np.ndarray, Intrinsics]:
+    """The network input (H, W) uint8 resized (area) to ``size_hw`` (h, w) for SCR, with its intrinsics."""
+    h, w = size_hw
+    return cv2.resize(gray, (w, h), interpolation=cv2.INTER_AREA), intrinsics.resized(w, h)
 
 
 def align_scr_pose(

@@ -13,6 +13,7 @@ from rich.console import Console
 from rich.table import Table
 
 from acesplat.align.flow_pnp import DENSE_ALIGN, KEYFRAME_ALIGN, MATCHERS, WARPS, AlignConfig
+from acesplat.align.keyframe_align import PreciseSettings
 from acesplat.apps.refine_cmd import close_session, exit_if_harmed, refine_line, refine_session
 from acesplat.apps.support import PhaseProgress, one_line_errors, option, report_json, stop_on_signals
 from acesplat.core.bundle import PRECISION_ROLES, Bundle, load_bundle
@@ -27,7 +28,7 @@ from edge.int8_check import Int8CheckConfig
 from edge.loop import LoopEvent, run_loop
 from edge.profile import ProfileOptions
 from edge.refine.session import RefineOptions
-from edge.runtime import STAGES, EdgeLocalizer, FrameOutcome, FrameTap, PnPSettings, PreciseSettings
+from edge.runtime import STAGES, EdgeLocalizer, FrameOutcome, FrameTap, PnPSettings
 from edge.sources import SourceOptions, open_source
 from edge.tracking import TrackingConfig
 from firmware_bridge.sink import SinkConfig

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from acesplat.align.flow_pnp import Alignment
-from acesplat.align.keyframe_align import align_scr_pose
+from acesplat.align.keyframe_align import PreciseSettings, align_scr_pose, scr_copy, size_for_scr
 from acesplat.core.camera import Intrinsics
 from acesplat.core.config import knob
 from acesplat.core.gate import GateConfig, gate_result, mirror_frame, mirror_result, needs_mirror_check
@@ -49,6 +49,7 @@ class Localizer:
     partly independent, so PnP averages more of them out."""
     keyframes: MapKeyframes | None = None
     """The mapping images: a localized pose is then refined against its nearest ones (acesplat.align.keyframe_align)."""
+    precise: PreciseSettings = knob(reason="SCR's size when keyframes refine the pose.", factory=PreciseSettings)
 
     def network_input(self, rgb: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, Intrinsics]:
         """The grayscale network input (H', W') uint8 of an RGB image (H, W, 3), and its intrinsics."""
@@ -70,19 +71,38 @@ class Localizer:
 
     def localize_and_align(self, rgb: np.ndarray, intrinsics: Intrinsics) -> tuple[PnPResult, Alignment | None]:
         """The pose, refined against the keyframes when there are any and the frame localized; and the
-        alignment's record (None when none was tried)."""
+        alignment's record (None when none was tried). With keyframes SCR runs on a copy of PreciseSettings'
+        shorter side and the alignment on the full input, as on the edge; a start the alignment cannot take is
+        solved again at full size."""
         gray, intr = self.network_input(rgb, intrinsics)
-        coords = self.coordinates(gray)
         pnp = self.pnp if isinstance(self.pnp, PnPConfig) else replace(PnPConfig(), **self.pnp)
+        view = None
+        if self.keyframes is not None:
+            size = size_for_scr(gray.shape, self.precise.scr_short_side)
+            if tuple(size) != gray.shape:
+                view = (gray, intr)
+                gray, intr = scr_copy(gray, intr, size)
+        res, coords = self._solve(gray, intr, pnp)
+        if self.keyframes is None or not res.localized or res.T_c2w is None:
+            return res, None
+        al = align_scr_pose(gray, intr, coords, self.output_stride, res.T_c2w, self.keyframes.near, view=view)
+        if al.status != "aligned" and view is not None:
+            gray, intr = view
+            res, coords = self._solve(gray, intr, pnp)
+            if not res.localized or res.T_c2w is None:
+                return res, None
+            al = align_scr_pose(gray, intr, coords, self.output_stride, res.T_c2w, self.keyframes.near)
+        return replace(res, T_c2w=al.pose), al
+
+    def _solve(self, gray: np.ndarray, intr: Intrinsics, pnp: PnPConfig) -> tuple[PnPResult, np.ndarray]:
+        """PnP + gate (+ the mirror check) of a network input; and its coordinates (h, w, 3)."""
+        coords = self.coordinates(gray)
         res = solve_from_grid(coords, intr, stride=self.output_stride, config=pnp)
         res = gate_result(res, coords, intr, pnp, self.output_stride, self.gate)
         if needs_mirror_check(res, self.gate):  # a middling score: the frame must beat its mirror image
             m_gray, m_intr = mirror_frame(gray, intr)
             res = mirror_result(res, self.coordinates(m_gray), m_intr, pnp, self.output_stride, self.gate)
-        if self.keyframes is None or not res.localized or res.T_c2w is None:
-            return res, None
-        al = align_scr_pose(gray, intr, coords, self.output_stride, res.T_c2w, self.keyframes.near)
-        return replace(res, T_c2w=al.pose), al
+        return res, coords
 
 
 def evaluate(split: SceneSplit, localizer: Localizer, progress: Callable[[int, int], None] | None = None) -> dict:
