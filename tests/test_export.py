@@ -197,6 +197,10 @@ def test_dense_bundles_carry_no_gaussians_and_other_strides_are_refused(tiny, tm
         load_bundle(bad, verify=False)
 
 
+def kf_scene_args(tmp_path: Path, tiny) -> list[str]:
+    return [str(tmp_path / "kf"), str(tiny["scene"])]
+
+
 def test_keyframes_ride_in_the_bundle_and_the_edge_aligns_to_them(tiny, tmp_path: Path) -> None:
     from acesplat.align.keyframe_align import size_for_scr
     from acesplat.apps.edge_cli import app as edge_app
@@ -242,6 +246,8 @@ def test_keyframes_ride_in_the_bundle_and_the_edge_aligns_to_them(tiny, tmp_path
     assert small["median_translation_m"] == pytest.approx(s["median_translation_m"], abs=1e-9)
     with pytest.raises(ValueError, match="at least 8"):
         size_for_scr((64, 80), 4)
+    r = CliRunner().invoke(edge_app, ["replay", *kf_scene_args(tmp_path, tiny), "--align", "--align-scr-side", "4"])
+    assert r.exit_code == 2 and "--align-scr-side must be at least 8 pixels" in r.output, r.output
     assert size_for_scr((360, 544), 240) == (240, 360) and size_for_scr((240, 320), 240) == (240, 320)
     assert size_for_scr((240, 320), 480) == (240, 320)  # never up
     # the query's own SCR depth warping the keyframes: recorded, and a warp that does not exist is refused
