@@ -36,7 +36,8 @@ def frame_result(o: FrameOutcome) -> FrameResult:
 
 def summarize(outcomes: Sequence[FrameOutcome], stats: RunStats | None = None) -> dict:
     """The replay JSON: accuracy_summary keys, timing_ms per stage, how the poses were made (tracked, scr,
-    reanchors: edge.tracking.MODES; resets; fallbacks from tracking to SCR and their reasons), the loop's counters."""
+    reanchors: edge.tracking.MODES; resets; fallbacks from tracking to SCR and their reasons; SCR starts solved again
+    at full size), the loop's counters."""
     s = accuracy_summary([frame_result(o) for o in outcomes])
     s["timing_ms"] = timing_summary(outcomes)
     tried = [o.alignment for o in outcomes if o.alignment is not None]
@@ -47,6 +48,7 @@ def summarize(outcomes: Sequence[FrameOutcome], stats: RunStats | None = None) -
     s["scr"] = modes.count("scr")
     s["reanchors"] = modes.count("reanchor")
     s["resets"] = sum(o.reset for o in outcomes)
+    s["full_size_retries"] = sum(o.retried for o in outcomes)
     fell = [o.fallback for o in outcomes if o.fallback is not None]
     s["fallbacks"] = len(fell)
     s["fallback_reasons"] = {k: fell.count(k) for k in sorted(set(fell))}

@@ -69,6 +69,9 @@ class FrameOutcome:
     """Why a frame that was to be tracked went to SCR (the alignment's status, or 'too_far'); None otherwise."""
     reset: bool = False
     """This re-anchor jumped from the tracked prediction (the record's reset_counter incremented)."""
+    retried: bool = False
+    """SCR on the smaller copy (PreciseSettings) gave a start the alignment could not take: solved again at the
+    bundle's size."""
 
     def without_data(self) -> FrameOutcome:
         """The same outcome without the per-frame arrays (frame, gray, coords, features): what a summary keeps."""
@@ -273,7 +276,7 @@ class EdgeLocalizer:
         # cells: acesplat.core.pnp); a fallback or a first frame solves from scratch.
         prior = plan.prediction if plan.mode == "reanchor" and fallback is None else None
         res, cov = self._solve_scr(p, pnp, prior, times)
-        status = None
+        status, retried = None, False
         if res.localized and res.T_c2w is not None and self.keyframes is not None:
             t3 = time.perf_counter()
             al = align_scr_pose(
@@ -282,6 +285,7 @@ class EdgeLocalizer:
             times["align"] += (time.perf_counter() - t3) * 1000.0
             if al.status != "aligned" and p.view is not None:
                 # the smaller copy's start was not close enough: SCR at the bundle's size, and the alignment again
+                retried = True
                 p.gray, p.intr = p.view
                 p.view = None
                 t4 = time.perf_counter()
@@ -307,7 +311,7 @@ class EdgeLocalizer:
                 self._depth = scene_depth(grid_correspondences(p.coords, self.stride)[0], res.T_c2w)
         rc = self.tracker.reset_counter if self.tracker is not None else 0
         rec = to_record(p.frame, res, cov, rc)
-        return self._outcome(p, rec, res, times, mode, status, fallback, reset)
+        return self._outcome(p, rec, res, times, mode, status, fallback, reset, retried)
 
     def _solve_scr(
         self, p: Prepared, pnp: PnPConfig, prior: np.ndarray | None, times: dict[str, float]
@@ -355,12 +359,27 @@ class EdgeLocalizer:
         status: str | None,
         fallback: str | None = None,
         reset: bool = False,
+        retried: bool = False,
     ) -> FrameOutcome:
         times["total"] = (time.perf_counter() - p.t_start) * 1000.0
         times = {s: times[s] for s in STAGES}
         f = p.frame
         return FrameOutcome(
-            rec, res, times, f.name, f.gt_pose, p.intr, status, f, p.gray, p.coords, p.features, mode, fallback, reset
+            rec,
+            res,
+            times,
+            f.name,
+            f.gt_pose,
+            p.intr,
+            status,
+            f,
+            p.gray,
+            p.coords,
+            p.features,
+            mode,
+            fallback,
+            reset,
+            retried,
         )
 
 

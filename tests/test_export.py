@@ -243,6 +243,7 @@ def test_keyframes_ride_in_the_bundle_and_the_edge_aligns_to_them(tiny, tmp_path
     # the tiny map at 56x72 starts 65 cm off, beyond the alignment: each frame is solved again at the bundle's size,
     # so the run ends where the full-size one did
     assert small["keyframe_alignment"] == s["keyframe_alignment"]
+    assert small["full_size_retries"] == small["localized"] == 4 and s["full_size_retries"] == 0
     assert small["median_translation_m"] == pytest.approx(s["median_translation_m"], abs=1e-9)
     with pytest.raises(ValueError, match="at least 8"):
         size_for_scr((64, 80), 4)
