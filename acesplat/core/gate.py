@@ -12,6 +12,7 @@ Calibration and margins: bench/gate.md.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
@@ -232,3 +233,21 @@ def mirror_result(
         reason = f"the mirrored frame fits the map as well (score {mv.score:.3f} >= {v.score:.3f})"
         v = replace(v, passed=False, reasons=(*v.reasons, reason))
     return replace(res, localized=bool(res.localized and v.passed), gate=v)
+
+
+def mirror_checked(
+    res: PnPResult,
+    gray: np.ndarray,
+    intrinsics: Intrinsics,
+    predict: Callable[[np.ndarray], np.ndarray],
+    pnp: PnPConfig,
+    stride: int = OUTPUT_STRIDE,
+    config: GateConfig | None = None,
+) -> PnPResult:
+    """``res`` (gated, for the network input ``gray`` (H, W) with ``intrinsics``) after the mirror check when it needs
+    one (needs_mirror_check); ``predict`` gives the network's grid (h, w, 3) of the mirrored frame. The one path of
+    the desktop localizer and the edge runtime."""
+    if not needs_mirror_check(res, config):
+        return res
+    m_gray, m_intr = mirror_frame(gray, intrinsics)
+    return mirror_result(res, predict(m_gray), m_intr, pnp, stride, config)

@@ -15,7 +15,7 @@ from acesplat.align.flow_pnp import Alignment
 from acesplat.align.keyframe_align import PreciseSettings, align_scr_pose, scr_copy, size_for_scr
 from acesplat.core.camera import Intrinsics
 from acesplat.core.config import knob
-from acesplat.core.gate import GateConfig, gate_result, mirror_frame, mirror_result, needs_mirror_check
+from acesplat.core.gate import GateConfig, gate_result, mirror_checked
 from acesplat.core.geometry import pose_error
 from acesplat.core.grid import OUTPUT_STRIDE
 from acesplat.core.metrics import FrameResult, accuracy_summary
@@ -99,9 +99,7 @@ class Localizer:
         coords = self.coordinates(gray)
         res = solve_from_grid(coords, intr, stride=self.output_stride, config=pnp)
         res = gate_result(res, coords, intr, pnp, self.output_stride, self.gate)
-        if needs_mirror_check(res, self.gate):  # a middling score: the frame must beat its mirror image
-            m_gray, m_intr = mirror_frame(gray, intr)
-            res = mirror_result(res, self.coordinates(m_gray), m_intr, pnp, self.output_stride, self.gate)
+        res = mirror_checked(res, gray, intr, self.coordinates, pnp, self.output_stride, self.gate)
         return res, coords
 
 
