@@ -4,12 +4,14 @@
    flat batch of buffered features. The same network can run as 1x1 convolutions over a (1, C, N, 1)
    tensor (how ACE writes it) or as matrix products over (N, C); on CPUs with AVX512-BF16/AMX the hidden
    layers can also run in bfloat16.
-2. The encoder pass that fills the feature buffer (one image at the built-in scene's 240x320), in float32
+2. With ``--loop N``: N steps of the mapping loop itself (``train_head``: sampling from a float16 buffer of 1M
+   features, the reprojection and target losses, AdamW) over a synthetic buffer.
+3. The encoder pass that fills the feature buffer (one image at the built-in scene's 240x320), in float32
    and under bfloat16 autocast with contiguous or channels-last tensors, with the relative feature error.
 
 Each part prints its times measured in one run as ratios to the first layout, plus the machine.
 
-    python bench/head_speed.py [--width 256] [--blocks 1] [--steps 20] [--threads 0]
+    python bench/head_speed.py [--width 256] [--blocks 1] [--steps 20] [--threads 0] [--loop 300]
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ import torch
 from acesplat.core.config import knob_default
 from acesplat.core.machine import machine_line
 from acesplat.scr.encoders import load_encoder
-from acesplat.scr.mapping import MappingConfig
+from acesplat.scr.mapping import MappingConfig, train_head
 from acesplat.scr.network import Head, HeadConfig, normalize_gray
 
 BATCH_SIZE = knob_default(MappingConfig, "batch_size")
@@ -55,6 +57,7 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=BATCH_SIZE)
     ap.add_argument("--steps", type=int, default=20)
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0 = all cores)")
+    ap.add_argument("--loop", type=int, default=0, help="also time this many steps of train_head (0 = skip)")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -74,8 +77,30 @@ def main() -> None:
         print(
             f"{layout:12s} median {med * 1000:7.1f} ms/step  (min {min(ts) * 1000:6.1f})  time ratio {med / base:5.2f}"
         )
+    if args.loop:
+        loop_time(args.width, args.blocks, args.in_channels, args.batch, args.loop)
     if "linear-bf16" in layouts:
         encoder_times(args.steps)
+
+
+def loop_time(width: int, blocks: int, in_channels: int, batch: int, steps: int, n: int = 1_000_000) -> None:
+    """train_head over a synthetic buffer of ``n`` features from 200 views, a tenth with triangulated targets."""
+    g = torch.Generator().manual_seed(0)
+    views = 200
+    buf = {
+        "feats": torch.randn(n, in_channels, generator=g).to(torch.float16),
+        "pixels": torch.rand(n, 2, generator=g) * 300,
+        "view": torch.randint(0, views, (n,), generator=g),
+        "target": torch.full((n, 3), float("nan")),
+        "w2c": torch.eye(4)[:3].expand(views, 3, 4).clone(),
+        "K": torch.tensor([[200.0, 0, 160], [0, 200, 120], [0, 0, 1]]).expand(views, 3, 3).clone(),
+    }
+    buf["target"][::10] = torch.randn(n // 10, 3, generator=g)
+    cfg = MappingConfig(iterations=steps, batch_size=batch, head=HeadConfig(width, blocks), precision="fp32")
+    head = Head(torch.zeros(3), in_channels, cfg.head)
+    t = time.perf_counter()
+    train_head(head, buf, cfg)
+    print(f"train_head   {(time.perf_counter() - t) / steps * 1000:7.1f} ms/step over {steps} steps (fp32)")
 
 
 @torch.no_grad()
