@@ -19,7 +19,14 @@ from typing import Any
 import numpy as np
 
 from acesplat.align.flow_pnp import KEYFRAME_ALIGN, AlignConfig
-from acesplat.align.keyframe_align import Keyframe, PreciseSettings, align_scr_pose, scene_depth, scr_copy, size_for_scr
+from acesplat.align.keyframe_align import (
+    Keyframe,
+    PreciseSettings,
+    align_scr_start,
+    scene_depth,
+    scr_copy,
+    size_for_scr,
+)
 from acesplat.align.keyframe_set import bundle_keyframes
 from acesplat.core.bundle import ROLE_KEYFRAMES, Bundle
 from acesplat.core.camera import Intrinsics
@@ -277,29 +284,27 @@ class EdgeLocalizer:
         prior = plan.prediction if plan.mode == "reanchor" and fallback is None else None
         res, cov = self._solve_scr(p, pnp, prior, times)
         status, retried = None, False
-        if res.localized and res.T_c2w is not None and self.keyframes is not None:
-            t3 = time.perf_counter()
-            al = align_scr_pose(
-                p.gray, p.intr, p.coords, self.stride, res.T_c2w, self.keyframes.near, self.align_config, p.view
-            )
-            times["align"] += (time.perf_counter() - t3) * 1000.0
-            if al.status != "aligned" and p.view is not None:
-                # the smaller copy's start was not close enough: SCR at the bundle's size, and the alignment again
-                retried = True
-                p.gray, p.intr = p.view
-                p.view = None
-                t4 = time.perf_counter()
+        if self.keyframes is not None:
+
+            def resolve(gray: np.ndarray, intr: Intrinsics) -> tuple[PnPResult, np.ndarray]:
+                # the smaller copy's start was not close enough: SCR at the bundle's size, then the alignment again
+                nonlocal cov
+                p.gray, p.intr, p.view = gray, intr, None
+                t = time.perf_counter()
                 p.coords = self.session.run(p.gray)
-                times["inference"] += (time.perf_counter() - t4) * 1000.0
-                res, cov = self._solve_scr(p, pnp, prior, times)
-                if res.localized and res.T_c2w is not None:
-                    t5 = time.perf_counter()
-                    al = align_scr_pose(
-                        p.gray, p.intr, p.coords, self.stride, res.T_c2w, self.keyframes.near, self.align_config
-                    )
-                    times["align"] += (time.perf_counter() - t5) * 1000.0
-            if res.localized and res.T_c2w is not None:
-                res, status = replace(res, T_c2w=al.pose), al.status
+                times["inference"] += (time.perf_counter() - t) * 1000.0
+                r, cov = self._solve_scr(p, pnp, prior, times)
+                return r, p.coords
+
+            t3 = time.perf_counter()
+            solving = times["inference"] + times["pnp"]
+            res, al, retried = align_scr_start(
+                res, p.coords, p.gray, p.intr, self.stride, self.keyframes.near, resolve, self.align_config, p.view
+            )
+            # the alignment's time, without the full-size solve's (counted as inference and PnP)
+            times["align"] += (time.perf_counter() - t3) * 1000.0 - (times["inference"] + times["pnp"] - solving)
+            if al is not None:
+                status = al.status
                 cov = al.covariance if al.status == "aligned" else cov
         self.previous = res.T_c2w if res.localized else None
         reset = False

@@ -17,6 +17,7 @@ from acesplat.align.keyframe_align import (
     Keyframe,
     _depth_at,
     align_scr_pose,
+    align_scr_start,
     align_to_keyframes,
     keyframe_corners,
     keyframe_plane,
@@ -28,6 +29,7 @@ from acesplat.align.keyframe_align import (
 from acesplat.core.camera import Intrinsics
 from acesplat.core.geometry import make_pose, pose_error, rodrigues_to_matrix, transform_points
 from acesplat.core.grid import OUTPUT_STRIDE, cell_centers
+from acesplat.core.pnp import PnPResult
 from acesplat.synth import default_intrinsics, make_room, make_trajectory, render_view
 from acesplat.synth.dataset import texel_density_for
 
@@ -158,6 +160,53 @@ def test_scr_on_a_smaller_copy_aligns_the_full_image_with_the_cells_mapped_there
     pts, pix = coords.reshape(-1, 3), small.pixels_to(cell_centers(20, 27), K)
     again = align_to_keyframes(query, K, start, near(start), anchor=(pts, pix), cfg=KEYFRAME_ALIGN)
     assert np.array_equal(again.pose, al.pose) and again.inliers == al.inliers
+
+
+def test_a_start_the_alignment_cannot_take_is_solved_again_at_full_size(room) -> None:
+    """align_scr_start: the small copy's start 34 degrees off is not aligned, so the full-size frame is solved again
+    (once, on the view) and that start aligned; without a view, or unlocalized, nothing more is tried."""
+    scene, K, kfs, true_pose, query = room
+    small = K.resized(216, 160)
+    small_gray = cv2.resize(query, (216, 160), interpolation=cv2.INTER_AREA)
+    small_coords = scr_like_coords(scene, true_pose, small, 0.02, 4)
+    full_coords = scr_like_coords(scene, true_pose, K, 0.02, 4)
+    far = perturb(true_pose, [0.0, 0.0, 0.0], [0.0, 0.6, 0.0])
+    near_start = perturb(true_pose, [0.04, -0.03, 0.02], [0.004, -0.006, 0.003])
+
+    def near(pose, depth=None, corners=0):
+        return [kfs[i] for i in nearest_keyframes(np.stack([k.c2w for k in kfs]), pose)]
+
+    calls = []
+
+    def resolve(g, k):
+        calls.append((g.shape, k))
+        return PnPResult(near_start, 500, 540, True), full_coords
+
+    start = PnPResult(far, 300, 540, True)
+    res, al, retried = align_scr_start(start, small_coords, small_gray, small, 8, near, resolve, view=(query, K))
+    assert retried and calls == [(query.shape, K)]
+    assert al.status == "aligned" and res.inliers == 500 and np.array_equal(res.T_c2w, al.pose)
+    assert pose_error(res.T_c2w, true_pose)[0] < 0.003
+    # no view: the start keeps its pose and its alignment's verdict, nothing is solved again
+    res, al, retried = align_scr_start(start, small_coords, small_gray, small, 8, near, resolve)
+    assert not retried and len(calls) == 1 and al.status != "aligned" and np.array_equal(res.T_c2w, far)
+    # not localized: no alignment
+    lost = PnPResult(None, 10, 540, False)
+    assert align_scr_start(lost, small_coords, small_gray, small, 8, near, resolve, view=(query, K)) == (
+        lost,
+        None,
+        False,
+    )
+    # the full-size solve is not localized either: its result, no alignment
+
+    def lost_again(g, k):
+        return lost, full_coords
+
+    assert align_scr_start(start, small_coords, small_gray, small, 8, near, lost_again, view=(query, K)) == (
+        lost,
+        None,
+        True,
+    )
 
 
 def test_query_depth_is_the_camera_z_of_the_coordinates_median_filtered() -> None:

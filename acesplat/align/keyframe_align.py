@@ -41,7 +41,7 @@ from acesplat.core.camera import Intrinsics
 from acesplat.core.config import knob, knob_default
 from acesplat.core.geometry import invert_pose, transform_points
 from acesplat.core.grid import OUTPUT_STRIDE, grid_correspondences
-from acesplat.core.pnp import PnPConfig
+from acesplat.core.pnp import PnPConfig, PnPResult
 from acesplat.core.pose_refine import reprojection
 
 KEYFRAMES = 4
@@ -537,6 +537,38 @@ def align_scr_pose(
         anchor = (anchor[0], intrinsics.pixels_to(anchor[1], intr_v))
         gray, intrinsics, query_coords = gray_v, intr_v, None
     return align_to_keyframes(gray, intrinsics, pose_c2w, keyframes, anchor=anchor, cfg=cfg, coords=query_coords)
+
+
+def align_scr_start(
+    res: PnPResult,
+    coords: np.ndarray,
+    gray: np.ndarray,
+    intrinsics: Intrinsics,
+    stride: int,
+    near: Callable[..., Sequence[Keyframe]],
+    resolve: Callable[[np.ndarray, Intrinsics], tuple[PnPResult, np.ndarray]],
+    cfg: AlignConfig = KEYFRAME_ALIGN,
+    view: tuple[np.ndarray, Intrinsics] | None = None,
+) -> tuple[PnPResult, Alignment | None, bool]:
+    """The precise path after SCR + PnP: ``res`` solved from ``coords`` (h, w, 3) of ``gray``, aligned to the
+    keyframes (align_scr_pose). When SCR ran on a smaller copy (``view`` the full-size frame) and the alignment does
+    not take its start, ``resolve(gray, intrinsics)`` solves the full-size frame again ((result, coords)) and that
+    start is aligned instead, so the smaller copy never leaves a frame worse than the full-size path.
+
+    Returns the result with the aligned pose (the alignment's pose whatever its status, as align_to_keyframes
+    keeps the start when it cannot improve it), the alignment (None when the frame is not localized) and whether the
+    full-size solve ran. One path for the desktop localizer and the edge runtime."""
+    if not res.localized or res.T_c2w is None:
+        return res, None, False
+    al = align_scr_pose(gray, intrinsics, coords, stride, res.T_c2w, near, cfg, view)
+    retried = False
+    if al.status != "aligned" and view is not None:
+        retried = True
+        res, coords = resolve(*view)
+        if not res.localized or res.T_c2w is None:
+            return res, None, True
+        al = align_scr_pose(view[0], view[1], coords, stride, res.T_c2w, near, cfg)
+    return replace(res, T_c2w=al.pose), al, retried
 
 
 def anchor_inliers(anchor: tuple[np.ndarray, np.ndarray], intrinsics: Intrinsics, pose_c2w: np.ndarray) -> int:

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from acesplat.align.flow_pnp import Alignment
-from acesplat.align.keyframe_align import PreciseSettings, align_scr_pose, scr_copy, size_for_scr
+from acesplat.align.keyframe_align import PreciseSettings, align_scr_start, scr_copy, size_for_scr
 from acesplat.core.camera import Intrinsics
 from acesplat.core.config import knob
 from acesplat.core.gate import GateConfig, gate_result, mirror_checked
@@ -83,16 +83,19 @@ class Localizer:
                 view = (gray, intr)
                 gray, intr = scr_copy(gray, intr, size)
         res, coords = self._solve(gray, intr, pnp)
-        if self.keyframes is None or not res.localized or res.T_c2w is None:
+        if self.keyframes is None:
             return res, None
-        al = align_scr_pose(gray, intr, coords, self.output_stride, res.T_c2w, self.keyframes.near, view=view)
-        if al.status != "aligned" and view is not None:
-            gray, intr = view
-            res, coords = self._solve(gray, intr, pnp)
-            if not res.localized or res.T_c2w is None:
-                return res, None
-            al = align_scr_pose(gray, intr, coords, self.output_stride, res.T_c2w, self.keyframes.near)
-        return replace(res, T_c2w=al.pose), al
+        res, al, _ = align_scr_start(
+            res,
+            coords,
+            gray,
+            intr,
+            self.output_stride,
+            self.keyframes.near,
+            lambda g, i: self._solve(g, i, pnp),
+            view=view,
+        )
+        return res, al
 
     def _solve(self, gray: np.ndarray, intr: Intrinsics, pnp: PnPConfig) -> tuple[PnPResult, np.ndarray]:
         """PnP + gate (+ the mirror check) of a network input; and its coordinates (h, w, 3)."""
