@@ -97,7 +97,7 @@ def prepare(work: Path, args) -> dict:
 
         from acesplat.apps.cli import app
 
-        log(f"Stage 2 on the first half ({half} frames), {args.splat_minutes} min")
+        log(f"Stage 2 on the first half ({half} frames), {args.splat_iterations} iterations")
         r = CliRunner().invoke(
             app,
             [
@@ -107,8 +107,8 @@ def prepare(work: Path, args) -> dict:
                 str(map_path),
                 "-o",
                 str(splat),
-                "--minutes",
-                str(args.splat_minutes),
+                "--iterations",
+                str(args.splat_iterations),
                 "--max-gaussians",
                 str(args.max_gaussians),
             ],
@@ -252,7 +252,7 @@ def main() -> None:
     ap.add_argument("--skip-gil", action="store_true")
     ap.add_argument("--map-steps", type=int, default=200)
     ap.add_argument("--map-every", type=int, default=2, help="fit the map to every n-th training frame (CPU time)")
-    ap.add_argument("--splat-minutes", type=float, default=2.0)
+    ap.add_argument("--splat-iterations", type=int, default=1000)
     ap.add_argument("--max-gaussians", type=int, default=30_000)
     ap.add_argument("--budget-ms", type=float, default=100.0)
     ap.add_argument(

@@ -4,7 +4,8 @@ Starts: SCR initialisation (ours: the map's most textured trusted cells as point
 coordinates through the adapter and init head, `scr*`; SCR_VARIANTS), sparse SIFT points triangulated with the
 known poses (the conventional SfM-style start), and 3DGS's random initialisation. Every start gets the same
 wall-clock budget, and its own preparation (SCR inference and head warm-up, SIFT matching and triangulation) is
-charged to it. After the start the optimisation is the same code (acesplat.splat.optimize) with the same lifecycle.
+charged to it; with --iterations, every start runs that many iterations instead (the same work, preparation
+free). After the start the optimisation is the same code (acesplat.splat.optimize) with the same lifecycle.
 
 Scenes: the built-in synthetic room (synthesized into --out if absent) and ../shared/data/herzjesu25
 (read in place). Maps come from --builtin-map / --herzjesu-map, or are made here with Stage 1
@@ -79,6 +80,8 @@ training, the fresh head's zero residuals) with or without the filled pixels, th
 triangulated-corner start (with 1200 corners per view: about as many seeds as SIFT's on herzjesu25)."""
 RANDOM_HALF_SIDE = 3.0
 """Random start: a cube of this many scene extents around the cameras (3DGS's random start is a fixed cube)."""
+BUDGET_BOUND_ITERATIONS = 10**9
+"""Iterations no start reaches in its budget: under --minutes alone the clock ends every start."""
 
 
 def uptime() -> str:
@@ -195,6 +198,9 @@ def remeasure_views(views: Sequence[SplatView], network: torch.nn.Module) -> dic
 def run_method(method: str, scene: Path, map_path: Path, args, eval_train, eval_test, log) -> dict:
     frames = read_split(scene, "train").frames
     budget = args.minutes * 60.0
+    # Same time: iterations the budget cannot reach, so the budget (a cap) ends every start. Same work: no cap.
+    iterations = args.iterations if args.iterations else BUDGET_BOUND_ITERATIONS
+    cap_minutes = None if args.iterations else args.minutes
     start = time.monotonic()
     curve = Curve(start, eval_train, eval_test)
     from acesplat.scr.mapfile import encoder_for_map, load_map
@@ -208,7 +214,8 @@ def run_method(method: str, scene: Path, map_path: Path, args, eval_train, eval_
             net,
             m.short_side,
             SplatConfig(
-                minutes=args.minutes,
+                minutes=cap_minutes,
+                iterations=iterations,
                 seed=args.seed,
                 **SCR_VARIANTS[method],
                 **({"seed_cells": args.seed_cells} if method == "scr_cells" and args.seed_cells else {}),
@@ -293,9 +300,12 @@ def run_method(method: str, scene: Path, map_path: Path, args, eval_train, eval_
         g0 = gaussians_from_points(pts, cols)
         params = params_from_gaussians(g0)
         info.update(gaussians_initial=len(g0), prepare_seconds=curve.clock())
-        remaining = max(budget - curve.clock(), 1.0)
+        remaining = None if cap_minutes is None else max(budget - curve.clock(), 1.0)
         cfg = OptimizeConfig(
-            scene_extent=extent, max_gaussians=knob_default(SplatConfig, "max_gaussians"), seed=args.seed
+            scene_extent=extent,
+            max_gaussians=knob_default(SplatConfig, "max_gaussians"),
+            iterations=iterations,
+            seed=args.seed,
         )
         opt = optimise_gaussians(params, views, cfg, remaining, eval_fn=curve, eval_every_s=args.eval_every)
     seconds = curve.clock()
@@ -385,6 +395,7 @@ def plot(results: dict, path: Path, minutes: float) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--minutes", type=float, default=10.0, help="Stage 2 budget per start")
+    ap.add_argument("--iterations", type=int, default=0, help="the same iterations per start instead of the budget")
     ap.add_argument("--out", type=Path, default=REPO / "runs" / "bench_splat")
     ap.add_argument("--scenes", default="builtin,herzjesu")
     ap.add_argument("--methods", default=",".join(METHODS))
@@ -412,7 +423,8 @@ def main() -> None:
 
     log(f"machine: {machine_line()}")
     log(f"uptime at start: {uptime()}")
-    log(f"budget {args.minutes:g} min per start; torch threads {args.threads}")
+    per_start = f"{args.iterations} iterations" if args.iterations else f"budget {args.minutes:g} min"
+    log(f"{per_start} per start; torch threads {args.threads}")
     results: dict = {}
     previous = args.out / "bench_splat_init.json"
     if previous.is_file():  # keep earlier runs' results for the (scene, start) pairs not run again

@@ -281,8 +281,25 @@ def test_ply_with_missing_or_extra_properties_is_one_line(world, tmp_path, chang
     one_line_error(res, str(splat / "gaussians.ply"), message)
 
 
+def test_a_minutes_cap_that_binds_warns_and_flags_the_run(world):
+    """Stage 2 is fixed work; --minutes only caps it, and a cap that cuts the iterations short says so (terminal and
+    JSON), never silently."""
+    root = world["root"]
+    args = ["splat", world["scene"], "--map", world["map"], "--reproj-px", REPROJ, "--start", "cells"]
+    res = run(*args, "-o", root / "capped", "--iterations", "100000", "--minutes", "0.01", "--json", root / "cap.json")
+    assert res.exit_code == 0, res.output
+    rep = json.loads((root / "cap.json").read_text())
+    assert rep["cut_short"] and rep["iterations"] < rep["iterations_planned"] == 100000 and rep["minutes_cap"] == 0.01
+    assert "cut Stage 2 short" in res.output
+    res = run(*args, "-o", root / "free", "--iterations", "5", "--json", root / "free.json")
+    rep = json.loads((root / "free.json").read_text())
+    assert not rep["cut_short"] and rep["iterations"] == rep["iterations_planned"] == 5 and rep["minutes_cap"] is None
+    assert "cut Stage 2 short" not in res.output
+
+
 def test_bad_options_are_one_line(world):
     base = ["splat", world["scene"], "--map", world["map"], "-o", world["root"] / "x", "--iterations", "1"]
+    one_line_error(run(*base, "--minutes", "0"), "--minutes")
     one_line_error(run(*base, "--protocol", "dense"), "protocol")
     one_line_error(run(*base, "--head-warmup", "1.5"), "--head-warmup")
     one_line_error(run(*base, "--protocol", "sparse", "--views", "3"), "--views")

@@ -10,7 +10,14 @@ from acesplat.splat.adapter import AdapterConfig
 from acesplat.splat.evaluate import evaluate_views
 from acesplat.splat.init_head import InitHeadConfig
 from acesplat.splat.instantiate import GaussianInitializer, merge_views, view_pixels
-from acesplat.splat.optimize import OptimizeConfig, finite_gradients, make_optimizer, optimise_gaussians
+from acesplat.splat.lifecycle import LifecycleSchedule
+from acesplat.splat.optimize import (
+    PROBE_ITERATIONS,
+    OptimizeConfig,
+    finite_gradients,
+    make_optimizer,
+    optimise_gaussians,
+)
 from acesplat.splat.params import PARAM_NAMES, gaussians_from_params, params_from_tensors
 from acesplat.splatcore.head_io import SceneNorm
 from tests.test_splat_init import planar_view
@@ -50,7 +57,7 @@ def test_nan_gradients_are_skipped_counted_and_never_written():
     bad.rgb[5, 7, 1] = np.nan  # a corrupt target pixel makes that view's loss and every gradient NaN
     params = planar_set(good)
     cfg = OptimizeConfig(scene_extent=2.0, max_gaussians=1000, sh_degree=1, iterations=12, seed=0)
-    res = optimise_gaussians(params, [good, bad], cfg, seconds=0.0)
+    res = optimise_gaussians(params, [good, bad], cfg)
     assert res.iterations == 12 and res.skipped_steps == 6  # each view is drawn once per pass over the two
     for name in PARAM_NAMES:
         assert torch.isfinite(params[name]).all(), name
@@ -65,10 +72,27 @@ def test_optimisation_improves_a_blurred_start():
     g0 = gaussians_from_params(params)
     before = evaluate_views(g0, [view])["psnr"]
     cfg = OptimizeConfig(scene_extent=2.0, max_gaussians=2000, sh_degree=1, iterations=60, densify=False, seed=0)
-    res = optimise_gaussians(params, [view], cfg, seconds=0.0)
+    res = optimise_gaussians(params, [view], cfg)
     after = evaluate_views(gaussians_from_params(params), [view])["psnr"]
     assert res.skipped_steps == 0 and res.history and res.history[-1]["iteration"] == 60
     assert after > before + 5.0  # measured 24.0 -> 32.0 dB
+
+
+def test_the_default_is_fixed_work_and_a_binding_cap_cuts_it_short_on_a_scaled_schedule():
+    """Without a cap every CPU runs the planned iterations on the schedule scaled to them; a cap that cannot afford
+    them ends the run early (iterations < iterations_planned), on a schedule scaled to what it affords."""
+    view = planar_view("v")
+    cfg = OptimizeConfig(scene_extent=2.0, max_gaussians=2000, sh_degree=1, iterations=40, seed=0)
+    free = optimise_gaussians(planar_set(view), [view], cfg)
+    assert (free.iterations, free.iterations_planned) == (40, 40)
+    assert free.schedule == LifecycleSchedule.scaled(40)
+    long = OptimizeConfig(scene_extent=2.0, max_gaussians=2000, sh_degree=1, iterations=10**6, seed=0)
+    capped = optimise_gaussians(planar_set(view), [view], long, seconds=0.5)
+    assert capped.iterations_planned == 10**6 and PROBE_ITERATIONS < capped.iterations < 10**6
+    assert capped.schedule.sh_up_every < LifecycleSchedule.scaled(10**6).sh_up_every  # rescaled after the probe
+    assert capped.history[-1]["progress"] > 0.5  # the clock drove the schedule (the iterations alone: ~0)
+    with pytest.raises(ValueError, match="seconds"):
+        optimise_gaussians(planar_set(view), [view], cfg, seconds=0.0)
 
 
 def test_optimizer_groups_have_their_learning_rates():

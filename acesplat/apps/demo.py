@@ -27,14 +27,15 @@ console = Console()
 
 DEFAULT_MAP_STEPS = 2400
 """Stage 1 head steps of the demo: a quick map (about 5 minutes on 2 AVX2 cores); `acesplat map` runs 5000."""
-DEFAULT_SPLAT_MINUTES = 1.5
-"""Stage 2 budget of the demo: enough to see the Gaussians form (the full recipe is `acesplat splat --minutes 10`)."""
+DEFAULT_SPLAT_ITERATIONS = 1000
+"""Stage 2 iterations of the demo: enough to see the Gaussians form (about 1.5 minutes on 2 cores; `acesplat splat`
+runs the full recipe's 2000 on more Gaussians)."""
 DEFAULT_REFINE_BUDGET_MS = 200.0
 """Per-frame budget of the refinement replay: room for refinement beside INT8 localization (bench/refine.md)."""
 RENDER_PAIRS = 3
 """Before/after render images the demo writes (the test views whose PSNR refinement changed most)."""
 SPLAT_MAX_GAUSSIANS = 60_000
-"""Stage 2 cap of the demo's short budget: fewer Gaussians train more iterations in 1.5 minutes (bench/refine.md).
+"""Stage 2 cap of the demo's short run: fewer Gaussians make each of its iterations cheaper (bench/refine.md).
 Refinement takes a map of any size (its cap limits growth only)."""
 REFINE_PRECISION = "int8"
 """The refinement replay runs the INT8 SCR graph the device's check picks, the edge's fast path: more of the budget
@@ -108,7 +109,7 @@ def _stage_map(scene: Path, work: Path, steps: int, minutes: float | None, summa
 
 
 def _stage_splat(
-    scene: Path, map_path: Path, work: Path, minutes: float, iterations: int | None, summary: dict
+    scene: Path, map_path: Path, work: Path, minutes: float | None, iterations: int, summary: dict
 ) -> Path:
     """A short Stage 2 through `acesplat splat`'s library function, with the command's default of one torch thread."""
     import torch
@@ -120,7 +121,6 @@ def _stage_splat(
         minutes=minutes,
         iterations=iterations,
         max_gaussians=SPLAT_MAX_GAUSSIANS,
-        head_iterations=None if iterations is None else iterations // 5,
     )
     splat_dir = work / "splat"
     threads = torch.get_num_threads()
@@ -135,6 +135,8 @@ def _stage_splat(
         for k in (
             "seconds",
             "iterations",
+            "iterations_planned",
+            "cut_short",
             "gaussians_initial",
             "gaussians_final",
             "train_psnr",
@@ -322,7 +324,15 @@ def demo_command(
         help="Stage 1 head steps (`acesplat map --steps`; its default is 5000).",
     ),
     map_minutes: float | None = option(MappingConfig, "minutes", "--map-minutes"),
-    splat_minutes: float = typer.Option(DEFAULT_SPLAT_MINUTES, help="Stage 2 budget (`acesplat splat --minutes`)."),
+    splat_iterations: int = typer.Option(
+        DEFAULT_SPLAT_ITERATIONS,
+        "--splat-iterations",
+        min=0,
+        help="Stage 2 iterations (`acesplat splat --iterations`).",
+    ),
+    splat_minutes: float | None = typer.Option(
+        None, help="Optional wall-clock cap on Stage 2 (`acesplat splat --minutes`)."
+    ),
     refine_budget_ms: float = typer.Option(
         DEFAULT_REFINE_BUDGET_MS,
         "--refine-budget-ms",
@@ -332,15 +342,12 @@ def demo_command(
         None, help="Image size HxW of the synthetic scene (default 240x320; smaller is quicker)."
     ),
     frames: str | None = typer.Option(None, help="TRAIN,TEST frame counts of the synthetic scene (default 200,60)."),
-    splat_iterations: int | None = typer.Option(None, help="Fixed Stage 2 iterations instead of --splat-minutes."),
     json_out: Path | None = typer.Option(None, "--json", help="Write all numbers here (default WORKDIR/demo.json)."),
 ) -> None:
     """Run synth -> map -> eval -> splat -> export -> edge replay (with and without refinement) on the built-in
     synthetic scene and print the results."""
-    if (map_minutes is not None and map_minutes <= 0) or splat_minutes <= 0 or refine_budget_ms <= 0:
+    if any(v is not None and v <= 0 for v in (map_minutes, splat_minutes, refine_budget_ms)):
         raise InputError(None, "--map-minutes, --splat-minutes and --refine-budget-ms must be positive")
-    if splat_iterations is not None and splat_iterations < 0:
-        raise InputError(None, f"--splat-iterations must be >= 0, got {splat_iterations}")
     counts = _parse_frames(frames)
     t0 = time.monotonic()
     workdir.mkdir(parents=True, exist_ok=True)

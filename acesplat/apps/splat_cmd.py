@@ -25,7 +25,7 @@ def splat_command(
     out: Path = typer.Option(
         ..., "-o", "--out", help="Splat folder to write (gaussians.ply, adapter.pt, init_head.pt, splat.json)."
     ),
-    minutes: float = option(SplatConfig, "minutes"),
+    minutes: float | None = option(SplatConfig, "minutes"),
     protocol: str = option(SplatConfig, "protocol"),
     views: str | None = option(SplatConfig, "sparse_views", "--views"),
     encoder: Path | None = typer.Option(None, help="Encoder weights if not where the map says."),
@@ -37,12 +37,7 @@ def splat_command(
     fill: bool = option(SplatConfig, "fill"),
     head_warmup: float = option(SplatConfig, "head_warmup", "--head-warmup"),
     joint_head: bool = option(SplatConfig, "joint_head", "--joint-head/--no-joint-head"),
-    iterations: int | None = option(
-        SplatConfig,
-        "iterations",
-        help="Fixed optimisation iterations (and, with --head-warmup, 1/5 as many head warm-up steps) instead of the "
-        "budget: reproducible runs.",
-    ),
+    iterations: int = option(SplatConfig, "iterations"),
     device: str = typer.Option("auto", help="auto, cpu or cuda (networks only: the rasterizer runs on the CPU)."),
     threads: int = typer.Option(
         1,
@@ -60,8 +55,10 @@ def splat_command(
     if threads < 1:
         raise InputError(None, f"--threads must be positive, got {threads}")
     torch.set_num_threads(threads)
-    if iterations is not None and iterations < 0:
+    if iterations < 0:
         raise InputError(None, f"--iterations must be >= 0, got {iterations}")
+    if minutes is not None and minutes <= 0:
+        raise InputError(None, f"--minutes must be positive, got {minutes}")
     if reproj_px <= 0:
         raise InputError(None, f"--reproj-px must be positive, got {reproj_px}")
     if not 0 <= head_warmup < 1:
@@ -74,7 +71,6 @@ def splat_command(
         else parse_int_pair(views, "--views must be two training frame indices like 10,14"),
         max_gaussians=max_gaussians,
         iterations=iterations,
-        head_iterations=None if iterations is None else iterations // 5,
         validity=ValidityConfig(reproj_max_px=reproj_px),
         start=start,
         seed_cells=seed_cells,
@@ -94,6 +90,11 @@ def splat_command(
         f"{report['iterations']} iterations in {report['seconds']:.1f} s; train PSNR {report['train_psnr']:.2f} dB / "
         f"SSIM {report['train_ssim']:.3f} over {report['train_psnr_views']} views{tgt} -> {out}"
     )
+    if report["cut_short"]:
+        console.print(
+            f"[bold yellow]warning:[/] --minutes {minutes} cut Stage 2 short: {report['iterations']} of "
+            f"{report['iterations_planned']} iterations; the scene set is less trained than the default recipe makes it"
+        )
     report_json(json_out, report)
 
 

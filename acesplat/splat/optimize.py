@@ -2,7 +2,8 @@
 
 One AdamW over everything: the Gaussian attributes with 3DGS's learning rates (weight decay 0: it
 would pull log-scales and logits towards arbitrary values) and the adapter + head with the paper's
-2e-4..2e-3, all under one one-cycle shape driven by the fraction of the wall-clock budget used.
+2e-4..2e-3, all under one one-cycle shape driven by the fraction of the iterations done (or of a wall-clock cap,
+when one binds first).
 Each iteration renders one training view; every ``head_every`` iterations the head's own rendering
 loss joins it. A step whose gradients are not all finite is skipped and counted: no parameter and
 no optimiser moment ever sees a NaN or an infinity.
@@ -37,7 +38,7 @@ ADAM_EPS = 1e-15
 """3DGS's epsilon: position gradients are tiny, and Adam's default 1e-8 would swamp them."""
 NET_WEIGHT_DECAY = 0.01
 PROBE_ITERATIONS = 5
-"""Iterations timed before the lifecycle schedule is scaled to the iterations the budget affords."""
+"""Iterations timed under a wall-clock cap before the lifecycle schedule is scaled to the iterations the cap affords."""
 HISTORY_EVERY = 10
 GAUSSIAN_ONE_CYCLE = False
 
@@ -47,7 +48,11 @@ class OptimizeConfig:
     scene_extent: float = knob(reason="Scene size in metres: scales the position learning rate and the lifecycle.")
     max_gaussians: int = knob(reason="Cap on the number of Gaussians.")
     sh_degree: int = knob(3, "Highest SH degree of the scene set.")
-    iterations: int | None = knob(None, "Fixed iteration count instead of the wall-clock budget (reproducible runs).")
+    iterations: int = knob(
+        2000,
+        "Optimisation iterations: fixed work, so the scene set is the same on every CPU (about 10 minutes for a "
+        "25-view real scene on 2 cores: bench/stage2.md).",
+    )
     opacity_reset: bool = knob(True, "Reset opacities on 3DGS's (scaled) schedule.")
     densify: bool = knob(True, "Clone and split Gaussians on schedule (pruning runs either way).")
     head_every: int = knob(5, "The head's rendering loss joins every this many iterations (0: never; ~1 render).")
@@ -58,6 +63,7 @@ class OptimizeConfig:
 @dataclass
 class OptimizeResult:
     iterations: int
+    iterations_planned: int
     head_steps: int
     skipped_steps: int
     seconds: float
@@ -124,16 +130,19 @@ def optimise_gaussians(
     params: GaussianParams,
     views: Sequence[SplatView],
     cfg: OptimizeConfig,
-    seconds: float,
+    seconds: float | None = None,
     head: HeadTrainer | None = None,
     progress: ProgressFn | None = None,
     eval_fn: EvalFn | None = None,
     eval_every_s: float | None = None,
 ) -> OptimizeResult:
-    """Optimise ``params`` in place on ``views`` for ``seconds`` of wall-clock time (or cfg.iterations).
+    """Optimise ``params`` in place on ``views`` for ``cfg.iterations`` iterations, or until ``seconds`` (a cap).
 
-    With ``head``, the adapter and init head are optimised jointly. ``eval_fn`` (every
-    ``eval_every_s`` seconds of training time) is for measuring quality against time.
+    Under a cap the first PROBE_ITERATIONS are timed; if the cap cannot afford the planned iterations, the lifecycle
+    schedule is scaled to those it can, and progress is the larger of the iterations' and the clock's, so a capped
+    run still anneals (``iterations < iterations_planned`` then says it was cut short). With ``head``, the adapter
+    and init head are optimised jointly. ``eval_fn`` (every ``eval_every_s`` seconds of training time) is for
+    measuring quality against time.
     """
     if not views:
         raise ValueError("no training views")
@@ -147,9 +156,13 @@ def optimise_gaussians(
         opacity_reset=cfg.opacity_reset,
         densify=cfg.densify,
     )
-    fixed = cfg.iterations is not None
-    schedule = LifecycleSchedule.scaled(max(1, cfg.iterations)) if cfg.iterations is not None else None
-    lifecycle = GaussianLifecycle(lifecycle_cfg, schedule) if schedule else None
+    if cfg.iterations < 0:
+        raise ValueError(f"iterations must be >= 0, got {cfg.iterations}")
+    if seconds is not None and seconds <= 0:
+        raise ValueError(f"seconds must be positive, got {seconds}")
+    schedule = LifecycleSchedule.scaled(max(1, cfg.iterations))
+    lifecycle = GaussianLifecycle(lifecycle_cfg, schedule)
+    probed = seconds is None
     state = LifecycleState.zeros(params["means"].shape[0])
     targets = [torch.from_numpy(v.rgb) for v in views]
     bg = np.asarray(cfg.background, np.float64)
@@ -172,22 +185,23 @@ def optimise_gaussians(
             eval_fn(params, t_train, it)
             paused += time.monotonic() - t_e
             next_eval = t_train + eval_every_s
-        if fixed:
-            p = it / cfg.iterations if cfg.iterations else 1.0
-        else:
-            p = t_train / max(seconds, 1e-9)
+        p = it / cfg.iterations if cfg.iterations else 1.0
+        if seconds is not None:
+            p = max(p, t_train / seconds)
         if p >= 1.0:
             break
-        if lifecycle is None and it >= PROBE_ITERATIONS:
-            per_it = t_train / it
-            schedule = LifecycleSchedule.scaled(max(it + 1, int(seconds / per_it)))
-            lifecycle = GaussianLifecycle(lifecycle_cfg, schedule)
+        if not probed and it >= PROBE_ITERATIONS:
+            probed = True
+            affordable = int(seconds / (t_train / it))
+            if affordable < cfg.iterations:  # the cap binds: the lifecycle's periods fit the iterations it affords
+                schedule = LifecycleSchedule.scaled(max(it + 1, affordable))
+                lifecycle = GaussianLifecycle(lifecycle_cfg, schedule)
         set_learning_rates(optimizer, p)
         if not order:
             order = list(rng.permutation(len(views)))
         vi = order.pop()
         v = views[vi]
-        deg = lifecycle.sh_degree(it) if lifecycle else 0
+        deg = lifecycle.sh_degree(it)
         out = render(**render_tensors(params), pose_c2w=v.pose, intrinsics=v.intrinsics, background=bg, sh_degree=deg)
         loss = rendering_loss(out.color, targets[vi])
         head_loss = None
@@ -202,19 +216,15 @@ def optimise_gaussians(
         if not finite_gradients(optimizer):
             skipped += 1
             continue
-        if lifecycle is not None:
-            lifecycle.step_post_backward(state, out, v.intrinsics)
+        lifecycle.step_post_backward(state, out, v.intrinsics)
         optimizer.step()
-        if lifecycle is not None:
-            ev = lifecycle.step_post_optimizer(params, optimizer, state, it, p, gen)
-            events["cloned"] += ev.cloned
-            events["split"] += ev.split
-            events["pruned"] += ev.pruned
-            events["capped"] += ev.capped
-            events["opacity_resets"] += int(ev.opacity_reset)
-            events["densifications"] += int(bool(ev.counts))
-        elif state.grad_sum.shape[0] != params["means"].shape[0]:
-            state = LifecycleState.zeros(params["means"].shape[0])
+        ev = lifecycle.step_post_optimizer(params, optimizer, state, it, p, gen)
+        events["cloned"] += ev.cloned
+        events["split"] += ev.split
+        events["pruned"] += ev.pruned
+        events["capped"] += ev.capped
+        events["opacity_resets"] += int(ev.opacity_reset)
+        events["densifications"] += int(bool(ev.counts))
         with torch.no_grad():
             mse = float(torch.mean((out.color.detach() - targets[vi]) ** 2))
         psnr_run = psnr_from_mse(mse) if np.isnan(psnr_run) else 0.9 * psnr_run + 0.1 * psnr_from_mse(mse)
@@ -239,6 +249,7 @@ def optimise_gaussians(
             )
     return OptimizeResult(
         iterations=it,
+        iterations_planned=cfg.iterations,
         head_steps=head_steps,
         skipped_steps=skipped,
         seconds=elapsed(),

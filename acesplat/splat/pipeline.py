@@ -53,6 +53,8 @@ SPARSE_GAP = 4
 """Default sparse-view pair: two training frames this many frames apart around the middle of the sequence."""
 MIN_VALID_FRACTION = 0.02
 """Below this share of trustworthy SCR cells the map does not describe the scene."""
+HEAD_WARMUP_DIVISOR = 5
+"""Without head_iterations, the head's warm-up takes a fifth as many steps as the scene set's iterations."""
 SCENE_EXTENT_FACTOR = 1.1
 """3DGS's scene extent: 1.1 x the largest camera distance from their mean."""
 
@@ -62,13 +64,17 @@ STARTS = ("cells", "corners", "head")
 
 @dataclass
 class SplatConfig:
-    minutes: float = knob(10.0, "Wall-clock budget of Stage 2.")
+    iterations: int = knob(
+        knob_default(OptimizeConfig, "iterations"), "Optimisation iterations (fixed work: the same set on every CPU)."
+    )
+    minutes: float | None = knob(
+        None, "Optional wall-clock cap on Stage 2; a run it cuts short is flagged cut_short (and warned about)."
+    )
     protocol: str = knob(
         "static", "static (reconstruct the captured views) or sparse (two views in, held-out targets)."
     )
-    iterations: int | None = knob(None, "Fixed optimisation iterations instead of the budget (reproducible runs).")
     head_iterations: int | None = knob(
-        None, "Fixed head warm-up steps instead of head_warmup of the budget (when head_warmup > 0)."
+        None, "Head warm-up steps when head_warmup > 0 (None: a fifth of the iterations)."
     )
     sh_degree: int = knob(knob_default(OptimizeConfig, "sh_degree"), "Highest SH degree of the scene set.")
     start: str = knob(
@@ -90,8 +96,8 @@ class SplatConfig:
     init_views: int = knob(48, "At most this many training views (evenly spread) seed Gaussians; all of them train.")
     head_warmup: float = knob(
         0.0,
-        "Share of the budget in which the adapter and head train alone before seeding (0: the head's analytic start, "
-        "better in the same budget: bench/splat_init.md).",
+        "Above 0, the adapter and head train alone before seeding, for head_iterations steps (under a cap, at most "
+        "this share of it; 0: the head's analytic start, better in the same time: bench/splat_init.md).",
     )
     joint_head: bool = knob(
         False, "Keep training the head jointly with the scene set (its renders cost the scene set iterations)."
@@ -124,8 +130,10 @@ class SplatConfig:
     def __post_init__(self) -> None:
         if self.protocol not in PROTOCOLS:
             raise InputError(None, f"protocol must be one of {PROTOCOLS}, got {self.protocol!r}")
-        if self.minutes <= 0:
+        if self.minutes is not None and self.minutes <= 0:
             raise InputError(None, f"minutes must be positive, got {self.minutes}")
+        if self.iterations < 0 or (self.head_iterations is not None and self.head_iterations < 0):
+            raise InputError(None, f"iterations must be >= 0, got {self.iterations}, {self.head_iterations}")
         if self.start not in STARTS:
             raise InputError(None, f"start must be one of {STARTS}, got {self.start!r}")
         if self.start != "head" and (self.head_warmup > 0 or self.joint_head):
@@ -194,7 +202,7 @@ def splat_scene(
     ``source`` names the map in errors (a map that does not fit the scene is bad input).
     """
     t0 = time.monotonic()
-    budget = cfg.minutes * 60.0
+    budget = None if cfg.minutes is None else cfg.minutes * 60.0
     rng = np.random.default_rng(cfg.seed)
     torch.manual_seed(cfg.seed)
     train_idx, target_idx = protocol_split(len(frames), cfg.protocol, cfg.sparse_views)
@@ -246,7 +254,8 @@ def splat_scene(
         initializer, usable, norm, cfg.sh_degree, fill=cfg.fill, max_depth_ratio=cfg.validity.max_depth_ratio
     )
     t_prep = time.monotonic() - t0
-    warm_steps, warm_skipped = _warm_up(head, cfg, time.monotonic() + cfg.head_warmup * budget, rng, progress)
+    warm_deadline = None if budget is None else time.monotonic() + cfg.head_warmup * budget
+    warm_steps, warm_skipped = _warm_up(head, cfg, warm_deadline, rng, progress)
     t_warm = time.monotonic() - t0 - t_prep
 
     seeding: dict = {"start": cfg.start}
@@ -280,7 +289,7 @@ def splat_scene(
             stride=merge.stride,
         )
     n_initial = int(params["means"].shape[0])
-    remaining = max(budget - (time.monotonic() - t0), 1.0)
+    remaining = None if budget is None else max(budget - (time.monotonic() - t0), 1.0)
     ocfg = OptimizeConfig(
         scene_extent=extent,
         max_gaussians=max(cfg.max_gaussians, n_initial),
@@ -317,13 +326,16 @@ def splat_scene(
         "gaussians_initial": n_initial,
         "gaussians_final": int(params["means"].shape[0]),
         "iterations": opt.iterations,
+        "iterations_planned": opt.iterations_planned,
+        "minutes_cap": cfg.minutes,
+        "cut_short": opt.iterations < opt.iterations_planned,
         "head_warmup_steps": warm_steps,
         "head_steps": opt.head_steps,
         "skipped_steps": opt.skipped_steps + warm_skipped,
         "scene_extent": extent,
         "scene_norm": norm.as_dict(),
         "image_size": list(views[0].size),
-        "schedule": opt.schedule.as_dict() if opt.schedule else None,
+        "schedule": opt.schedule.as_dict(),
         "lifecycle": opt.events,
     }
     return SplatResult(params, initializer, norm, views, [frames[i] for i in target_idx], stats, opt)
@@ -376,24 +388,23 @@ def _valid_depths(v: SplatView) -> np.ndarray:
 
 
 def _warm_up(
-    head: HeadTrainer, cfg: SplatConfig, deadline: float, rng: np.random.Generator, progress: ProgressFn | None
+    head: HeadTrainer, cfg: SplatConfig, deadline: float | None, rng: np.random.Generator, progress: ProgressFn | None
 ) -> tuple[int, int]:
-    """Train the adapter and head alone (their own AdamW and one-cycle) until ``deadline`` or cfg.head_iterations;
-    no step at all with ``cfg.head_warmup`` 0 (the head's analytic start)."""
+    """Train the adapter and head alone (their own AdamW and one-cycle) for their steps, or until ``deadline`` (a
+    cap, time.monotonic); no step at all with ``cfg.head_warmup`` 0 (the head's analytic start)."""
     from acesplat.splat.optimize import finite_gradients
 
     if cfg.head_warmup <= 0:
         return 0, 0
     opt = torch.optim.AdamW(head.init.parameters(), lr=NET_LR_MIN, weight_decay=0.01)
     start = time.monotonic()
-    span = max(deadline - start, 1e-9)
+    planned = cfg.iterations // HEAD_WARMUP_DIVISOR if cfg.head_iterations is None else cfg.head_iterations
     steps = skipped = 0
     while True:
-        if cfg.head_iterations is not None:
-            p = steps / cfg.head_iterations if cfg.head_iterations else 1.0
-        else:
-            p = (time.monotonic() - start) / span
-        if p >= 1.0 or (cfg.head_iterations is None and time.monotonic() >= deadline):
+        p = steps / planned if planned else 1.0
+        if deadline is not None:
+            p = max(p, (time.monotonic() - start) / max(deadline - start, 1e-9))
+        if p >= 1.0:
             break
         for g in opt.param_groups:
             g["lr"] = one_cycle(p, NET_LR_MIN, NET_LR_MAX)
