@@ -73,11 +73,13 @@ SCR_VARIANTS = {
     "scr_analytic_fill": {"start": "head", "head_warmup": 0.0, "joint_head": False, "fill": True},
     "scr_cells": {"start": "cells"},
     "scr_corners_lib": {"start": "corners"},
+    "scr_corners_800": {"start": "corners", "seed_corners": 800},
     "scr_corners_1200": {"start": "corners", "seed_corners": 1200},
 }
-"""SplatConfig fields of the library's SCR starts: the trained head (the former defaults), its analytic start (no
+"""SplatConfig fields of the library's SCR starts: the trained head (an early default), its analytic start (no
 training, the fresh head's zero residuals) with or without the filled pixels, the textured-cell point start and the
-triangulated-corner start (with 1200 corners per view: about as many seeds as SIFT's on herzjesu25)."""
+triangulated-corner start (the library's default count, 800 per view as in its first runs, and 1200: about as many
+seeds as SIFT's on herzjesu25)."""
 RANDOM_HALF_SIDE = 3.0
 """Random start: a cube of this many scene extents around the cameras (3DGS's random start is a fixed cube)."""
 BUDGET_BOUND_ITERATIONS = 10**9

@@ -39,8 +39,8 @@ def test_tiny_demo_runs_every_stage_and_reports_refinement(tmp_path) -> None:
         s["eval_align"]["frames"] == 4 and sum(s["eval_align"]["keyframe_alignment"].values()) == s["eval"]["localized"]
     )
     assert "eval (torch), aligned" in r.output
-    # the cells start: the textured trusted cells of 12 views of 64x80 (80 cells each); measured 514
-    assert s["splat"]["iterations"] == 3 and s["splat"]["gaussians_final"] > 300
+    # the corners start: corners of 12 views of 64x80 (80 cells each) triangulated between them; measured 35
+    assert s["splat"]["iterations"] == 3 and s["splat"]["gaussians_final"] >= 30
     checks = s["export"]["checks"]
     assert {"fp32_vs_torch", "test_split", "splat_init_fp32_vs_torch", "splat_init_via_scr_int8_vs_torch"} <= set(
         checks

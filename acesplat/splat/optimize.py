@@ -50,8 +50,8 @@ class OptimizeConfig:
     sh_degree: int = knob(3, "Highest SH degree of the scene set.")
     iterations: int = knob(
         2000,
-        "Optimisation iterations: fixed work, so the scene set is the same on every CPU (about 10 minutes for a "
-        "25-view real scene on 2 cores: bench/stage2.md).",
+        "Optimisation iterations: fixed work, so the scene set is the same on every CPU (about what 10 minutes "
+        "afforded on a 25-image real scene on 2 cores: bench/stage2.md).",
     )
     opacity_reset: bool = knob(True, "Reset opacities on 3DGS's (scaled) schedule.")
     densify: bool = knob(True, "Clone and split Gaussians on schedule (pruning runs either way).")

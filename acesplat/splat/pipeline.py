@@ -24,7 +24,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from acesplat.align.flow_pnp import AlignConfig
 from acesplat.align.keyframe_set import triangulated_points
 from acesplat.core.config import knob, knob_default
 from acesplat.core.errors import InputError
@@ -78,16 +77,17 @@ class SplatConfig:
     )
     sh_degree: int = knob(knob_default(OptimizeConfig, "sh_degree"), "Highest SH degree of the scene set.")
     start: str = knob(
-        "cells",
-        "Where Gaussians start: cells (the most textured trusted SCR cells, 3DGS's point start: better on real "
-        "photographs), corners (each view's corners triangulated between the views, the head's depth their first "
-        "guess) or head (the init head's Gaussians at pixel resolution, views fused: better on the synthetic room; "
-        "bench/splat_init.md).",
+        "corners",
+        "Where Gaussians start: corners (each view's corners triangulated between the views, the head's depth their "
+        "first guess: level with SIFT points on real photographs, ahead of cells on test views), cells (the most "
+        "textured trusted SCR cells, 3DGS's point start) or head (the init head's Gaussians at pixel resolution, "
+        "views fused); bench/splat_init.md.",
     )
     seed_cells: int = knob(12_000, "Cells the 'cells' start seeds (as many points as a sparse SfM start has).")
     seed_corners: int = knob(
-        knob_default(AlignConfig, "corners"),
-        "Corners per view the 'corners' start triangulates between views (the keyframe alignment's count).",
+        1200,
+        "Corners per view the 'corners' start triangulates between views (about as many seeds as SIFT's on "
+        "herzjesu25; 800 started 0.3-0.5 dB lower: bench/splat_init.md).",
     )
     max_initial: int = knob(60_000, "Budget of initial Gaussians: the seeding lattice's stride is chosen to fit it.")
     max_gaussians: int = knob(
@@ -375,7 +375,9 @@ def _corner_start(
     points, colours, per_view = triangulated_points(keyframes, [v.rgb for v in views], cfg.seed_corners)
     if len(points) < 2:
         raise InputError(
-            source, f"only {len(points)} corner(s) triangulate between the views: nothing to seed Gaussians with"
+            source,
+            f"only {len(points)} corner(s) triangulate between the views: nothing to seed Gaussians with "
+            "(--start cells seeds from the map's cells alone)",
         )
     return params_from_gaussians(gaussians_from_points(points, colours, cfg.sh_degree)), per_view
 
