@@ -28,8 +28,8 @@ console = Console()
 DEFAULT_MAP_STEPS = 2400
 """Stage 1 head steps of the demo: a quick map (about 5 minutes on 2 AVX2 cores); `acesplat map` runs 5000."""
 DEFAULT_SPLAT_ITERATIONS = 1000
-"""Stage 2 iterations of the demo: enough to see the Gaussians form (about 1.5 minutes on 2 cores; `acesplat splat`
-runs the full recipe's 2000 on more Gaussians)."""
+"""Stage 2 iterations of the demo: enough to see the Gaussians form (about 3 minutes on 2 AVX2 cores, bench/recipe.md;
+`acesplat splat` runs the full recipe's 2000 on more Gaussians)."""
 DEFAULT_REFINE_BUDGET_MS = 200.0
 """Per-frame budget of the refinement replay: room for refinement beside INT8 localization (bench/refine.md)."""
 RENDER_PAIRS = 3
