@@ -192,7 +192,7 @@ def optimise_gaussians(
             break
         if not probed and it >= PROBE_ITERATIONS:
             probed = True
-            affordable = int(seconds / (t_train / it))
+            affordable = int(seconds / max(t_train / it, 1e-9))
             if affordable < cfg.iterations:  # the cap binds: the lifecycle's periods fit the iterations it affords
                 schedule = LifecycleSchedule.scaled(max(it + 1, affordable))
                 lifecycle = GaussianLifecycle(lifecycle_cfg, schedule)
