@@ -11,11 +11,15 @@ from acesplat.apps.import_cmd import import_command
 from acesplat.apps.pose_cmd import pose_command
 from acesplat.apps.scr_cmd import adapt_command, eval_command, map_command, pretrain_command
 from acesplat.apps.splat_cmd import render_command, splat_command
+from acesplat.apps.support import OneLineUsageErrors
 from acesplat.apps.synth_cmd import synth_command
 from acesplat.apps.view_cmd import view_command
 
 app = typer.Typer(
-    no_args_is_help=True, add_completion=False, help="ACEsplat desktop: make maps and splats, export bundles."
+    cls=OneLineUsageErrors,
+    no_args_is_help=True,
+    add_completion=False,
+    help="ACEsplat desktop: make maps and splats, export bundles.",
 )
 
 

@@ -6,8 +6,14 @@ import typer
 
 from acesplat.apps.bridge_cmd import app as bridge_app
 from acesplat.apps.edge_cmd import check_command, localize_command, profile_command, record_command, replay_command
+from acesplat.apps.support import OneLineUsageErrors
 
-app = typer.Typer(no_args_is_help=True, add_completion=False, help="ACEsplat onboard: localize against a bundle.")
+app = typer.Typer(
+    cls=OneLineUsageErrors,
+    no_args_is_help=True,
+    add_completion=False,
+    help="ACEsplat onboard: localize against a bundle.",
+)
 
 
 @app.callback()

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import typer
+from typer.core import TyperGroup
 
 from acesplat.core.atomic import write_json
 from acesplat.core.errors import InputError
@@ -30,6 +31,41 @@ def one_line_errors(fn: F) -> F:
             raise typer.Exit(2) from None
 
     return wrapper  # type: ignore[return-value]
+
+
+def _usage_error_class() -> type[Exception]:
+    """click's UsageError, whether typer ships click or vendors it (found through BadParameter's bases)."""
+    for cls in typer.BadParameter.__mro__:
+        if cls.__name__ == "UsageError":
+            return cls
+    return typer.BadParameter  # pragma: no cover - every click has BadParameter(UsageError)
+
+
+class OneLineUsageErrors(TyperGroup):
+    """A program whose usage errors (an option out of range, an unknown flag, a missing argument) are one line.
+
+    typer prints them as a boxed multi-line panel; the house prints every bad input as ``error: ...`` on
+    stderr with exit code 2. Running with no arguments still prints the help.
+    """
+
+    def main(self, *args: Any, standalone_mode: bool = True, **kwargs: Any) -> Any:
+        if not standalone_mode:
+            return super().main(*args, standalone_mode=False, **kwargs)
+        usage_error = _usage_error_class()
+        try:
+            rv = super().main(*args, standalone_mode=False, **kwargs)
+        except usage_error as e:
+            if type(e).__name__ == "NoArgsIsHelpError":  # no arguments: the help, as typer would print it
+                return super().main(*args, standalone_mode=True, **kwargs)
+            ctx = getattr(e, "ctx", None)
+            hint = f" (see {ctx.command_path} --help)" if ctx is not None else ""
+            message = " ".join(e.format_message().split())  # type: ignore[attr-defined]
+            print(f"error: {message}{hint}", file=sys.stderr)
+            sys.exit(2)
+        except typer.Abort:
+            print("Aborted!", file=sys.stderr)
+            sys.exit(1)
+        sys.exit(rv if isinstance(rv, int) else 0)
 
 
 def _interrupt(signum: int, frame: object) -> None:
