@@ -38,9 +38,18 @@ from acesplat.core.grid import DENSE_OUTPUT_STRIDE, OUTPUT_STRIDE
 from acesplat.core.machine import cpu_isa
 from acesplat.core.preprocess import size_for_short_side
 from acesplat.core.scene import IMAGE_SUFFIXES, SceneSplit, image_size, read_split
+from acesplat.scr.lowrank import lowrank_encoder
 from acesplat.scr.mapfile import encoder_for_map, load_map
-from acesplat.scr.network import GRAY_MEAN, GRAY_STD
-from export.checks import CheckFrame, fp32_parity, localization_accuracy, onnx_coords, onnx_session, prepare_frames
+from acesplat.scr.network import GRAY_MEAN, GRAY_STD, SCRNetwork
+from export.checks import (
+    CheckFrame,
+    fp32_parity,
+    localization_accuracy,
+    lowrank_deviation,
+    onnx_coords,
+    onnx_session,
+    prepare_frames,
+)
 from export.onnx_graph import FEATURES_NAME, INPUT_NAME, OPSET, OUTPUT_NAME, export_scr_onnx
 from export.options import ExportOptions, check_int8_options, int8_scheme_text, vnni_options
 from export.quantize import quantize_int8
@@ -187,9 +196,23 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
         raise InputError(
             map_path, f"--keyframes takes the map's training images, but {scene}/train was not found; pass --scene"
         )
+    if opts.encoder_rank:
+        if train is None:
+            raise InputError(
+                map_path,
+                f"--encoder-rank fits on the map's training images, but {scene}/train was not found; pass --scene",
+            )
+        if not 0 < opts.encoder_rank < enc.cfg.out:
+            raise InputError(
+                None,
+                f"--encoder-rank must be between 1 and {enc.cfg.out - 1} for this encoder "
+                f"(0 keeps it exact), got {opts.encoder_rank}",
+            )
     timings: dict[str, float] = {}
     checks: dict = {}
     vnni = vnni_options(opts)
+    exact_net = net
+    lowrank: dict | None = None
 
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
@@ -197,6 +220,16 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
     os.umask(mask)
     os.chmod(tmp, 0o777 & ~mask)  # mkdtemp makes 0700; a bundle is meant to be copied and shared
     try:
+        if opts.encoder_rank:
+            t0 = time.monotonic()
+            if progress:
+                progress("fit encoder rank", 0.0, {})
+            fit = prepare_frames(evenly(train.frames, opts.calibration_frames), size)
+            enc_lr, lowrank = lowrank_encoder(net.encoder, [f.gray for f in fit], opts.encoder_rank)
+            net = SCRNetwork(enc_lr, net.head).eval()
+            timings["encoder_rank_s"] = time.monotonic() - t0
+            if progress:
+                progress("fit encoder rank", 1.0, {})
         t0 = time.monotonic()
         if progress:
             progress("export fp32", 0.0, {})
@@ -210,6 +243,8 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
         if parity_src is not None:
             parity_frames = prepare_frames(evenly(parity_src.frames, PARITY_FRAMES), size)
             checks["fp32_vs_torch"] = fp32_parity(net, tmp / FP32_FILE, parity_frames, progress, stride)
+            if lowrank is not None:
+                lowrank.update(lowrank_deviation(exact_net, net, parity_frames, stride))
         else:
             rng = np.random.default_rng(0)
             noise = [
@@ -278,7 +313,7 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
                 progress("keyframes", 0.0, {"images": len(train.frames)})
             from acesplat.scr.keyframes import MapKeyframes
 
-            ks = MapKeyframes(train, net, m.short_side, input_size=size).to_set()
+            ks = MapKeyframes(train, exact_net, m.short_side, input_size=size).to_set()
             save_keyframes(tmp / KEYFRAMES_FILE, ks)
             files.append(describe_file(tmp, KEYFRAMES_FILE, ROLE_KEYFRAMES))
             keyframes_info = {
@@ -326,6 +361,7 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
                 },
                 "mean_offset": [float(v) for v in np.asarray(m.mean).reshape(3)],
                 "encoder": {"name": m.encoder_identity.name, "sha256": m.encoder_identity.sha256},
+                "encoder_lowrank": lowrank,
                 "head": m.head.cfg.as_dict(),
                 "opset": OPSET,
                 "precisions": ["fp32"] + (["int8"] if opts.int8 else []) + (["int8_vnni"] if vnni else []),

@@ -47,6 +47,11 @@ class ExportOptions:
         "Coordinates every 4th pixel instead of every 8th (as `acesplat eval --dense`): "
         "more accurate poses at about 3.5x the SCR time; no --splat.",
     )
+    encoder_rank: int = knob(
+        0,
+        "0 keeps the encoder exact; R > 0 runs its last 3x3 layer through R channels fitted to the training "
+        "images: at 128, a fifth less SCR inference for a few % of the test cells (bench/encoder_rank.md).",
+    )
     keyframes: bool = knob(
         False,
         "Carry the training images with their depth, so the edge can "

@@ -278,3 +278,35 @@ def test_keyframes_ride_in_the_bundle_and_the_edge_aligns_to_them(tiny, tmp_path
     (tmp_path / "kf" / "keyframes.npz").write_bytes(bytes(data))
     r = CliRunner().invoke(edge_app, ["replay", str(tmp_path / "kf"), str(tiny["scene"]), "--align"])
     assert r.exit_code == 2 and "does not match the manifest" in r.output
+
+
+def test_encoder_rank_exports_a_cheaper_graph_that_matches_its_torch_twin(tiny, tmp_path: Path) -> None:
+    import onnx
+
+    from acesplat.apps.cli import app
+    from export.bundle_export import ExportOptions, export_bundle
+
+    out = tmp_path / "lr"
+    rep = export_bundle(tiny["map"], out, ExportOptions(size_hw=(64, 80), scene_path=tiny["scene"], encoder_rank=8))
+    lr = rep.manifest["scr"]["encoder_lowrank"]
+    assert lr["layer"] == "res2_conv3" and lr["rank"] == 8 and lr["macs_per_cell"] < lr["macs_per_cell_full"]
+    assert 0.5 < lr["kept_variance"] <= 1.0 and lr["images"] == 12
+    assert lr["frames"] > 0 and lr["coord_median_m"] >= 0.0  # what the rank costs against the exact encoder
+    par = rep.manifest["checks"]["fp32_vs_torch"]  # the graph against the low-rank network it was traced from
+    assert par["max_abs_diff_fraction"] < 1e-5
+    g = onnx.load(str(out / "scr.onnx")).graph
+    shapes = {tuple(t.dims) for t in g.initializer}
+    assert any(s[0] == 8 and s[2:] == (3, 3) for s in shapes if len(s) == 4)  # the reduce layer: 8 channels out
+    assert rep.manifest["scr"]["features"]["shape"][1] == 32  # the head and the initializer see the same width
+    assert load_bundle(tiny["bundle"]).manifest["scr"]["encoder_lowrank"] is None  # the default stays exact
+
+    for rank, message in (("32", "between 1 and 31"), ("-1", "between 1 and 31")):
+        r = CliRunner().invoke(
+            app, ["export", str(tiny["map"]), "-o", str(tmp_path / "bad"), "--size", "64x80", "--encoder-rank", rank]
+        )
+        assert r.exit_code == 2 and message in r.output and "Traceback" not in r.output, r.output
+    with pytest.raises(InputError, match="--encoder-rank fits on the map's training images"):
+        export_bundle(
+            tiny["map"], tmp_path / "b", ExportOptions(size_hw=(64, 80), scene_path=tmp_path / "gone", encoder_rank=8)
+        )
+    assert not (tmp_path / "bad").exists() and not (tmp_path / "b").exists()

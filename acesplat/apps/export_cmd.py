@@ -42,6 +42,22 @@ def checks_table(manifest: dict) -> Table:
             "FP32 ONNX vs torch: encoder features max |diff| / max |feature|",
             f"{_fmt(par['features_max_abs_diff'])} / {_fmt(par['features_max_abs'])}",
         )
+    lr = manifest["scr"].get("encoder_lowrank")
+    if lr:
+        t.add_row(
+            f"encoder {lr['layer']} at rank {lr['rank']}: variance kept on the training images",
+            f"{lr['kept_variance']:.4f}",
+        )
+        if lr.get("coord_median_m") is not None:
+            t.add_row(
+                "  against the exact encoder: coordinate median / p90 (cm)",
+                f"{100 * lr['coord_median_m']:.2f} / {100 * lr['coord_p90_m']:.2f}",
+            )
+        if lr.get("pose_median_translation_m") is not None:
+            t.add_row(
+                "  against the exact encoder: pose median (cm / deg)",
+                f"{100 * lr['pose_median_translation_m']:.2f} / {lr['pose_median_rotation_deg']:.3f}",
+            )
     for prec in ("int8", "int8_vnni"):
         dev = checks.get(f"{prec}_vs_fp32")
         if not dev:
@@ -102,6 +118,7 @@ def export_command(
     ),
     dense: bool = option(ExportOptions, "dense"),
     keyframes: bool = option(ExportOptions, "keyframes"),
+    encoder_rank: int = option(ExportOptions, "encoder_rank"),
     int8_format: str = option(ExportOptions, "int8_format"),
     int8_types: str = option(ExportOptions, "int8_types"),
     int8_per_channel: bool = option(ExportOptions, "int8_per_channel", "--int8-per-channel/--int8-per-tensor"),
@@ -125,6 +142,7 @@ def export_command(
         scene_path=scene,
         dense=dense,
         keyframes=keyframes,
+        encoder_rank=encoder_rank,
         int8_format=int8_format,
         int8_types=int8_types,
         int8_per_channel=int8_per_channel,

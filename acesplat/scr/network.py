@@ -68,6 +68,26 @@ class HeadConfig:
         return asdict(self)
 
 
+class FactorizedConv2d(nn.Module):
+    """A k x k convolution through ``rank`` channels: ``reduce`` (in -> rank, k x k), then ``expand`` (rank -> out,
+    1 x 1), with no nonlinearity between. Built by acesplat.scr.lowrank from a full layer."""
+
+    def __init__(self, in_channels: int, out_channels: int, rank: int, kernel_size: int) -> None:
+        super().__init__()
+        self.reduce = nn.Conv2d(in_channels, rank, kernel_size, 1, kernel_size // 2)
+        self.expand = nn.Conv2d(rank, out_channels, 1, 1, 0)
+
+    @property
+    def kernel_size(self) -> tuple[int, int]:
+        return self.reduce.kernel_size
+
+    def forward(self, x: torch.Tensor, dilation: int = 1) -> torch.Tensor:
+        """(B, in, h, w) -> (B, out, h, w); ``dilation`` as for the layer it replaces (the encoder's stride 4)."""
+        r = self.reduce
+        k = r.kernel_size[0]
+        return self.expand(F.conv2d(x, r.weight, r.bias, padding=dilation * (k // 2), dilation=dilation))
+
+
 class Encoder(nn.Module):
     """Fully convolutional feature extractor with output stride 8."""
 
@@ -103,10 +123,12 @@ class Encoder(nn.Module):
             raise ValueError(f"output_stride must be {OUTPUT_STRIDE} or {DENSE_OUTPUT_STRIDE}, got {output_stride}")
         d = OUTPUT_STRIDE // output_stride
 
-        def conv(m: nn.Conv2d, x: torch.Tensor) -> torch.Tensor:
+        def conv(m: nn.Module, x: torch.Tensor) -> torch.Tensor:
             """A layer after conv4: as built at stride 8, dilated by d at stride 4."""
             if d == 1:
                 return m(x)
+            if isinstance(m, FactorizedConv2d):
+                return m(x, dilation=d)
             k = m.kernel_size[0]
             return F.conv2d(x, m.weight, m.bias, padding=d * (k // 2), dilation=d)
 
