@@ -53,6 +53,7 @@ def machine_header(
         "python": platform.python_version(),
         "model_sha256": {p: files.get(f"scr_{p}") for p in precisions},
         "input_size": list(bundle.input_size),
+        "encoder_rank": bundle.encoder_rank,
         "precision": list(precisions),
     }
 

@@ -81,6 +81,7 @@ def replay_split(
     out["precision"] = localizer.precision
     out["input_size"] = list(localizer.input_size)
     out["scr_size"] = list(localizer.scr_size)
+    out["encoder_rank"] = localizer.bundle.encoder_rank
     out["tracking_enabled"] = localizer.tracker is not None
     out["align_warp"] = localizer.align_config.warp if localizer.keyframes is not None else None
     out["align_matcher"] = localizer.align_config.matcher if localizer.keyframes is not None else None

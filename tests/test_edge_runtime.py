@@ -384,6 +384,7 @@ def test_profile_compare_json(tiny, tmp_path: Path) -> None:
     assert p["frames"] == 3 and p["warmup_frames"] == 1
     h = p["header"]
     assert h["threads"] == 1 and h["cpu"] and len(h["model_sha256"][p["precision"][1]]) == 64
+    assert h["encoder_rank"] is None  # an exact encoder
     assert "cpu:" in r.output and "sha256" in r.output
 
 

@@ -298,7 +298,14 @@ def test_encoder_rank_exports_a_cheaper_graph_that_matches_its_torch_twin(tiny, 
     shapes = {tuple(t.dims) for t in g.initializer}
     assert any(s[0] == 8 and s[2:] == (3, 3) for s in shapes if len(s) == 4)  # the reduce layer: 8 channels out
     assert rep.manifest["scr"]["features"]["shape"][1] == 32  # the head and the initializer see the same width
-    assert load_bundle(tiny["bundle"]).manifest["scr"]["encoder_lowrank"] is None  # the default stays exact
+    assert load_bundle(tiny["bundle"]).encoder_rank is None  # the default stays exact
+    assert load_bundle(out).encoder_rank == 8
+    from acesplat.apps.edge_cli import app as edge_app
+
+    r = CliRunner().invoke(edge_app, ["replay", str(out), str(tiny["scene"]), "--json", str(tmp_path / "r.json")])
+    assert r.exit_code == 0, r.output
+    s = json.loads((tmp_path / "r.json").read_text())
+    assert s["encoder_rank"] == 8 and s["localized"] == s["frames"] == 4  # run as any bundle (exact: 4 of 4 too)
 
     for rank, message in (("32", "between 1 and 31"), ("-1", "between 1 and 31")):
         r = CliRunner().invoke(

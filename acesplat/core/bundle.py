@@ -107,6 +107,12 @@ class Bundle:
         return self.manifest["scr"]
 
     @property
+    def encoder_rank(self) -> int | None:
+        """The rank of the SCR graph's low-rank encoder layer (`acesplat export --encoder-rank`); None: exact."""
+        lowrank = self.scr.get("encoder_lowrank")
+        return int(lowrank["rank"]) if isinstance(lowrank, dict) and "rank" in lowrank else None
+
+    @property
     def input_size(self) -> tuple[int, int]:
         """(H, W) of the grayscale image the SCR models take."""
         h, w = self.scr["input_size"]
