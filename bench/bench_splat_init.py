@@ -65,6 +65,7 @@ METHODS = (
     "scr_corners",
     "scr_corners_lib",
     "scr_corners_1200",
+    "scr_corners_2000",
     "random",
 )
 SCR_VARIANTS = {
@@ -75,6 +76,7 @@ SCR_VARIANTS = {
     "scr_corners_lib": {"start": "corners"},
     "scr_corners_800": {"start": "corners", "seed_corners": 800},
     "scr_corners_1200": {"start": "corners", "seed_corners": 1200},
+    "scr_corners_2000": {"start": "corners", "seed_corners": 2000},
 }
 """SplatConfig fields of the library's SCR starts: the trained head (an early default), its analytic start (no
 training, the fresh head's zero residuals) with or without the filled pixels, the textured-cell point start and the
