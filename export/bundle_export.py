@@ -45,10 +45,10 @@ from export.checks import (
     CheckFrame,
     fp32_parity,
     localization_accuracy,
-    lowrank_deviation,
     onnx_coords,
     onnx_session,
     prepare_frames,
+    torch_coords,
 )
 from export.onnx_graph import FEATURES_NAME, INPUT_NAME, OPSET, OUTPUT_NAME, export_scr_onnx
 from export.options import ExportOptions, check_int8_options, int8_scheme_text, vnni_options
@@ -244,7 +244,10 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
             parity_frames = prepare_frames(evenly(parity_src.frames, PARITY_FRAMES), size)
             checks["fp32_vs_torch"] = fp32_parity(net, tmp / FP32_FILE, parity_frames, progress, stride)
             if lowrank is not None:
-                lowrank.update(lowrank_deviation(exact_net, net, parity_frames, stride))
+                # what the low-rank encoder costs against the exact one, in torch, measured as INT8 against FP32
+                exact = [torch_coords(exact_net, f.gray, stride) for f in parity_frames]
+                cheap = [torch_coords(net, f.gray, stride) for f in parity_frames]
+                lowrank.update(deviation(exact, cheap, [f.intrinsics for f in parity_frames], stride))
         else:
             rng = np.random.default_rng(0)
             noise = [

@@ -137,31 +137,6 @@ def fp32_parity(
     }
 
 
-def lowrank_deviation(
-    exact: SCRNetwork, lowrank: SCRNetwork, frames: Sequence[CheckFrame], stride: int = OUTPUT_STRIDE
-) -> dict:
-    """What the low-rank encoder costs, in torch on ``frames``: its coordinates' distance from the exact
-    encoder's (median and p90, metres) and the poses' difference (median translation m / rotation deg)."""
-    dists, dt, dr = [], [], []
-    for f in frames:
-        a, b = torch_coords(exact, f.gray, stride), torch_coords(lowrank, f.gray, stride)
-        dists.append(np.linalg.norm(a - b, axis=-1).ravel())
-        pa, pb = solve_from_grid(a, f.intrinsics, stride), solve_from_grid(b, f.intrinsics, stride)
-        if pa.T_c2w is not None and pb.T_c2w is not None:
-            t, r = pose_error(pb.T_c2w, pa.T_c2w)
-            dt.append(t)
-            dr.append(r)
-    d = np.concatenate(dists) if dists else np.zeros(0)
-    d = d[np.isfinite(d)]
-    return {
-        "frames": len(frames),
-        "coord_median_m": float(np.median(d)) if d.size else None,
-        "coord_p90_m": float(np.percentile(d, 90)) if d.size else None,
-        "pose_median_translation_m": float(np.median(dt)) if dt else None,
-        "pose_median_rotation_deg": float(np.median(dr)) if dr else None,
-    }
-
-
 def localization_accuracy(
     model_path: Path,
     frames: Sequence[CheckFrame],

@@ -48,15 +48,15 @@ def checks_table(manifest: dict) -> Table:
             f"encoder {lr['layer']} at rank {lr['rank']}: variance kept on the training images",
             f"{lr['kept_variance']:.4f}",
         )
-        if lr.get("coord_median_m") is not None:
+        if lr.get("coord_median") is not None:
             t.add_row(
                 "  against the exact encoder: coordinate median / p90 (cm)",
-                f"{100 * lr['coord_median_m']:.2f} / {100 * lr['coord_p90_m']:.2f}",
+                f"{100 * lr['coord_median']:.2f} / {100 * lr['coord_p90']:.2f}",
             )
-        if lr.get("pose_median_translation_m") is not None:
+        if lr.get("pose_median_translation") is not None:
             t.add_row(
                 "  against the exact encoder: pose median (cm / deg)",
-                f"{100 * lr['pose_median_translation_m']:.2f} / {lr['pose_median_rotation_deg']:.3f}",
+                f"{100 * lr['pose_median_translation']:.2f} / {lr['pose_median_rotation_deg']:.3f}",
             )
     for prec in ("int8", "int8_vnni"):
         dev = checks.get(f"{prec}_vs_fp32")
