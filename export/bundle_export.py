@@ -213,6 +213,7 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
     vnni = vnni_options(opts)
     exact_net = net
     lowrank: dict | None = None
+    calib: list[CheckFrame] = []  # the training images that fit a low-rank encoder and calibrate INT8, read once
 
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
@@ -224,8 +225,8 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
             t0 = time.monotonic()
             if progress:
                 progress("fit encoder rank", 0.0, {})
-            fit = prepare_frames(evenly(train.frames, opts.calibration_frames), size)
-            enc_lr, lowrank = lowrank_encoder(net.encoder, [f.gray for f in fit], opts.encoder_rank)
+            calib = prepare_frames(evenly(train.frames, opts.calibration_frames), size)
+            enc_lr, lowrank = lowrank_encoder(net.encoder, [f.gray for f in calib], opts.encoder_rank)
             net = SCRNetwork(enc_lr, net.head).eval()
             timings["encoder_rank_s"] = time.monotonic() - t0
             if progress:
@@ -264,7 +265,7 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
 
         if opts.int8:
             t0 = time.monotonic()
-            calib = prepare_frames(evenly(train.frames, opts.calibration_frames), size)
+            calib = calib or prepare_frames(evenly(train.frames, opts.calibration_frames), size)
             if progress:
                 progress("quantize int8", 0.0, {"images": len(calib)})
             _quantize(tmp, INT8_FILE, calib, opts)
