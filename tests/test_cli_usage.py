@@ -10,6 +10,7 @@ from acesplat.apps.edge_cli import app as edge
 
 CASES = [
     (desktop, ["demo", "--map-steps", "0"], "--map-steps"),  # out of range
+    (desktop, ["demo", "--splat-iterations", "-1"], "--splat-iterations"),
     (desktop, ["map", "--steps", "0", "scene"], "--steps"),
     (desktop, ["eval", "--bogus"], "--bogus"),  # unknown option
     (desktop, ["map"], "scene"),  # missing argument

@@ -327,6 +327,7 @@ def demo_command(
     splat_iterations: int = typer.Option(
         DEFAULT_SPLAT_ITERATIONS,
         "--splat-iterations",
+        min=0,
         help="Stage 2 iterations (`acesplat splat --iterations`).",
     ),
     splat_minutes: float | None = typer.Option(
@@ -347,8 +348,6 @@ def demo_command(
     synthetic scene and print the results."""
     if any(v is not None and v <= 0 for v in (map_minutes, splat_minutes, refine_budget_ms)):
         raise InputError(None, "--map-minutes, --splat-minutes and --refine-budget-ms must be positive")
-    if splat_iterations < 0:
-        raise InputError(None, f"--splat-iterations must be >= 0, got {splat_iterations}")
     counts = _parse_frames(frames)
     t0 = time.monotonic()
     workdir.mkdir(parents=True, exist_ok=True)
