@@ -9,9 +9,9 @@ map's seconds and its buffer's, with the machine.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
+from acesplat.core.atomic import write_json
 from acesplat.core.machine import machine_line
 from acesplat.core.scene import read_split
 from acesplat.scr.encoders import load_encoder
@@ -41,8 +41,9 @@ def main() -> None:
     print(f"map {res.seconds:.1f} s, buffer {res.buffer_seconds:.1f} s")
     for it, ms in curve:
         print(f"steps to {it:5d}: {ms:6.1f} ms/step")
-    with open(args.out, "w") as f:
-        json.dump({"machine": machine_line(), "seconds": res.seconds, "buffer": res.buffer_seconds, "curve": curve}, f)
+    write_json(
+        args.out, {"machine": machine_line(), "seconds": res.seconds, "buffer": res.buffer_seconds, "curve": curve}
+    )
 
 
 if __name__ == "__main__":
