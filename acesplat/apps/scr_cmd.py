@@ -39,7 +39,6 @@ def map_command(
     precision: str = option(MappingConfig, "precision"),
     augment: str = option(MappingConfig, "augment"),
     novel_views: int = option(MappingConfig, "novel_views"),
-    feature_dims: int = option(MappingConfig, "feature_dims", min=0),
     seed: int = option(MappingConfig, "seed"),
     json_out: Path | None = typer.Option(None, "--json", help="Write the numbers here."),
 ) -> None:
@@ -51,7 +50,7 @@ def map_command(
     from acesplat.scr.augment import augment_ranges
     from acesplat.scr.encoders import load_encoder
     from acesplat.scr.mapfile import SceneMap, save_map
-    from acesplat.scr.mapping import check_feature_dims, default_short_side, map_scene, use_bf16
+    from acesplat.scr.mapping import default_short_side, map_scene, use_bf16
 
     if novel_views < 0:
         raise InputError(None, f"--novel-views must be 0 or more, got {novel_views}")
@@ -70,10 +69,6 @@ def map_command(
         torch.set_num_threads(max(1, torch.get_num_threads()))
     split = read_split(scene, "train")
     enc, ident = load_encoder(encoder)
-    try:
-        check_feature_dims(feature_dims, enc.cfg.out, head_width)
-    except ValueError as e:
-        raise InputError(None, f"--{e}") from None
     side = short_side or default_short_side(split)
     cfg = MappingConfig(
         iterations=steps,
@@ -88,7 +83,6 @@ def map_command(
         precision=precision,
         augment=augment,
         novel_views=novel_views,
-        feature_dims=feature_dims,
     )
     with PhaseProgress("map ") as bar:
         res = map_scene(split, enc, cfg, bar)
@@ -110,8 +104,6 @@ def map_command(
         "augment": augment,
         "novel_views": novel_views,
         "novel_view_features": res.novel_view_features,
-        "feature_dims": res.feature_dims,
-        "kept_variance": res.kept_variance,
     }
     save_map(out, SceneMap(res.head, ident, res.mean, side, meta))
     console.print(

@@ -32,7 +32,6 @@ from acesplat.core.preprocess import size_for_short_side, to_gray_input
 from acesplat.core.scene import SceneSplit
 from acesplat.scr.augment import augment, augment_ranges
 from acesplat.scr.buffer import Buffer, BufferBuilder, merge_buffers
-from acesplat.scr.feature_basis import fit_feature_basis, fold_head, project_features, reduced_head
 from acesplat.scr.loss import DEPTH_MIN, curriculum_threshold, reprojection_loss
 from acesplat.scr.network import Encoder, Head, HeadConfig, normalize_gray
 from acesplat.scr.novel_views import NOVEL_VIEWS_AT, NOVEL_VIEWS_TIME_FRACTION, novel_view_buffer
@@ -87,29 +86,12 @@ class MappingConfig:
         "photometric (brightness, contrast) or ace (also ACE's rescale and rotation; bench/augment_choice.md).",
     )
     triangulate: bool = knob(True, "Sparse coordinate targets triangulated from SIFT matches between training images.")
-    feature_dims: int = knob(
-        0,
-        "Train the head on this many principal components of the buffered features (0: all), folded back after.",
-    )
     novel_views: int = knob(
         0, "Training images warped to in-between cameras, buffered late in training (bench/herz_gap.md)."
     )
     seed: int = knob(0, "Seed of sampling, augmentation and initialisation.")
     device: str = knob("cpu", "Torch device of the encoder and head.")
     precision: str = knob("auto", "Mapping arithmetic: auto (bf16 where the CPU/GPU has it), fp32 or bf16.")
-
-
-def check_feature_dims(dims: int, channels: int, width: int) -> None:
-    """Raise ValueError unless ``dims`` (MappingConfig.feature_dims) suits features of ``channels`` and a head of
-    ``width``: 0, or fewer components than channels with a head narrower or wider than the features."""
-    if dims == 0:
-        return
-    if not 0 < dims < channels:
-        raise ValueError(
-            f"feature-dims must be 0 or between 1 and {channels - 1} for {channels}-channel features, got {dims}"
-        )
-    if width == channels:
-        raise ValueError(f"feature-dims needs a head width other than the features' {channels} channels")
 
 
 def use_bf16(precision: str, device: str) -> bool:
@@ -141,10 +123,6 @@ class MappingResult:
     iterations_planned: int = 0
     cut_short: bool = False
     """The wall-clock cap ended the recipe early (fewer head steps, or a partial buffer, than planned)."""
-    feature_dims: int = 0
-    """Principal components of the features the head trained on (0: all of them)."""
-    kept_variance: float = 1.0
-    """Share of the buffered features' variance those components hold."""
 
 
 @dataclass
@@ -387,7 +365,6 @@ def map_scene(
         raise ValueError(f"iterations must be positive, got {cfg.iterations}")
     if cfg.minutes is not None and cfg.minutes <= 0:
         raise ValueError(f"minutes must be positive, got {cfg.minutes}")
-    check_feature_dims(cfg.feature_dims, encoder.cfg.out, cfg.head.width)
     t0 = time.monotonic()
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
@@ -421,15 +398,9 @@ def map_scene(
     buffer = fill_buffer(
         images, encoder, cfg, None if budget is None else t0 + BUFFER_TIME_FRACTION * budget, rng, progress, fill
     )
-    mean = np.mean([im.c2w[:3, 3] for im in images], axis=0)
-    basis = None
-    if cfg.feature_dims > 0:
-        basis = fit_feature_basis(buffer["feats"], cfg.feature_dims, generator=torch.Generator().manual_seed(cfg.seed))
-        buffer["feats"] = project_features(buffer["feats"], basis)
-        head = reduced_head(torch.from_numpy(mean).float(), basis, cfg.head)
-    else:
-        head = Head(torch.from_numpy(mean).float(), in_channels=encoder.cfg.out, cfg=cfg.head)
     t_buf = time.monotonic() - t0
+    mean = np.mean([im.c2w[:3, 3] for im in images], axis=0)
+    head = Head(torch.from_numpy(mean).float(), in_channels=encoder.cfg.out, cfg=cfg.head)
     remaining = None if budget is None else max(budget - (time.monotonic() - t0), 1.0)
     extend = None
     novel_features = 0
@@ -440,19 +411,14 @@ def map_scene(
             if progress:
                 progress("novel views", 0.0, {"views": cfg.novel_views})
             deadline = math.inf if budget is None else time.monotonic() + NOVEL_VIEWS_TIME_FRACTION * budget
-            full = h if basis is None else fold_head(h, basis)
             with buffer_encoding(encoder, cfg) as encode:
-                extra = novel_view_buffer(images, encoder, encode, full, cfg.novel_views, rng, deadline)
+                extra = novel_view_buffer(images, encoder, encode, h, cfg.novel_views, rng, deadline)
             novel_features = 0 if extra is None else int(extra["feats"].shape[0])
-            if extra is not None and basis is not None:
-                extra["feats"] = project_features(extra["feats"], basis)
             if progress:
                 progress("novel views", 1.0, {"features": novel_features})
             return extra
 
     its, loss_v, valid, history = train_head(head, buffer, cfg, remaining, progress, extend)
-    if basis is not None:
-        head = fold_head(head, basis)
     return MappingResult(
         head=head.cpu(),
         mean=mean,
@@ -468,6 +434,4 @@ def map_scene(
         history=history,
         iterations_planned=cfg.iterations,
         cut_short=its < cfg.iterations or fill["deadline_hit"],
-        feature_dims=0 if basis is None else basis.dims,
-        kept_variance=1.0 if basis is None else basis.kept_variance,
     )
