@@ -1,7 +1,10 @@
 """Which INT8 scheme: every form/type/per-channel/reduce_range variant of onnxruntime's static quantizer, measured
 against the FP32 graph on the same map: coordinate deviation (cm), PnP pose deviation (cm / deg) and inference time.
 
-    PYTHONPATH=. python -P bench/int8_format.py MAP SCENE [--work DIR] [--threads 2] [--runs 15]
+    PYTHONPATH=. python -P bench/int8_format.py MAP SCENE [--work DIR] [--threads 2] [--runs 15] [--only 3]
+        [--methods minmax,percentile,percentile:99.99,entropy]
+
+``--methods`` repeats each variant with onnxruntime's calibration methods (``percentile:P`` sets the percentile).
 
 Writes the table to stdout and, with --json, the numbers. The decision is written up in bench/int8_format.md.
 """
@@ -57,6 +60,7 @@ def main() -> None:
     ap.add_argument("--calibration", type=int, default=32)
     ap.add_argument("--frames", type=int, default=16, help="Test frames compared (evenly spaced).")
     ap.add_argument("--only", nargs="*", default=None, help="Variants by index into VARIANTS (default: all).")
+    ap.add_argument("--methods", default="minmax", help="Calibration methods: minmax,percentile,entropy.")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
 
@@ -91,11 +95,23 @@ def main() -> None:
     gt = [pose_error(p, f.pose) for p, f in zip(ref_poses, frames, strict=True) if p is not None]
     rows[0]["gt_median_cm"] = 100 * float(np.median([t for t, _ in gt]))
     chosen = VARIANTS if args.only is None else [VARIANTS[int(i)] for i in args.only]
-    for form, types, pc, rr in chosen:
+    for (form, types, pc, rr), method in [(v, m) for v in chosen for m in args.methods.split(",")]:
         name = f"{form} {types}{' per-channel' if pc else ' per-tensor'}{' reduce_range' if rr else ''}"
-        path = args.work / f"{form}_{types}_{int(pc)}{int(rr)}.onnx"
+        name += "" if method == "minmax" else f" {method}"
+        path = args.work / f"{form}_{types}_{int(pc)}{int(rr)}_{method}.onnx"
+        kind, _, pct = method.partition(":")  # percentile:99.99 sets the percentile
         t0 = time.perf_counter()
-        quantize_int8(fp32, path, calib, quant_format=form, types=types, per_channel=pc, reduce_range=rr)
+        quantize_int8(
+            fp32,
+            path,
+            calib,
+            kind,
+            quant_format=form,
+            types=types,
+            per_channel=pc,
+            reduce_range=rr,
+            **({"percentile": float(pct)} if pct else {}),
+        )
         q_s = time.perf_counter() - t0
         sess = ScrSession(path, size, args.threads)
         dev, dt, dr, gt = [], [], [], []

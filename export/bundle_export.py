@@ -165,6 +165,8 @@ def _quantize(tmp: Path, name: str, calib: list, opts: ExportOptions) -> None:
         types=opts.int8_types,
         per_channel=opts.int8_per_channel,
         reduce_range=opts.int8_reduce_range,
+        method=opts.int8_calibration,
+        percentile=opts.int8_percentile,
     )
 
 

@@ -7,7 +7,7 @@ centimetres by itself (FLOAT_HEAD_CONVS).
 from __future__ import annotations
 
 import tempfile
-from collections.abc import Iterable
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -24,8 +24,15 @@ from onnxruntime.quantization.shape_inference import quant_pre_process
 from acesplat.core.atomic import atomic_path
 from acesplat.core.config import knob_default
 from export.onnx_graph import INPUT_NAME
-from export.options import INT8_FORMATS, INT8_TYPES, ExportOptions
+from export.options import INT8_CALIBRATIONS, INT8_FORMATS, INT8_TYPES, ExportOptions
 
+_CALIBRATIONS = dict(
+    zip(
+        INT8_CALIBRATIONS,
+        (CalibrationMethod.MinMax, CalibrationMethod.Percentile, CalibrationMethod.Entropy),
+        strict=True,
+    )
+)
 _FORMATS = dict(zip(INT8_FORMATS, (QuantFormat.QDQ, QuantFormat.QOperator), strict=True))
 _TYPES = dict(
     zip(
@@ -37,16 +44,29 @@ _TYPES = dict(
 
 
 class _Images(CalibrationDataReader):
-    """Feeds grayscale uint8 images (H, W) as the graph's float input, one at a time."""
+    """Feeds grayscale uint8 images (H, W) as the graph's float input, one at a time, from the range onnxruntime's
+    strided calibration sets (each stride's activations are reduced to ranges or histograms before the next)."""
 
-    def __init__(self, images: Iterable[np.ndarray]) -> None:
-        self._it = iter(images)
+    def __init__(self, images: Sequence[np.ndarray]) -> None:
+        self._images = list(images)
+        self._it = iter(self._images)
+
+    def __len__(self) -> int:
+        return len(self._images)
+
+    def set_range(self, start_index: int, end_index: int) -> None:
+        self._it = iter(self._images[start_index:end_index])
 
     def get_next(self) -> dict[str, np.ndarray] | None:
         img = next(self._it, None)
         if img is None:
             return None
         return {INPUT_NAME: np.ascontiguousarray(img, dtype=np.float32)[None, None]}
+
+
+CALIBRATION_STRIDE = 1
+"""Calibration images whose activations are held at once: one image's, not every image's (a percentile
+calibration of 18 herzjesu25 images at 360x544 held 3.9 GB at once; bench/int8_format.md)."""
 
 
 FLOAT_HEAD_CONVS = 6
@@ -65,24 +85,28 @@ def quantize_int8(
     fp32_path: str | Path,
     out_path: str | Path,
     calibration: list[np.ndarray],
-    method: CalibrationMethod = CalibrationMethod.MinMax,
+    method: str = knob_default(ExportOptions, "int8_calibration"),
     float_tail: bool = True,
     float_convs: int = FLOAT_HEAD_CONVS,
     quant_format: str = knob_default(ExportOptions, "int8_format"),
     types: str = knob_default(ExportOptions, "int8_types"),
     per_channel: bool = knob_default(ExportOptions, "int8_per_channel"),
     reduce_range: bool = knob_default(ExportOptions, "int8_reduce_range"),
+    percentile: float = knob_default(ExportOptions, "int8_percentile"),
 ) -> Path:
     """Quantize the FP32 model at ``fp32_path`` using ``calibration`` grayscale images (H, W) uint8.
 
     ``float_tail=False`` quantizes the last convolution too; ``float_convs`` keeps that many trailing
     convolutions (the head's) in float (bench/export.md). ``quant_format`` ('qdq' or 'qoperator'), ``types``
-    ('u8s8', 's8s8', 'u8u8': activations then weights), ``per_channel`` and ``reduce_range`` are onnxruntime's.
+    ('u8s8', 's8s8', 'u8u8': activations then weights), ``per_channel`` and ``reduce_range`` are onnxruntime's;
+    ``method`` ('minmax', 'percentile', 'entropy') sets the activation ranges, ``percentile`` the share they keep.
     """
     if not calibration:
         raise ValueError("INT8 calibration needs at least one image")
     if quant_format not in _FORMATS:
         raise ValueError(f"quant_format must be one of {', '.join(_FORMATS)}, got {quant_format!r}")
+    if method not in _CALIBRATIONS:
+        raise ValueError(f"method must be one of {', '.join(_CALIBRATIONS)}, got {method!r}")
     if types not in _TYPES:
         raise ValueError(f"types must be one of {', '.join(_TYPES)}, got {types!r}")
     act_type, weight_type = _TYPES[types]
@@ -105,8 +129,13 @@ def quantize_int8(
                 nodes_to_quantize=_with_followers(model, conv_nodes_to_quantize(model, float_convs))
                 if float_tail
                 else None,
-                calibrate_method=method,
-                extra_options={"ActivationSymmetric": False, "WeightSymmetric": weight_type == QuantType.QInt8},
+                calibrate_method=_CALIBRATIONS[method],
+                extra_options={
+                    "ActivationSymmetric": False,
+                    "WeightSymmetric": weight_type == QuantType.QInt8,
+                    "CalibPercentile": percentile,
+                    "CalibStridedMinMax": CALIBRATION_STRIDE,
+                },
             )
     return out_path
 

@@ -317,3 +317,50 @@ def test_encoder_rank_exports_a_cheaper_graph_that_matches_its_torch_twin(tiny, 
             tiny["map"], tmp_path / "b", ExportOptions(size_hw=(64, 80), scene_path=tmp_path / "gone", encoder_rank=8)
         )
     assert not (tmp_path / "bad").exists() and not (tmp_path / "b").exists()
+
+
+def test_int8_calibration_is_recorded_and_bad_values_are_one_line_errors(tiny, tmp_path: Path) -> None:
+    from acesplat.apps.cli import app
+
+    assert "percentile 99.999% calibration" in tiny["manifest"]["scr"]["int8_scheme"]
+    for args, msg in (
+        (["--int8-calibration", "kl"], "--int8-calibration must be one of minmax, percentile, entropy, got 'kl'"),
+        (["--int8-percentile", "40"], "--int8-percentile must be above 50 and at most 100, got 40.0"),
+    ):
+        r = CliRunner().invoke(app, ["export", str(tiny["map"]), "-o", str(tmp_path / "b"), "--int8", *args])
+        assert r.exit_code == 2, r.output
+        assert r.stderr.count("\n") == 1 and msg in r.stderr
+        assert not (tmp_path / "b").exists()
+
+
+def test_percentile_ranges_are_inside_the_minmax_ranges_and_one_image_is_held_at_a_time(tiny, tmp_path: Path) -> None:
+    """Percentile clips each activation's rarest values, so no range is wider than MinMax's and most are narrower;
+    the calibration reads its images one stride at a time."""
+    import onnx
+    from onnx import numpy_helper
+
+    from acesplat.core.bundle import load_bundle
+    from export.quantize import _Images, quantize_int8
+
+    fp32 = load_bundle(tiny["bundle"]).path("scr_fp32")
+    g = np.random.default_rng(0)
+    calib = [g.integers(0, 256, (64, 80), dtype=np.uint8) for _ in range(3)]
+    reader = _Images(calib)
+    reader.set_range(1, 2)
+    first = reader.get_next()
+    assert len(reader) == 3 and first is not None and reader.get_next() is None
+    assert np.array_equal(next(iter(first.values()))[0, 0], calib[1])
+    ranges = {}
+    for method in ("minmax", "percentile"):
+        out = quantize_int8(fp32, tmp_path / f"{method}.onnx", calib, method, percentile=99.0)
+        graph = onnx.load(str(out)).graph
+        inits = {i.name: numpy_helper.to_array(i) for i in graph.initializer}
+        ranges[method] = {
+            n.input[0]: float(inits[n.input[1]]) * 255.0
+            for n in graph.node
+            if n.op_type == "QuantizeLinear" and inits[n.input[1]].ndim == 0
+        }
+    common = ranges["minmax"].keys() & ranges["percentile"].keys()
+    assert len(common) > 5
+    assert all(ranges["percentile"][k] <= ranges["minmax"][k] * 1.001 for k in common)
+    assert sum(ranges["percentile"][k] < ranges["minmax"][k] * 0.98 for k in common) > len(common) // 2

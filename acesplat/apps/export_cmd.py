@@ -124,6 +124,8 @@ def export_command(
     int8_per_channel: bool = option(ExportOptions, "int8_per_channel", "--int8-per-channel/--int8-per-tensor"),
     int8_reduce_range: bool = option(ExportOptions, "int8_reduce_range"),
     int8_vnni: bool = option(ExportOptions, "int8_vnni"),
+    int8_calibration: str = option(ExportOptions, "int8_calibration"),
+    int8_percentile: float = option(ExportOptions, "int8_percentile"),
     check_frames: int = option(ExportOptions, "check_frames"),
 ) -> None:
     """Export a map to an ONNX bundle (FP32, optionally INT8) that checks itself."""
@@ -148,6 +150,8 @@ def export_command(
         int8_per_channel=int8_per_channel,
         int8_reduce_range=int8_reduce_range,
         int8_vnni=int8_vnni,
+        int8_calibration=int8_calibration,
+        int8_percentile=int8_percentile,
         check_frames=check_frames,
     )
     with PhaseProgress() as bar:
