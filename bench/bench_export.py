@@ -98,7 +98,6 @@ def accuracy_part(map_path: Path | None, scene: Path | None, threads: int, work:
 
 def quant_variants(work: Path, scene: Path, size: tuple[int, int], threads: int) -> None:
     """Why the shipped INT8 scheme: coordinate deviation from FP32 and localization for a few alternatives."""
-    from onnxruntime.quantization import CalibrationMethod
 
     from acesplat.core.bundle import ROLE_SCR_FP32, ROLE_SCR_INT8, describe_file, write_manifest
     from acesplat.core.scene import read_split
@@ -112,15 +111,13 @@ def quant_variants(work: Path, scene: Path, size: tuple[int, int], threads: int)
     ref_sess = ScrSession(fp32, size, threads)
     refs = [ref_sess.run(f.gray) for f in test]
     variants = {
-        "MinMax, last conv + tail float": dict(method=CalibrationMethod.MinMax, float_tail=True, float_convs=1),
-        "MinMax, every conv INT8 (tail float)": dict(method=CalibrationMethod.MinMax, float_tail=False),
-        "Percentile, last conv + tail float": dict(method=CalibrationMethod.Percentile, float_tail=True, float_convs=1),
-        "MinMax, head's fc1-fc3 float": dict(method=CalibrationMethod.MinMax, float_tail=True, float_convs=3),
-        "MinMax, res block + fc1-fc3 float (6, shipped)": dict(
-            method=CalibrationMethod.MinMax, float_tail=True, float_convs=6
-        ),
-        "MinMax, head float but res3_conv1 (8)": dict(method=CalibrationMethod.MinMax, float_tail=True, float_convs=8),
-        "MinMax, whole head float (10 convs)": dict(method=CalibrationMethod.MinMax, float_tail=True, float_convs=10),
+        "MinMax, last conv + tail float": dict(method="minmax", float_tail=True, float_convs=1),
+        "MinMax, every conv INT8 (tail float)": dict(method="minmax", float_tail=False),
+        "Percentile, last conv + tail float": dict(method="percentile", float_tail=True, float_convs=1),
+        "MinMax, head's fc1-fc3 float": dict(method="minmax", float_tail=True, float_convs=3),
+        "MinMax, res block + fc1-fc3 float (6, shipped)": dict(method="minmax", float_tail=True, float_convs=6),
+        "MinMax, head float but res3_conv1 (8)": dict(method="minmax", float_tail=True, float_convs=8),
+        "MinMax, whole head float (10 convs)": dict(method="minmax", float_tail=True, float_convs=10),
     }
     print(
         "\nINT8 variants on the same map (coordinate deviation from FP32 ONNX over test cells; replay of the test "
