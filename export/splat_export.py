@@ -40,6 +40,8 @@ from acesplat.splatcore.head_io import PRIOR_CHANNELS
 from acesplat.splatcore.seeding import OPACITY_PRIOR, SCALE_PRIOR
 
 PARITY_SAMPLES = 3
+PROBE_OUTPUT_STD = 0.05
+"""Weights of the probe's output layer (seeded normal): residuals of order 0.1-1, as a trained head's are."""
 
 ProgressFn = Callable[[str, float, dict], None]
 
@@ -157,6 +159,34 @@ def initializer_parity(graph, onnx_path: Path, features: list[np.ndarray], prior
     return {"max_abs_diff": worst, "max_abs_output": scale, "samples": len(features)}
 
 
+def untrained(init) -> bool:
+    """The head's output layer is all zeros (as a fresh head's is): its residuals are zero whatever comes in, so
+    comparing the shipped graph with torch cannot show an error in the layers before it."""
+    out = init.head.out
+    return not bool(out.weight.detach().any()) and not bool(out.bias.detach().any())
+
+
+def probe_parity(initializer, size_hw: tuple[int, int], features: list[np.ndarray], priors: list[np.ndarray]) -> dict:
+    """``initializer_parity`` of a copy of the initializer whose output layer has seeded random weights, exported
+    the same way: the export path (adapter, head, their shapes at this size) checked where the shipped head's zero
+    output hides it."""
+    import copy
+    import tempfile
+
+    import torch
+
+    probe = copy.deepcopy(initializer)
+    gen = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        w = probe.head.out.weight
+        w.copy_(torch.randn(w.shape, generator=gen) * PROBE_OUTPUT_STD)
+    graph = _InitGraph.make(probe, size_hw)
+    with tempfile.TemporaryDirectory() as td, torch.no_grad():
+        path = Path(td) / "probe.onnx"
+        export_initializer_onnx(graph, size_hw, features[0].shape[1], priors[0].shape[1], path)
+        return initializer_parity(graph, path, features, priors)
+
+
 def initializer_through_scr(
     net, graph, init_path: Path, scr_path: Path, images: list[np.ndarray], priors: list[np.ndarray]
 ) -> dict:
@@ -259,10 +289,17 @@ def export_splat(
         progress("check splat initializer", 0.0, {})
     images, source = check_images(b, size)
     priors = _priors(size, PRIOR_CHANNELS, len(images))
-    parity = initializer_parity(graph, root / INIT_FILE, [torch_features(net, g)[None] for g in images], priors)
+    features = [torch_features(net, g)[None] for g in images]
+    parity = initializer_parity(graph, root / INIT_FILE, features, priors)
     parity["images"] = source
+    parity["untrained_head"] = untrained(init)
     checks = dict(b.manifest.get("checks") or {})
     checks["splat_init_fp32_vs_torch"] = parity
+    checks.pop("splat_init_probe_fp32_vs_torch", None)
+    if parity["untrained_head"]:
+        probe = probe_parity(init, size, features, priors)
+        probe["images"] = source
+        checks["splat_init_probe_fp32_vs_torch"] = probe
     for precision, role in PRECISION_ROLES.items():
         if b.has(role):
             via = initializer_through_scr(net, graph, root / INIT_FILE, b.path(role), images, priors)

@@ -237,6 +237,8 @@ def test_export_splat_lists_models_checked_against_torch(splat_bundle) -> None:
     checks = b.manifest["checks"]
     parity = checks["splat_init_fp32_vs_torch"]
     assert parity["max_abs_diff"] < 1e-4 * max(1.0, parity["max_abs_output"])
+    assert parity["max_abs_output"] > 0 and not parity["untrained_head"]  # a trained head is its own check
+    assert "splat_init_probe_fp32_vs_torch" not in checks
     # What the edge runs: the SCR graph's features output into the initializer, against torch end to end.
     via = checks["splat_init_via_scr_fp32_vs_torch"]
     assert via["max_abs_diff"] < 1e-4 * max(1.0, via["max_abs_output"])

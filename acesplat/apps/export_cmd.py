@@ -94,6 +94,12 @@ def checks_table(manifest: dict) -> Table:
             "splat initializer ONNX vs torch: max |diff| / max |output|",
             f"{_fmt(par['max_abs_diff'])} / {_fmt(par['max_abs_output'])}",
         )
+        probe = checks.get("splat_init_probe_fp32_vs_torch")
+        if probe:
+            t.add_row(
+                "  untrained head (zero residuals); a random output layer: max |diff| / max |output|",
+                f"{_fmt(probe['max_abs_diff'])} / {_fmt(probe['max_abs_output'])}",
+            )
         for prec in ("fp32", "int8", "int8_vnni"):
             via = checks.get(f"splat_init_via_scr_{prec}_vs_torch")
             if via:
