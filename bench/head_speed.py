@@ -11,7 +11,7 @@
 
 Each part prints its times measured in one run as ratios to the first layout, plus the machine.
 
-    python bench/head_speed.py [--width 256] [--blocks 1] [--steps 20] [--threads 0] [--loop 300]
+    python bench/head_speed.py [--width 256] [--blocks 1] [--steps 20] [--threads 0] [--loop 300] [--compile]
 """
 
 from __future__ import annotations
@@ -31,6 +31,16 @@ from acesplat.scr.network import Head, HeadConfig, normalize_gray
 BATCH_SIZE = knob_default(MappingConfig, "batch_size")
 
 
+_COMPILED: dict[int, object] = {}
+
+
+def compiled(head: Head):
+    """``torch.compile`` of the head's matrix-product forward, compiled once per head (the first call compiles)."""
+    if id(head) not in _COMPILED:
+        _COMPILED[id(head)] = torch.compile(head.forward_points)
+    return _COMPILED[id(head)]
+
+
 def step_times(head: Head, feats: torch.Tensor, layout: str, steps: int) -> list[float]:
     opt = torch.optim.AdamW(head.parameters(), lr=1e-4)
     times = []
@@ -38,6 +48,8 @@ def step_times(head: Head, feats: torch.Tensor, layout: str, steps: int) -> list
         t = time.perf_counter()
         if layout == "conv":
             pred = head(feats.T[None, :, :, None])[0, :, :, 0].T
+        elif layout == "linear-compiled":
+            pred = compiled(head)(feats)
         else:
             pred = head.forward_points(feats, autocast_bf16=layout == "linear-bf16")
         loss = pred.abs().mean()
@@ -58,6 +70,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=20)
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0 = all cores)")
     ap.add_argument("--loop", type=int, default=0, help="also time this many steps of train_head (0 = skip)")
+    ap.add_argument("--compile", action="store_true", help="also time the step with torch.compile'd forward")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -66,6 +79,8 @@ def main() -> None:
     layouts = ["conv", "linear"]
     if torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported():
         layouts.append("linear-bf16")
+    if args.compile:
+        layouts += ["linear-compiled", "linear"]  # eager again after it, so drift shows
     print(machine_line())
     print(f"head width {args.width}, blocks {args.blocks}, batch {args.batch}, torch threads {torch.get_num_threads()}")
     base = None
