@@ -54,3 +54,17 @@ def test_without_torchrun_variables_there_is_no_process_group(monkeypatch) -> No
     monkeypatch.setenv("RANK", "2")
     with pytest.raises(InputError, match="RANK"), distributed_from_env("cpu"):
         pass
+
+
+def test_pair_gap_is_a_knob_and_a_bad_one_is_refused(tmp_path) -> None:
+    from typer.testing import CliRunner
+
+    from acesplat.apps.cli import app
+    from acesplat.scr.pretrain import PAIR_MAX_GAP, PretrainConfig
+
+    assert PretrainConfig().max_gap == PAIR_MAX_GAP
+    with pytest.raises(ValueError, match="max_gap must be >= 1"):
+        PretrainConfig(max_gap=0)
+    r = CliRunner().invoke(app, ["pretrain-encoder", str(tmp_path / "run"), "--max-gap", "0"])
+    assert r.exit_code == 2 and r.stderr.count("\n") == 1 and "--max-gap" in r.stderr
+    assert not (tmp_path / "run").exists()

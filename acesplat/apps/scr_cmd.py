@@ -245,6 +245,7 @@ def pretrain_command(
     seed: int = option(PretrainConfig, "seed"),
     photos: str = option(PretrainConfig, "photos"),
     photo_share: float = option(PretrainConfig, "photo_share"),
+    max_gap: int = option(PretrainConfig, "max_gap", min=1),
     init_encoder: Path | None = option(PretrainConfig, "init_encoder"),
     lr: float = option(PretrainConfig, "lr"),
     device: str = typer.Option("auto", help="auto, cpu or cuda (under torchrun: each rank's GPU is LOCAL_RANK)."),
@@ -274,6 +275,7 @@ def pretrain_command(
         seed=seed,
         photos=photos,
         photo_share=photo_share,
+        max_gap=max_gap,
         init_encoder=None if init_encoder is None else str(init_encoder),
         lr=lr,
     )

@@ -79,8 +79,13 @@ class PretrainConfig:
         None, "Start from these encoder weights instead of random ones (a new run only; a checkpoint wins)."
     )
     lr: float = knob(LR, "Peak learning rate of the cosine schedule (lower it to fine-tune from --init-encoder).")
+    max_gap: int = knob(
+        PAIR_MAX_GAP, "A pair's second view is at most this many frames along the trajectory from its first."
+    )
 
     def __post_init__(self) -> None:
+        if self.max_gap < 1:
+            raise ValueError(f"max_gap must be >= 1, got {self.max_gap}")
         if not 0.0 <= self.photo_share <= 1.0:
             raise ValueError(f"photo_share must be in [0, 1], got {self.photo_share}")
         if not self.lr > 0:
@@ -486,7 +491,7 @@ def pretrain(
         lr = float(lr * min(1.0, (step + 1) / 200))
         for g in opt.param_groups:
             g["lr"] = lr
-        batch = sample_pairs(scenes, rng, cfg.pairs, weights)
+        batch = sample_pairs(scenes, rng, cfg.pairs, weights, max_gap=cfg.max_gap)
         time_up, no_batch = _any_rank([time_up, batch is None], ddp, device)
         if time_up:
             break
