@@ -27,8 +27,8 @@ class ExportOptions:
     calibration_frames: int = knob(32, "Training images that calibrate the INT8 ranges (evenly spaced).")
     int8_calibration: str = knob(
         "percentile",
-        "INT8 activation ranges from the calibration images: minmax, percentile (clips the rarest activations: "
-        "a fifth less deviation from FP32 than minmax on three scenes, bench/int8_format.md) or entropy.",
+        "INT8 activation ranges from the calibration images: minmax, percentile (clips the rarest activations, "
+        "closer to FP32 than minmax: bench/int8_format.md) or entropy.",
     )
     int8_percentile: float = knob(
         99.999, "Share (%) of each activation's calibration values the percentile range keeps (onnxruntime's default)."

@@ -65,8 +65,8 @@ class _Images(CalibrationDataReader):
 
 
 CALIBRATION_STRIDE = 1
-"""Calibration images whose activations are held at once: one image's, not every image's (a percentile
-calibration of 18 herzjesu25 images at 360x544 held 3.9 GB at once; bench/int8_format.md)."""
+"""Calibration images whose activations are held at once: one image's, where histogram calibration would otherwise
+hold every image's (memory in bench/int8_format.md)."""
 
 
 FLOAT_HEAD_CONVS = 6
