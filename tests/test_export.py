@@ -339,7 +339,6 @@ def test_percentile_ranges_are_inside_the_minmax_ranges_and_one_image_is_held_at
     import onnx
     from onnx import numpy_helper
 
-    from acesplat.core.bundle import load_bundle
     from export.quantize import _Images, quantize_int8
 
     fp32 = load_bundle(tiny["bundle"]).path("scr_fp32")
