@@ -204,6 +204,10 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
                 map_path,
                 f"--encoder-rank fits on the map's training images, but {scene}/train was not found; pass --scene",
             )
+        if enc.cfg.rank:
+            raise InputError(
+                map_path, f"--encoder-rank: the map's encoder is already factorized (rank {enc.cfg.rank}); pass 0"
+            )
         if not 0 < opts.encoder_rank < enc.cfg.out:
             raise InputError(
                 None,

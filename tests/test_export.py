@@ -319,6 +319,37 @@ def test_encoder_rank_exports_a_cheaper_graph_that_matches_its_torch_twin(tiny, 
     assert not (tmp_path / "bad").exists() and not (tmp_path / "b").exists()
 
 
+def test_a_map_on_a_factorized_encoder_exports_as_it_is_and_refuses_a_second_factorization(tiny, tmp_path) -> None:
+    import dataclasses
+
+    import cv2
+    import torch
+
+    from acesplat.core.scene import read_split
+    from acesplat.scr.encoders import EncoderIdentity, load_encoder
+    from acesplat.scr.lowrank import lowrank_encoder
+    from acesplat.scr.mapfile import load_map, save_map
+    from export.bundle_export import ExportOptions, export_bundle
+
+    enc, _ = load_encoder(tiny["encoder"])
+    frames = [cv2.cvtColor(f.load_rgb(), cv2.COLOR_RGB2GRAY) for f in read_split(tiny["scene"], "train").frames]
+    small, _ = lowrank_encoder(enc, frames, 8)
+    enc_path = tmp_path / "encoder_rank8.pt"
+    torch.save(small.state_dict(), enc_path)
+    m = load_map(tiny["map"])
+    ident = EncoderIdentity(enc_path.name, file_sha256(enc_path), str(enc_path.resolve()))
+    save_map(tmp_path / "f.map", dataclasses.replace(m, encoder_identity=ident))
+    rep = export_bundle(tmp_path / "f.map", tmp_path / "b", ExportOptions(size_hw=(64, 80)))
+    assert rep.manifest["checks"]["fp32_vs_torch"]["max_abs_diff_fraction"] < 1e-5  # the factorized network, traced
+    with pytest.raises(InputError, match="already factorized"):
+        export_bundle(
+            tmp_path / "f.map",
+            tmp_path / "b2",
+            ExportOptions(size_hw=(64, 80), scene_path=tiny["scene"], encoder_rank=4),
+        )
+    assert not (tmp_path / "b2").exists()
+
+
 def test_int8_calibration_is_recorded_and_bad_values_are_one_line_errors(tiny, tmp_path: Path) -> None:
     from acesplat.apps.cli import app
 

@@ -8,8 +8,9 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from acesplat.scr.encoders import load_encoder
 from acesplat.scr.lowrank import factorize_conv, layer_outputs, lowrank_encoder
-from acesplat.scr.network import Encoder, EncoderConfig, FactorizedConv2d, normalize_gray
+from acesplat.scr.network import Encoder, EncoderConfig, FactorizedConv2d, HeadConfig, count_macs, normalize_gray
 
 
 def _samples(conv: nn.Conv2d, x: torch.Tensor) -> torch.Tensor:
@@ -126,3 +127,40 @@ def test_layer_outputs_are_one_row_per_stride_8_cell() -> None:
         layer_outputs(enc, [np.zeros((48, 64, 3), np.uint8)])
     with pytest.raises(ValueError, match="at least one image"):
         layer_outputs(enc, [])
+
+
+def test_a_factorized_encoder_file_loads_as_built_and_counts_its_macs(tmp_path) -> None:
+    torch.manual_seed(5)
+    cfg = EncoderConfig(c1=8, c2=8, c3=16, c4=16, res2=24, out=32)
+    small, _ = lowrank_encoder(Encoder(cfg).eval(), _images(3, 2), rank=12)
+    path = tmp_path / "factorized.pt"
+    torch.save(small.state_dict(), path)
+    loaded, _ = load_encoder(path)
+    assert loaded.cfg == EncoderConfig(c1=8, c2=8, c3=16, c4=16, res2=24, out=32, rank=12)
+    assert isinstance(loaded.res2_conv3, FactorizedConv2d)
+    x = normalize_gray(torch.from_numpy(_images(1, 9)[0]).float()[None, None])
+    with torch.no_grad():
+        assert torch.equal(loaded(x), small(x))
+    # brute force: every convolution's multiply-accumulates at its output size (FactorizedConv2d runs its reduce
+    # layer's weights through F.conv2d, so the pair is counted at its own output)
+    macs: list[int] = []
+
+    def count(m: nn.Module, _: tuple, o: torch.Tensor) -> None:
+        layers = [m.reduce, m.expand] if isinstance(m, FactorizedConv2d) else [m]
+        macs.extend(o.shape[2] * o.shape[3] * c.weight[0].numel() * c.out_channels for c in layers)
+
+    inside = {id(c) for c in (loaded.res2_conv3.reduce, loaded.res2_conv3.expand)}
+    hooks = [
+        m.register_forward_hook(count)
+        for m in loaded.modules()
+        if isinstance(m, FactorizedConv2d) or (isinstance(m, nn.Conv2d) and id(m) not in inside)
+    ]
+    with torch.no_grad():
+        loaded(torch.zeros(1, 1, 48, 64))
+    for h in hooks:
+        h.remove()
+    assert count_macs(loaded.cfg, HeadConfig(16, 1), 48, 64)["encoder_gmac"] * 1e9 == pytest.approx(sum(macs))
+    assert (
+        count_macs(loaded.cfg, HeadConfig(16, 1), 48, 64)["encoder_gmac"]
+        < count_macs(cfg, HeadConfig(16, 1), 48, 64)["encoder_gmac"]
+    )

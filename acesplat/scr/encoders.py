@@ -62,7 +62,13 @@ def load_encoder_state(path: Path) -> dict[str, torch.Tensor]:
         obj = obj["encoder"]
     if not isinstance(obj, dict):
         raise InputError(path, "encoder file does not hold a state dict")
-    missing = [k for k in ENCODER_KEYS if f"{k}.weight" not in obj or f"{k}.bias" not in obj]
+
+    def present(k: str) -> bool:
+        # res2_conv3 may be factorized (acesplat.scr.network.FactorizedConv2d): its two halves instead
+        names = [k] if f"{k}.weight" in obj else [f"{k}.reduce", f"{k}.expand"]
+        return all(f"{n}.weight" in obj and f"{n}.bias" in obj for n in names)
+
+    missing = [k for k in ENCODER_KEYS if not present(k)]
     if missing:
         raise InputError(path, f"not an ACE-style encoder state dict (missing {', '.join(missing)})")
     return obj

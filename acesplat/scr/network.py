@@ -36,16 +36,20 @@ class EncoderConfig:
     c4: int = 256
     res2: int = 512
     out: int = 512
+    rank: int = 0
+    """Channels ``res2_conv3`` passes through when it is built factorized (FactorizedConv2d); 0: a full layer."""
 
     @classmethod
     def from_state_dict(cls, sd: dict[str, torch.Tensor]) -> EncoderConfig:
+        factorized = "res2_conv3.reduce.weight" in sd
         return cls(
             c1=sd["conv1.weight"].shape[0],
             c2=sd["conv2.weight"].shape[0],
             c3=sd["conv3.weight"].shape[0],
             c4=sd["conv4.weight"].shape[0],
             res2=sd["res2_conv1.weight"].shape[0],
-            out=sd["res2_conv3.weight"].shape[0],
+            out=sd["res2_conv3.expand.weight" if factorized else "res2_conv3.weight"].shape[0],
+            rank=sd["res2_conv3.reduce.weight"].shape[0] if factorized else 0,
         )
 
     def as_dict(self) -> dict[str, int]:
@@ -103,7 +107,9 @@ class Encoder(nn.Module):
         self.res1_conv3 = nn.Conv2d(cfg.c4, cfg.c4, 3, 1, 1)
         self.res2_conv1 = nn.Conv2d(cfg.c4, cfg.res2, 3, 1, 1)
         self.res2_conv2 = nn.Conv2d(cfg.res2, cfg.res2, 1, 1, 0)
-        self.res2_conv3 = nn.Conv2d(cfg.res2, cfg.out, 3, 1, 1)
+        self.res2_conv3: nn.Module = (
+            FactorizedConv2d(cfg.res2, cfg.out, cfg.rank, 3) if cfg.rank else nn.Conv2d(cfg.res2, cfg.out, 3, 1, 1)
+        )
         self.res2_skip = nn.Conv2d(cfg.c4, cfg.out, 1, 1, 0)
         for m in self.modules():
             if isinstance(m, nn.Conv2d):
@@ -269,7 +275,8 @@ def count_macs(encoder_cfg: EncoderConfig, head_cfg: HeadConfig, height: int, wi
         + h2 * w2 * 9 * c.c1 * c.c2
         + h4 * w4 * 9 * c.c2 * c.c3
         + h8 * w8 * (9 * c.c3 * c.c4 + 9 * c.c4 * c.c4 + c.c4 * c.c4 + 9 * c.c4 * c.c4)
-        + h8 * w8 * (9 * c.c4 * c.res2 + c.res2 * c.res2 + 9 * c.res2 * c.out + c.c4 * c.out)
+        + h8 * w8 * (9 * c.c4 * c.res2 + c.res2 * c.res2 + c.c4 * c.out)
+        + h8 * w8 * (c.rank * (9 * c.res2 + c.out) if c.rank else 9 * c.res2 * c.out)
     )
     w = head_cfg.width
     head_layers = c.out * w * (2 if c.out != w else 1) + 2 * w * w + head_cfg.blocks * 3 * w * w + 2 * w * w + w * 4

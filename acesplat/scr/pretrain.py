@@ -422,12 +422,15 @@ def pretrain(
         share = cfg.photo_share
         weights = np.r_[np.full(n_rooms, (1 - share) / n_rooms), np.full(n_photos, share / n_photos)]
     torch.manual_seed(cfg.seed)
-    encoder = Encoder(cfg.encoder).to(device)
     init_sha = None
-    if cfg.init_encoder is not None:
+    if cfg.init_encoder is None:
+        encoder = Encoder(cfg.encoder).to(device)
+    else:
         from acesplat.scr.encoders import file_sha256
 
-        encoder.load_state_dict(torch.load(cfg.init_encoder, map_location="cpu", weights_only=True))
+        # the architecture follows the file (e.g. a factorized res2_conv3), the weights too
+        encoder = Encoder.from_state_dict(torch.load(cfg.init_encoder, map_location="cpu", weights_only=True))
+        encoder = encoder.to(device)
         init_sha = file_sha256(Path(cfg.init_encoder))
     opt = torch.optim.AdamW(encoder.parameters(), lr=cfg.lr, weight_decay=WEIGHT_DECAY)
     ckpt_path = out / "checkpoint.pt"
@@ -527,7 +530,7 @@ def pretrain(
         "steps": cfg.steps,
         "train_seconds": total_s,
         "last": history[-1] if history else None,
-        "config": _cfg_dict(cfg),
+        "config": {**_cfg_dict(cfg), "encoder": encoder.cfg.as_dict()},  # an --init-encoder file sets it
         "sessions": sessions,
         "world_size": ddp.world_size,
         "backend": ddp.backend,
