@@ -2,7 +2,7 @@
 against the FP32 graph on the same map: coordinate deviation (cm), PnP pose deviation (cm / deg) and inference time.
 
     PYTHONPATH=. python -P bench/int8_format.py MAP SCENE [--work DIR] [--threads 2] [--runs 15] [--only 3]
-        [--methods minmax,percentile,percentile:99.99,entropy] [--float-convs 6,8,10]
+        [--methods minmax,percentile,percentile:99.99,entropy] [--float-convs 6,8,10] [--float-lead 0,3]
 
 ``--methods`` repeats each variant with onnxruntime's calibration methods (``percentile:P`` sets the percentile).
 
@@ -61,6 +61,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=16, help="Test frames compared (evenly spaced).")
     ap.add_argument("--only", nargs="*", default=None, help="Variants by index into VARIANTS (default: all).")
     ap.add_argument("--float-convs", default="6", help="Trailing convolutions kept float, comma-separated counts.")
+    ap.add_argument("--float-lead", default="0", help="Leading convolutions kept float, comma-separated counts.")
     ap.add_argument("--methods", default="minmax", help="Calibration methods: minmax,percentile,entropy.")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
@@ -96,12 +97,19 @@ def main() -> None:
     gt = [pose_error(p, f.pose) for p, f in zip(ref_poses, frames, strict=True) if p is not None]
     rows[0]["gt_median_cm"] = 100 * float(np.median([t for t, _ in gt]))
     chosen = VARIANTS if args.only is None else [VARIANTS[int(i)] for i in args.only]
-    runs = [(v, m, int(k)) for v in chosen for m in args.methods.split(",") for k in args.float_convs.split(",")]
-    for (form, types, pc, rr), method, float_convs in runs:
+    runs = [
+        (v, m, int(k), int(lead))
+        for v in chosen
+        for m in args.methods.split(",")
+        for k in args.float_convs.split(",")
+        for lead in args.float_lead.split(",")
+    ]
+    for (form, types, pc, rr), method, float_convs, float_lead in runs:
         name = f"{form} {types}{' per-channel' if pc else ' per-tensor'}{' reduce_range' if rr else ''}"
         name += "" if method == "minmax" else f" {method}"
         name += "" if float_convs == 6 else f" {float_convs} float convs"
-        path = args.work / f"{form}_{types}_{int(pc)}{int(rr)}_{method}_{float_convs}.onnx"
+        name += "" if float_lead == 0 else f" {float_lead} float leading convs"
+        path = args.work / f"{form}_{types}_{int(pc)}{int(rr)}_{method}_{float_convs}_{float_lead}.onnx"
         kind, _, pct = method.partition(":")  # percentile:99.99 sets the percentile
         t0 = time.perf_counter()
         quantize_int8(
@@ -114,6 +122,7 @@ def main() -> None:
             per_channel=pc,
             reduce_range=rr,
             float_convs=float_convs,
+            float_lead=float_lead,
             **({"percentile": float(pct)} if pct else {}),
         )
         q_s = time.perf_counter() - t0

@@ -73,7 +73,7 @@ def int8_scheme_text(opts: ExportOptions) -> str:
         f"onnxruntime static {opts.int8_format.upper()}, "
         f"{'per-channel' if opts.int8_per_channel else 'per-tensor'} weights, {opts.int8_types.upper()}"
         f"{', reduce_range' if opts.int8_reduce_range else ''}, {_calibration_text(opts)} calibration, "
-        "last convs and head tail in float; "
+        "first and last convs and head tail in float; "
         "features output dequantized"
     )
 

@@ -1,7 +1,7 @@
 """Static INT8 quantization of the SCR graph with onnxruntime, in the scheme ExportOptions names (form, types,
 per-channel, reduce_range; the default chosen in bench/int8_format.md). The head's residual block, fc1-fc3 and its
 tail (homogeneous division, clamp, mean offset) stay in float: quantizing metric coordinates to 8 bits would cost
-centimetres by itself (FLOAT_HEAD_CONVS).
+centimetres by itself (FLOAT_HEAD_CONVS). So do the encoder's first layers (FLOAT_LEAD_CONVS).
 """
 
 from __future__ import annotations
@@ -74,11 +74,18 @@ FLOAT_HEAD_CONVS = 6
 bench/export.md)."""
 
 
-def conv_nodes_to_quantize(model: onnx.ModelProto, float_convs: int = FLOAT_HEAD_CONVS) -> list[str]:
+FLOAT_LEAD_CONVS = 3
+"""Leading convolutions kept in float: the encoder's first three, few channels at full to quarter resolution, where
+INT8 saves no time and costs accuracy (bench/int8_format.md)."""
+
+
+def conv_nodes_to_quantize(
+    model: onnx.ModelProto, float_convs: int = FLOAT_HEAD_CONVS, float_lead: int = FLOAT_LEAD_CONVS
+) -> list[str]:
     """Every Conv except the last ``float_convs`` (at least the head's output layer, whose result is divided into
-    metres)."""
+    metres) and the first ``float_lead``."""
     convs = [n.name for n in model.graph.node if n.op_type == "Conv"]
-    return convs[: len(convs) - float_convs]
+    return convs[float_lead : len(convs) - float_convs]
 
 
 def quantize_int8(
@@ -88,6 +95,7 @@ def quantize_int8(
     method: str = knob_default(ExportOptions, "int8_calibration"),
     float_tail: bool = True,
     float_convs: int = FLOAT_HEAD_CONVS,
+    float_lead: int = FLOAT_LEAD_CONVS,
     quant_format: str = knob_default(ExportOptions, "int8_format"),
     types: str = knob_default(ExportOptions, "int8_types"),
     per_channel: bool = knob_default(ExportOptions, "int8_per_channel"),
@@ -126,7 +134,7 @@ def quantize_int8(
                 activation_type=act_type,
                 weight_type=weight_type,
                 op_types_to_quantize=["Conv", "Relu", "Add"],
-                nodes_to_quantize=_with_followers(model, conv_nodes_to_quantize(model, float_convs))
+                nodes_to_quantize=_with_followers(model, conv_nodes_to_quantize(model, float_convs, float_lead))
                 if float_tail
                 else None,
                 calibrate_method=_CALIBRATIONS[method],
@@ -146,12 +154,18 @@ def _with_followers(model: onnx.ModelProto, convs: list[str]) -> list[str]:
     Nodes fed by the first convolution left out of ``convs`` (and everything after it) stay float.
     """
     keep = set(convs)
-    first_float = next(n for n in model.graph.node if n.op_type == "Conv" and n.name not in keep)
+    all_convs = [n for n in model.graph.node if n.op_type == "Conv"]
+    lead = all_convs[: next(i for i, n in enumerate(all_convs) if n.name in keep)]
+    first_float = next(n for n in all_convs[len(lead) :] if n.name not in keep)
     tail_tensors = set(first_float.output)
+    lead_tensors = {t for n in lead for t in n.output}  # float leading layers and the ReLUs right after them
     names = []
     for n in model.graph.node:
         if any(i in tail_tensors for i in n.input):
             tail_tensors.update(n.output)
+            continue
+        if n.op_type == "Relu" and any(i in lead_tensors for i in n.input):
+            lead_tensors.update(n.output)
             continue
         if n.name in keep or n.op_type in ("Relu", "Add"):
             names.append(n.name)

@@ -150,17 +150,24 @@ def test_int8_needs_the_training_images(tiny, tmp_path: Path) -> None:
         )
 
 
-def test_int8_keeps_the_heads_last_layers_float(tiny) -> None:
+def test_int8_keeps_the_encoders_first_and_the_heads_last_layers_float(tiny) -> None:
     import onnx
 
-    from export.quantize import FLOAT_HEAD_CONVS
+    from export.quantize import FLOAT_HEAD_CONVS, FLOAT_LEAD_CONVS
 
-    g = onnx.load(str(Path(tiny["bundle"]) / "scr.int8.onnx")).graph
-    produced_by = {o: n.op_type for n in g.node for o in n.output}
-    convs = [n for n in g.node if n.op_type == "Conv"]
-    dequantized = [produced_by.get(c.input[1]) == "DequantizeLinear" for c in convs]
-    assert dequantized[:-FLOAT_HEAD_CONVS] == [True] * (len(convs) - FLOAT_HEAD_CONVS)
-    assert dequantized[-FLOAT_HEAD_CONVS:] == [False] * FLOAT_HEAD_CONVS
+    for name in ("scr.int8.onnx", "scr.int8.u8s8.onnx"):
+        g = onnx.load(str(Path(tiny["bundle"]) / name)).graph
+        produced_by = {o: n.op_type for n in g.node for o in n.output}
+        convs = [n for n in g.node if n.op_type == "Conv"]
+        dequantized = [produced_by.get(c.input[1]) == "DequantizeLinear" for c in convs]
+        middle = len(convs) - FLOAT_LEAD_CONVS - FLOAT_HEAD_CONVS
+        assert dequantized == [False] * FLOAT_LEAD_CONVS + [True] * middle + [False] * FLOAT_HEAD_CONVS, name
+        # the float layers' activations are float too: the first quantized layer's input is quantized once, after
+        # the last float ReLU, and nothing before it is
+        first_q = convs[FLOAT_LEAD_CONVS]
+        assert produced_by[first_q.input[0]] == "DequantizeLinear", name
+        lead_outputs = {o for c in convs[:FLOAT_LEAD_CONVS] for o in c.output}
+        assert not any(n.op_type == "QuantizeLinear" and n.input[0] in lead_outputs for n in g.node), name
 
 
 def test_dense_bundle_predicts_every_4th_pixel_and_the_edge_localizes_with_it(tiny, tmp_path: Path) -> None:
