@@ -105,8 +105,9 @@ def quantize_int8(
     """Quantize the FP32 model at ``fp32_path`` using ``calibration`` grayscale images (H, W) uint8.
 
     ``float_tail=False`` quantizes the last convolution too; ``float_convs`` keeps that many trailing
-    convolutions (the head's) in float (bench/export.md). ``quant_format`` ('qdq' or 'qoperator'), ``types``
-    ('u8s8', 's8s8', 'u8u8': activations then weights), ``per_channel`` and ``reduce_range`` are onnxruntime's;
+    convolutions (the head's) in float (bench/export.md), ``float_lead`` that many leading ones (the encoder's).
+    ``quant_format`` ('qdq' or 'qoperator'), ``types`` ('u8s8', 's8s8', 'u8u8': activations then weights),
+    ``per_channel`` and ``reduce_range`` are onnxruntime's;
     ``method`` ('minmax', 'percentile', 'entropy') sets the activation ranges, ``percentile`` the share they keep.
     """
     if not calibration:
@@ -151,10 +152,13 @@ def quantize_int8(
 def _with_followers(model: onnx.ModelProto, convs: list[str]) -> list[str]:
     """The chosen convolutions plus the Relu/Add nodes between them, so activations stay INT8 end to end.
 
-    Nodes fed by the first convolution left out of ``convs`` (and everything after it) stay float.
+    Convolutions before the first of ``convs``, and the ReLUs right after them, stay float; so do the nodes fed by
+    the first convolution after it that ``convs`` leaves out (and everything after that).
     """
     keep = set(convs)
     all_convs = [n for n in model.graph.node if n.op_type == "Conv"]
+    if not keep:
+        raise ValueError("no convolution left to quantize: the float leading and trailing ones cover them all")
     lead = all_convs[: next(i for i, n in enumerate(all_convs) if n.name in keep)]
     first_float = next(n for n in all_convs[len(lead) :] if n.name not in keep)
     tail_tensors = set(first_float.output)

@@ -401,3 +401,12 @@ def test_percentile_ranges_are_inside_the_minmax_ranges_and_one_image_is_held_at
     assert len(common) > 5
     assert all(ranges["percentile"][k] <= ranges["minmax"][k] * 1.001 for k in common)
     assert sum(ranges["percentile"][k] < ranges["minmax"][k] * 0.98 for k in common) > len(common) // 2
+
+
+def test_int8_refuses_a_split_that_leaves_nothing_to_quantize(tiny, tmp_path: Path) -> None:
+    from export.quantize import quantize_int8
+
+    gray = np.zeros((64, 80), np.uint8)
+    with pytest.raises(ValueError, match="no convolution left to quantize"):
+        quantize_int8(Path(tiny["bundle"]) / "scr.onnx", tmp_path / "q.onnx", [gray], float_convs=10, float_lead=20)
+    assert not (tmp_path / "q.onnx").exists()
