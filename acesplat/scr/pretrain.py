@@ -439,6 +439,10 @@ def pretrain(
     sessions: list[dict] = []
     if ckpt_path.is_file():
         ck = torch.load(ckpt_path, map_location="cpu", weights_only=True)
+        if EncoderConfig.from_state_dict(ck["encoder"]) != encoder.cfg:
+            # resumed without the --init-encoder it started from: the run continues the architecture it checkpointed
+            encoder = Encoder.from_state_dict(ck["encoder"]).to(device)
+            opt = torch.optim.AdamW(encoder.parameters(), lr=cfg.lr, weight_decay=WEIGHT_DECAY)
         encoder.load_state_dict(ck["encoder"])
         opt.load_state_dict(ck["optimizer"])
         step, elapsed_before, history = int(ck["step"]), float(ck["elapsed"]), list(ck["history"])
