@@ -170,6 +170,24 @@ def test_int8_keeps_the_encoders_first_and_the_heads_last_layers_float(tiny) -> 
         assert not any(n.op_type == "QuantizeLinear" and n.input[0] in lead_outputs for n in g.node), name
 
 
+def test_onnxruntime_runs_the_float_layers_in_float(tiny, tmp_path: Path) -> None:
+    """onnxruntime quantizes a float convolution's weights itself when its input comes out of a DequantizeLinear
+    (to int8: the U8S8 kernels that can saturate without VNNI). The float layers the export keeps sit at the graph's
+    ends, where that does not happen: the optimized graph runs them as float Conv and only the middle as QLinearConv."""
+    import onnx
+    import onnxruntime as ort
+
+    from edge.inference import session_options
+    from export.quantize import FLOAT_HEAD_CONVS, FLOAT_LEAD_CONVS
+
+    so = session_options(1)
+    so.optimized_model_filepath = str(tmp_path / "optimized.onnx")
+    ort.InferenceSession(str(Path(tiny["bundle"]) / "scr.int8.onnx"), so, providers=["CPUExecutionProvider"])
+    ops = [n.op_type for n in onnx.load(so.optimized_model_filepath).graph.node if "Conv" in n.op_type]
+    middle = len(ops) - FLOAT_LEAD_CONVS - FLOAT_HEAD_CONVS
+    assert ops == ["Conv"] * FLOAT_LEAD_CONVS + ["QLinearConv"] * middle + ["Conv"] * FLOAT_HEAD_CONVS
+
+
 def test_dense_bundle_predicts_every_4th_pixel_and_the_edge_localizes_with_it(tiny, tmp_path: Path) -> None:
     from edge.replay import replay_split
     from edge.runtime import EdgeLocalizer
