@@ -22,6 +22,7 @@ that JSON for starts not run again are kept (so one start can be re-run alone).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import subprocess
@@ -66,6 +67,7 @@ METHODS = (
     "scr_corners_lib",
     "scr_corners_1200",
     "scr_corners_2000",
+    "scr_corners_cells",
     "random",
 )
 SCR_VARIANTS = {
@@ -77,11 +79,48 @@ SCR_VARIANTS = {
     "scr_corners_800": {"start": "corners", "seed_corners": 800},
     "scr_corners_1200": {"start": "corners", "seed_corners": 1200},
     "scr_corners_2000": {"start": "corners", "seed_corners": 2000},
+    "scr_corners_cells": {"start": "corners", "seed_corners": 1200},
 }
 """SplatConfig fields of the library's SCR starts: the trained head (an early default), its analytic start (no
 training, the fresh head's zero residuals) with or without the filled pixels, the textured-cell point start and the
 triangulated-corner start (the library's default count, 800 per view as in its first runs, and 1200: about as many
-seeds as SIFT's on herzjesu25)."""
+seeds as SIFT's on herzjesu25). ``scr_corners_cells`` is the 1200-corner start with the ``cells`` start's points
+added (corners_with_cells: a bench-only variant, measured and not shipped, bench/splat_init.md)."""
+CORNER_CELLS = 12_000
+"""Cells scr_corners_cells adds to the corners: the cells start's default count."""
+
+
+@contextlib.contextmanager
+def corners_with_cells(n_cells: int):
+    """Within the block, the library's corners start also seeds the ``n_cells`` most textured trusted cells (the
+    cells start's points) beside its triangulated corners."""
+    import acesplat.splat.pipeline as pl
+    from acesplat.splatcore.cell_seeds import cell_points, cell_texture, textured_cells
+
+    corner_start, triangulated = pl._corner_start, pl.triangulated_points
+    views_now: list = []
+
+    def start(views, *args, **kwargs):
+        views_now[:] = [views]
+        return corner_start(views, *args, **kwargs)
+
+    def union(keyframes, rgbs, n):
+        pts, cols, per_view = triangulated(keyframes, rgbs, n)
+        views = views_now[0]
+        textures = [cell_texture(v.gray, v.validity.valid.shape) for v in views]
+        masks = textured_cells(textures, [v.validity.valid for v in views], n_cells)
+        parts = [cell_points(v.coords, m, v.rgb) for v, m in zip(views, masks)]
+        cells = np.concatenate([p for p, _ in parts])
+        colours = np.concatenate([c for _, c in parts])
+        return np.concatenate([pts, cells]), np.concatenate([cols, colours]), per_view
+
+    pl._corner_start, pl.triangulated_points = start, union
+    try:
+        yield
+    finally:
+        pl._corner_start, pl.triangulated_points = corner_start, triangulated
+
+
 RANDOM_HALF_SIDE = 3.0
 """Random start: a cube of this many scene extents around the cameras (3DGS's random start is a fixed cube)."""
 BUDGET_BOUND_ITERATIONS = 10**9
@@ -213,21 +252,23 @@ def run_method(method: str, scene: Path, map_path: Path, args, eval_train, eval_
     info: dict = {}
     if method in SCR_VARIANTS:
         net = m.network(encoder_for_map(m, map_path, args.encoder))
-        res = splat_scene(
-            frames,
-            net,
-            m.short_side,
-            SplatConfig(
-                minutes=cap_minutes,
-                iterations=iterations,
-                seed=args.seed,
-                **SCR_VARIANTS[method],
-                **({"seed_cells": args.seed_cells} if method == "scr_cells" and args.seed_cells else {}),
-            ),
-            source=map_path,
-            eval_fn=curve,
-            eval_every_s=args.eval_every,
-        )
+        variant = corners_with_cells(CORNER_CELLS) if method == "scr_corners_cells" else contextlib.nullcontext()
+        with variant:
+            res = splat_scene(
+                frames,
+                net,
+                m.short_side,
+                SplatConfig(
+                    minutes=cap_minutes,
+                    iterations=iterations,
+                    seed=args.seed,
+                    **SCR_VARIANTS[method],
+                    **({"seed_cells": args.seed_cells} if method == "scr_cells" and args.seed_cells else {}),
+                ),
+                source=map_path,
+                eval_fn=curve,
+                eval_every_s=args.eval_every,
+            )
         params, views, opt = res.params, res.train_views, res.optimize
         info = {
             k: res.stats.get(k)
