@@ -208,6 +208,8 @@ def export_bundle(map_path: Path, out: Path, opts: ExportOptions, progress: Prog
             raise InputError(
                 map_path, f"--encoder-rank: the map's encoder is already factorized (rank {enc.cfg.rank}); pass 0"
             )
+        if enc.cfg.separable:
+            raise InputError(map_path, "--encoder-rank: the map's encoder's last layer is separable; pass 0")
         if not 0 < opts.encoder_rank < enc.cfg.out:
             raise InputError(
                 None,

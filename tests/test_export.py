@@ -375,6 +375,42 @@ def test_a_map_on_a_factorized_encoder_exports_as_it_is_and_refuses_a_second_fac
     assert not (tmp_path / "b2").exists()
 
 
+def test_a_map_on_a_separable_encoder_exports_to_int8_and_refuses_a_factorization(tiny, tmp_path) -> None:
+    import dataclasses
+
+    import torch
+
+    from acesplat.scr.encoders import EncoderIdentity, load_encoder
+    from acesplat.scr.mapfile import load_map, save_map
+    from acesplat.scr.network import Encoder, EncoderConfig
+    from export.bundle_export import ExportOptions, export_bundle
+
+    enc, _ = load_encoder(tiny["encoder"])
+    torch.manual_seed(0)
+    sep = Encoder(EncoderConfig(**{**enc.cfg.as_dict(), "separable": True}))
+    sd = {k: v for k, v in enc.state_dict().items() if not k.startswith("res2_conv3.")}
+    sd.update({k: v for k, v in sep.state_dict().items() if k.startswith("res2_conv3.")})
+    sep.load_state_dict(sd)
+    enc_path = tmp_path / "encoder_separable.pt"
+    torch.save(sep.state_dict(), enc_path)
+    m = load_map(tiny["map"])
+    ident = EncoderIdentity(enc_path.name, file_sha256(enc_path), str(enc_path.resolve()))
+    save_map(tmp_path / "s.map", dataclasses.replace(m, encoder_identity=ident))
+    rep = export_bundle(
+        tmp_path / "s.map", tmp_path / "b", ExportOptions(size_hw=(64, 80), int8=True, scene_path=tiny["scene"])
+    )
+    checks = rep.manifest["checks"]
+    assert checks["fp32_vs_torch"]["max_abs_diff_fraction"] < 1e-5  # the depthwise layer, traced
+    assert (tmp_path / "b" / "scr.int8.onnx").is_file()
+    with pytest.raises(InputError, match="separable"):
+        export_bundle(
+            tmp_path / "s.map",
+            tmp_path / "b2",
+            ExportOptions(size_hw=(64, 80), scene_path=tiny["scene"], encoder_rank=4),
+        )
+    assert not (tmp_path / "b2").exists()
+
+
 def test_int8_calibration_is_recorded_and_bad_values_are_one_line_errors(tiny, tmp_path: Path) -> None:
     from acesplat.apps.cli import app
 

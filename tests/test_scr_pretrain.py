@@ -70,20 +70,23 @@ def test_pair_gap_is_a_knob_and_a_bad_one_is_refused(tmp_path) -> None:
     assert not (tmp_path / "run").exists()
 
 
-def test_a_factorized_init_encoder_is_pretrained_as_built_and_resumed_without_it(tmp_path) -> None:
-    from acesplat.scr.network import Encoder, FactorizedConv2d
+@pytest.mark.parametrize("last", [{"rank": 6}, {"separable": True}])
+def test_a_factorized_or_separable_init_encoder_is_pretrained_as_built_and_resumed_without_it(tmp_path, last) -> None:
+    from acesplat.scr.network import Encoder, FactorizedConv2d, SeparableConv2d
 
     torch.manual_seed(1)
-    enc = Encoder(EncoderConfig(c1=4, c2=8, c3=8, c4=16, res2=16, out=16, rank=6))
+    built = EncoderConfig(c1=4, c2=8, c3=8, c4=16, res2=16, out=16, **last)
+    enc = Encoder(built)
     init = tmp_path / "init.pt"
     torch.save(enc.state_dict(), init)
     cfg = PretrainConfig(
         scenes=1, frames_per_scene=8, image_hw=(136, 168), steps=2, encoder=TINY, init_encoder=str(init)
     )
     first = pretrain(tmp_path / "run", cfg, minutes=2.0, command="first")
-    assert first["finished"] and first["config"]["encoder"]["rank"] == 6
+    assert first["finished"] and first["config"]["encoder"] == built.as_dict()
     cfg = PretrainConfig(scenes=1, frames_per_scene=8, image_hw=(136, 168), steps=3, encoder=TINY)  # no init file
     second = pretrain(tmp_path / "run", cfg, minutes=2.0, command="second")
-    assert second["finished"] and second["step"] == 3 and second["config"]["encoder"]["rank"] == 6
+    assert second["finished"] and second["step"] == 3 and second["config"]["encoder"] == built.as_dict()
     trained, _ = encoders.load_encoder(tmp_path / "run" / "encoder.pt")
-    assert isinstance(trained.res2_conv3, FactorizedConv2d) and trained.cfg.rank == 6
+    assert trained.cfg == built
+    assert isinstance(trained.res2_conv3, SeparableConv2d if built.separable else FactorizedConv2d)

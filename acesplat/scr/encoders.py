@@ -64,8 +64,9 @@ def load_encoder_state(path: Path) -> dict[str, torch.Tensor]:
         raise InputError(path, "encoder file does not hold a state dict")
 
     def present(k: str) -> bool:
-        # res2_conv3 may be factorized (acesplat.scr.network.FactorizedConv2d): its two halves instead
-        names = [k] if f"{k}.weight" in obj else [f"{k}.reduce", f"{k}.expand"]
+        # res2_conv3 may be factorized or separable (acesplat.scr.network): its two halves instead
+        halves = [f"{k}.point", f"{k}.depth"] if f"{k}.point.weight" in obj else [f"{k}.reduce", f"{k}.expand"]
+        names = [k] if f"{k}.weight" in obj else halves
         return all(f"{n}.weight" in obj and f"{n}.bias" in obj for n in names)
 
     missing = [k for k in ENCODER_KEYS if not present(k)]

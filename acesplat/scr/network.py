@@ -38,18 +38,27 @@ class EncoderConfig:
     out: int = 512
     rank: int = 0
     """Channels ``res2_conv3`` passes through when it is built factorized (FactorizedConv2d); 0: a full layer."""
+    separable: bool = False
+    """``res2_conv3`` built as a 1x1 convolution into its output width, then a depthwise 3x3 (SeparableConv2d)."""
+
+    def __post_init__(self) -> None:
+        if self.rank and self.separable:
+            raise ValueError("res2_conv3 is either factorized (rank) or separable, not both")
 
     @classmethod
     def from_state_dict(cls, sd: dict[str, torch.Tensor]) -> EncoderConfig:
         factorized = "res2_conv3.reduce.weight" in sd
+        separable = "res2_conv3.point.weight" in sd
+        out_key = {(True, False): "res2_conv3.expand.weight", (False, True): "res2_conv3.point.weight"}
         return cls(
             c1=sd["conv1.weight"].shape[0],
             c2=sd["conv2.weight"].shape[0],
             c3=sd["conv3.weight"].shape[0],
             c4=sd["conv4.weight"].shape[0],
             res2=sd["res2_conv1.weight"].shape[0],
-            out=sd["res2_conv3.expand.weight" if factorized else "res2_conv3.weight"].shape[0],
+            out=sd[out_key.get((factorized, separable), "res2_conv3.weight")].shape[0],
             rank=sd["res2_conv3.reduce.weight"].shape[0] if factorized else 0,
+            separable=separable,
         )
 
     def as_dict(self) -> dict[str, int]:
@@ -92,6 +101,29 @@ class FactorizedConv2d(nn.Module):
         return self.expand(F.conv2d(x, r.weight, r.bias, padding=dilation * (k // 2), dilation=dilation))
 
 
+class SeparableConv2d(nn.Module):
+    """A k x k convolution as ``point`` (in -> out, 1 x 1) then ``depth`` (a k x k filter per output channel), with
+    no nonlinearity between: about k^2 times cheaper than the full layer, and its outputs still span all ``out``
+    directions (each channel filters its own combination of the inputs over the k x k window)."""
+
+    def __init__(self, in_channels: int, out_channels: int, kernel_size: int) -> None:
+        super().__init__()
+        self.point = nn.Conv2d(in_channels, out_channels, 1, 1, 0)
+        self.depth = nn.Conv2d(out_channels, out_channels, kernel_size, 1, kernel_size // 2, groups=out_channels)
+
+    @property
+    def kernel_size(self) -> tuple[int, int]:
+        return self.depth.kernel_size
+
+    def forward(self, x: torch.Tensor, dilation: int = 1) -> torch.Tensor:
+        """(B, in, h, w) -> (B, out, h, w); ``dilation`` as for the layer it replaces (the encoder's stride 4)."""
+        d = self.depth
+        k = d.kernel_size[0]
+        return F.conv2d(
+            self.point(x), d.weight, d.bias, padding=dilation * (k // 2), dilation=dilation, groups=d.groups
+        )
+
+
 class Encoder(nn.Module):
     """Fully convolutional feature extractor with output stride 8."""
 
@@ -108,7 +140,11 @@ class Encoder(nn.Module):
         self.res2_conv1 = nn.Conv2d(cfg.c4, cfg.res2, 3, 1, 1)
         self.res2_conv2 = nn.Conv2d(cfg.res2, cfg.res2, 1, 1, 0)
         self.res2_conv3: nn.Module = (
-            FactorizedConv2d(cfg.res2, cfg.out, cfg.rank, 3) if cfg.rank else nn.Conv2d(cfg.res2, cfg.out, 3, 1, 1)
+            FactorizedConv2d(cfg.res2, cfg.out, cfg.rank, 3)
+            if cfg.rank
+            else SeparableConv2d(cfg.res2, cfg.out, 3)
+            if cfg.separable
+            else nn.Conv2d(cfg.res2, cfg.out, 3, 1, 1)
         )
         self.res2_skip = nn.Conv2d(cfg.c4, cfg.out, 1, 1, 0)
         for m in self.modules():
@@ -133,7 +169,7 @@ class Encoder(nn.Module):
             """A layer after conv4: as built at stride 8, dilated by d at stride 4."""
             if d == 1:
                 return m(x)
-            if isinstance(m, FactorizedConv2d):
+            if isinstance(m, (FactorizedConv2d, SeparableConv2d)):
                 return m(x, dilation=d)
             k = m.kernel_size[0]
             return F.conv2d(x, m.weight, m.bias, padding=d * (k // 2), dilation=d)
@@ -270,13 +306,14 @@ def count_macs(encoder_cfg: EncoderConfig, head_cfg: HeadConfig, height: int, wi
     h2, w2 = math.ceil(height / 2), math.ceil(width / 2)
     h4, w4 = math.ceil(h2 / 2), math.ceil(w2 / 2)
     h8, w8 = math.ceil(h4 / 2), math.ceil(w4 / 2)
+    last = c.rank * (9 * c.res2 + c.out) if c.rank else c.out * (c.res2 + 9) if c.separable else 9 * c.res2 * c.out
     enc = (
         h1 * w1 * 9 * 1 * c.c1
         + h2 * w2 * 9 * c.c1 * c.c2
         + h4 * w4 * 9 * c.c2 * c.c3
         + h8 * w8 * (9 * c.c3 * c.c4 + 9 * c.c4 * c.c4 + c.c4 * c.c4 + 9 * c.c4 * c.c4)
         + h8 * w8 * (9 * c.c4 * c.res2 + c.res2 * c.res2 + c.c4 * c.out)
-        + h8 * w8 * (c.rank * (9 * c.res2 + c.out) if c.rank else 9 * c.res2 * c.out)
+        + h8 * w8 * last
     )
     w = head_cfg.width
     head_layers = c.out * w * (2 if c.out != w else 1) + 2 * w * w + head_cfg.blocks * 3 * w * w + 2 * w * w + w * 4
