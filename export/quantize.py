@@ -6,6 +6,8 @@ centimetres by itself (FLOAT_HEAD_CONVS). So do the encoder's first layers (FLOA
 
 from __future__ import annotations
 
+import contextlib
+import io
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
@@ -124,7 +126,8 @@ def quantize_int8(
         pre = Path(td) / "pre.onnx"
         quant_pre_process(str(fp32_path), str(pre), skip_symbolic_shape=True)
         model = onnx.load(str(pre))
-        with atomic_path(out_path) as tmp:
+        # onnxruntime's histogram calibrators print a line per image to stdout; the export reports its own progress
+        with atomic_path(out_path) as tmp, contextlib.redirect_stdout(io.StringIO()):
             quantize_static(
                 str(pre),
                 str(tmp),
