@@ -104,7 +104,8 @@ class FactorizedConv2d(nn.Module):
 class SeparableConv2d(nn.Module):
     """A k x k convolution as ``point`` (in -> out, 1 x 1) then ``depth`` (a k x k filter per output channel), with
     no nonlinearity between: about k^2 times cheaper than the full layer, and its outputs still span all ``out``
-    directions (each channel filters its own combination of the inputs over the k x k window)."""
+    directions (each channel filters its own combination of the inputs over the k x k window). Not the default
+    encoder's: bench/encoder_rank.md measured what it costs the head on real scenes."""
 
     def __init__(self, in_channels: int, out_channels: int, kernel_size: int) -> None:
         super().__init__()
