@@ -13,7 +13,6 @@ the share of the outputs' variance it reproduces on held-out rooms, and saves th
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import time
 from pathlib import Path
@@ -121,7 +120,7 @@ def main() -> None:
     sd.update({f"{LOWRANK_LAYER}.{k}": v for k, v in sep.state_dict().items()})
     out.load_state_dict(sd)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    torch.save(copy.deepcopy(out).state_dict(), args.out)
+    torch.save(out.state_dict(), args.out)
     report = {
         "machine": machine_line(),
         "from": ident.as_dict(),

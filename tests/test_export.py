@@ -344,44 +344,54 @@ def test_encoder_rank_exports_a_cheaper_graph_that_matches_its_torch_twin(tiny, 
     assert not (tmp_path / "bad").exists() and not (tmp_path / "b").exists()
 
 
-def test_a_map_on_a_factorized_encoder_exports_as_it_is_and_refuses_a_second_factorization(tiny, tmp_path) -> None:
+def _map_on_encoder(tiny, encoder, tmp_path: Path, name: str) -> Path:
+    """The tiny map with its head, pointed at ``encoder`` saved beside it as ``name``.pt."""
     import dataclasses
 
-    import cv2
     import torch
 
-    from acesplat.core.scene import read_split
-    from acesplat.scr.encoders import EncoderIdentity, load_encoder
-    from acesplat.scr.lowrank import lowrank_encoder
+    from acesplat.scr.encoders import EncoderIdentity
     from acesplat.scr.mapfile import load_map, save_map
+
+    enc_path = tmp_path / f"{name}.pt"
+    torch.save(encoder.state_dict(), enc_path)
+    ident = EncoderIdentity(enc_path.name, file_sha256(enc_path), str(enc_path.resolve()))
+    save_map(tmp_path / f"{name}.map", dataclasses.replace(load_map(tiny["map"]), encoder_identity=ident))
+    return tmp_path / f"{name}.map"
+
+
+def _refuses_encoder_rank(tiny, map_path: Path, tmp_path: Path, match: str) -> None:
+    """``export --encoder-rank`` on ``map_path`` is a one-line InputError matching ``match`` and writes nothing."""
+    from export.bundle_export import ExportOptions, export_bundle
+
+    with pytest.raises(InputError, match=match):
+        export_bundle(
+            map_path, tmp_path / "b2", ExportOptions(size_hw=(64, 80), scene_path=tiny["scene"], encoder_rank=4)
+        )
+    assert not (tmp_path / "b2").exists()
+
+
+def test_a_map_on_a_factorized_encoder_exports_as_it_is_and_refuses_a_second_factorization(tiny, tmp_path) -> None:
+    import cv2
+
+    from acesplat.core.scene import read_split
+    from acesplat.scr.encoders import load_encoder
+    from acesplat.scr.lowrank import lowrank_encoder
     from export.bundle_export import ExportOptions, export_bundle
 
     enc, _ = load_encoder(tiny["encoder"])
     frames = [cv2.cvtColor(f.load_rgb(), cv2.COLOR_RGB2GRAY) for f in read_split(tiny["scene"], "train").frames]
     small, _ = lowrank_encoder(enc, frames, 8)
-    enc_path = tmp_path / "encoder_rank8.pt"
-    torch.save(small.state_dict(), enc_path)
-    m = load_map(tiny["map"])
-    ident = EncoderIdentity(enc_path.name, file_sha256(enc_path), str(enc_path.resolve()))
-    save_map(tmp_path / "f.map", dataclasses.replace(m, encoder_identity=ident))
-    rep = export_bundle(tmp_path / "f.map", tmp_path / "b", ExportOptions(size_hw=(64, 80)))
+    map_path = _map_on_encoder(tiny, small, tmp_path, "encoder_rank8")
+    rep = export_bundle(map_path, tmp_path / "b", ExportOptions(size_hw=(64, 80)))
     assert rep.manifest["checks"]["fp32_vs_torch"]["max_abs_diff_fraction"] < 1e-5  # the factorized network, traced
-    with pytest.raises(InputError, match="already factorized"):
-        export_bundle(
-            tmp_path / "f.map",
-            tmp_path / "b2",
-            ExportOptions(size_hw=(64, 80), scene_path=tiny["scene"], encoder_rank=4),
-        )
-    assert not (tmp_path / "b2").exists()
+    _refuses_encoder_rank(tiny, map_path, tmp_path, "already factorized")
 
 
 def test_a_map_on_a_separable_encoder_exports_to_int8_and_refuses_a_factorization(tiny, tmp_path) -> None:
-    import dataclasses
-
     import torch
 
-    from acesplat.scr.encoders import EncoderIdentity, load_encoder
-    from acesplat.scr.mapfile import load_map, save_map
+    from acesplat.scr.encoders import load_encoder
     from acesplat.scr.network import Encoder, EncoderConfig
     from export.bundle_export import ExportOptions, export_bundle
 
@@ -391,24 +401,12 @@ def test_a_map_on_a_separable_encoder_exports_to_int8_and_refuses_a_factorizatio
     sd = {k: v for k, v in enc.state_dict().items() if not k.startswith("res2_conv3.")}
     sd.update({k: v for k, v in sep.state_dict().items() if k.startswith("res2_conv3.")})
     sep.load_state_dict(sd)
-    enc_path = tmp_path / "encoder_separable.pt"
-    torch.save(sep.state_dict(), enc_path)
-    m = load_map(tiny["map"])
-    ident = EncoderIdentity(enc_path.name, file_sha256(enc_path), str(enc_path.resolve()))
-    save_map(tmp_path / "s.map", dataclasses.replace(m, encoder_identity=ident))
-    rep = export_bundle(
-        tmp_path / "s.map", tmp_path / "b", ExportOptions(size_hw=(64, 80), int8=True, scene_path=tiny["scene"])
-    )
+    map_path = _map_on_encoder(tiny, sep, tmp_path, "encoder_separable")
+    rep = export_bundle(map_path, tmp_path / "b", ExportOptions(size_hw=(64, 80), int8=True, scene_path=tiny["scene"]))
     checks = rep.manifest["checks"]
     assert checks["fp32_vs_torch"]["max_abs_diff_fraction"] < 1e-5  # the depthwise layer, traced
     assert (tmp_path / "b" / "scr.int8.onnx").is_file()
-    with pytest.raises(InputError, match="separable"):
-        export_bundle(
-            tmp_path / "s.map",
-            tmp_path / "b2",
-            ExportOptions(size_hw=(64, 80), scene_path=tiny["scene"], encoder_rank=4),
-        )
-    assert not (tmp_path / "b2").exists()
+    _refuses_encoder_rank(tiny, map_path, tmp_path, "separable")
 
 
 def test_int8_calibration_is_recorded_and_bad_values_are_one_line_errors(tiny, tmp_path: Path) -> None:

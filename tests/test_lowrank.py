@@ -11,6 +11,7 @@ import torch.nn.functional as F
 from acesplat.scr.encoders import load_encoder
 from acesplat.scr.lowrank import factorize_conv, layer_outputs, lowrank_encoder
 from acesplat.scr.network import Encoder, EncoderConfig, FactorizedConv2d, HeadConfig, count_macs, normalize_gray
+from tests.macs_reference import encoder_macs
 
 
 def _samples(conv: nn.Conv2d, x: torch.Tensor) -> torch.Tensor:
@@ -141,24 +142,7 @@ def test_a_factorized_encoder_file_loads_as_built_and_counts_its_macs(tmp_path) 
     x = normalize_gray(torch.from_numpy(_images(1, 9)[0]).float()[None, None])
     with torch.no_grad():
         assert torch.equal(loaded(x), small(x))
-    # brute force: every convolution's multiply-accumulates at its output size (FactorizedConv2d runs its reduce
-    # layer's weights through F.conv2d, so the pair is counted at its own output)
-    macs: list[int] = []
-
-    def count(m: nn.Module, _: tuple, o: torch.Tensor) -> None:
-        layers = [m.reduce, m.expand] if isinstance(m, FactorizedConv2d) else [m]
-        macs.extend(o.shape[2] * o.shape[3] * c.weight[0].numel() * c.out_channels for c in layers)
-
-    inside = {id(c) for c in (loaded.res2_conv3.reduce, loaded.res2_conv3.expand)}
-    hooks = [
-        m.register_forward_hook(count)
-        for m in loaded.modules()
-        if isinstance(m, FactorizedConv2d) or (isinstance(m, nn.Conv2d) and id(m) not in inside)
-    ]
-    with torch.no_grad():
-        loaded(torch.zeros(1, 1, 48, 64))
-    for h in hooks:
-        h.remove()
+    macs = encoder_macs(loaded, 48, 64)  # brute force: every convolution at its output size
     assert count_macs(loaded.cfg, HeadConfig(16, 1), 48, 64)["encoder_gmac"] * 1e9 == pytest.approx(sum(macs))
     assert (
         count_macs(loaded.cfg, HeadConfig(16, 1), 48, 64)["encoder_gmac"]

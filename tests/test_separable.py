@@ -11,6 +11,7 @@ import torch.nn.functional as F
 
 from acesplat.scr.encoders import load_encoder
 from acesplat.scr.network import Encoder, EncoderConfig, HeadConfig, SeparableConv2d, count_macs, normalize_gray
+from tests.macs_reference import encoder_macs
 
 SMALL = {"c1": 8, "c2": 8, "c3": 16, "c4": 16, "res2": 24, "out": 32}
 
@@ -65,24 +66,7 @@ def test_a_separable_encoder_file_loads_as_built_and_counts_its_macs(tmp_path) -
         for stride in (8, 4):
             assert torch.equal(loaded(x, stride), enc(x, stride))
         assert loaded(x, 4).shape[2:] == (12, 16)
-    # brute force: every convolution's multiply-accumulates at its output size (the separable layer runs its
-    # depthwise weights through F.conv2d, so the pair is counted at its own output)
-    macs: list[int] = []
-
-    def count(m: nn.Module, _: tuple, o: torch.Tensor) -> None:
-        layers = [m.point, m.depth] if isinstance(m, SeparableConv2d) else [m]
-        macs.extend(o.shape[2] * o.shape[3] * c.weight[0].numel() * c.out_channels for c in layers)
-
-    inside = {id(loaded.res2_conv3.point), id(loaded.res2_conv3.depth)}
-    hooks = [
-        m.register_forward_hook(count)
-        for m in loaded.modules()
-        if isinstance(m, SeparableConv2d) or (isinstance(m, nn.Conv2d) and id(m) not in inside)
-    ]
-    with torch.no_grad():
-        loaded(torch.zeros(1, 1, 48, 64))
-    for h in hooks:
-        h.remove()
+    macs = encoder_macs(loaded, 48, 64)  # brute force: every convolution at its output size
     assert len(macs) == 12  # the full layer's place holds two convolutions
     got = count_macs(loaded.cfg, HeadConfig(16, 1), 48, 64)["encoder_gmac"]
     assert got * 1e9 == pytest.approx(sum(macs))

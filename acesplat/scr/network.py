@@ -49,14 +49,14 @@ class EncoderConfig:
     def from_state_dict(cls, sd: dict[str, torch.Tensor]) -> EncoderConfig:
         factorized = "res2_conv3.reduce.weight" in sd
         separable = "res2_conv3.point.weight" in sd
-        out_key = {(True, False): "res2_conv3.expand.weight", (False, True): "res2_conv3.point.weight"}
+        out_key = "res2_conv3.expand" if factorized else "res2_conv3.point" if separable else "res2_conv3"
         return cls(
             c1=sd["conv1.weight"].shape[0],
             c2=sd["conv2.weight"].shape[0],
             c3=sd["conv3.weight"].shape[0],
             c4=sd["conv4.weight"].shape[0],
             res2=sd["res2_conv1.weight"].shape[0],
-            out=sd[out_key.get((factorized, separable), "res2_conv3.weight")].shape[0],
+            out=sd[f"{out_key}.weight"].shape[0],
             rank=sd["res2_conv3.reduce.weight"].shape[0] if factorized else 0,
             separable=separable,
         )
