@@ -5,22 +5,45 @@ the camera, the newest frame replaces the waiting one and the replaced frame is 
 (a pose for an old frame is worth less than a pose for the current one). Files are read in step
 with processing, so a replay sees every frame. A source that disconnects is reopened with
 exponential backoff while the loop reports LOST; the time without frames is counted as a gap.
+
+With ``overlap`` (LoopSettings), a preparing thread reads the next frame and runs its first phase (preprocess,
+inference: EdgeLocalizer.prepare) while the main thread solves the current one (PnP, gate, alignment, taps): at
+most two frames are in flight, so a live source still hands over its newest frame, and a replay still sees every
+frame. The poses are those of the sequential loop; the throughput rises where solving is a large share of a frame
+(bench/pipeline.md).
 """
 
 from __future__ import annotations
 
+import queue
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from acesplat.core.config import knob
 from acesplat.core.pose import TrackingState
+from edge.inference import default_threads
 from edge.runtime import EdgeLocalizer, FrameOutcome
 from edge.sources import FrameSource, SourceDisconnected, UnreadableFrame
 
 BACKOFF_S = (0.1, 2.0)
 """First and longest wait between reconnect attempts."""
+
+
+@dataclass
+class LoopSettings:
+    overlap: bool = knob(
+        False,
+        "Prepare and infer frame n+1 while frame n is solved: more poses a second when solving is a large share of a "
+        "frame (--align), each pose later (bench/pipeline.md).",
+    )
+
+
+def overlap_threads() -> int:
+    """onnxruntime's intra-op threads beside a solving thread: every core but one (at least one)."""
+    return max(1, default_threads() - 1)
 
 
 class LatestSlot:
@@ -89,6 +112,8 @@ class RunStats:
     gap_s: float = 0.0
     interrupted: bool = False
     seconds: float = 0.0
+    overlap: bool = False
+    """The next frame was prepared while the current one was solved (LoopSettings.overlap)."""
 
     def as_dict(self) -> dict:
         return {
@@ -106,6 +131,7 @@ class RunStats:
             "interrupted": self.interrupted,
             "seconds": self.seconds,
             "fps": self.frames / self.seconds if self.seconds > 0 else 0.0,
+            "overlap": self.overlap,
         }
 
 
@@ -175,17 +201,21 @@ def run_loop(
     max_frames: int | None = None,
     stop: threading.Event | None = None,
     backoff: tuple[float, float] = BACKOFF_S,
+    overlap: bool = False,
 ) -> RunStats:
     """Localize frames from ``source`` until it ends, ``max_frames`` are done, ``stop`` is set, or Ctrl-C.
 
     Each outcome goes to ``on_outcome`` after the localizer's taps (EdgeLocalizer.add_tap) have seen it; each event
-    to the taps, then to ``on_event``."""
+    to the taps, then to ``on_event``. ``overlap``: the next frame is prepared on a second thread while this one is
+    solved (LoopSettings.overlap; refused with a tap that paces, which owns the time between frames)."""
+    if overlap and (localizer.pace_ms is not None or any(t.pace_ms is not None for t in localizer.taps)):
+        raise ValueError("overlap cannot run with pacing: a paced tap (refinement) owns the time between frames")
     stop = stop or threading.Event()
-    stats = RunStats()
+    stats = RunStats(overlap=overlap)
     events = _Events()
     slot = LatestSlot()
     t0 = time.monotonic()
-    thread: threading.Thread | None = None
+    threads: list[threading.Thread] = []
 
     def handle_events() -> None:
         for e in events.drain():
@@ -222,16 +252,17 @@ def run_loop(
         last_ts[:] = [ts]
         return True
 
-    def process(frame, capture_ms: float, t_start: float) -> None:
-        if not in_order(frame):
-            return
-        out = localizer.localize(frame, capture_ms, t_start)
+    def count(out: FrameOutcome) -> None:
         stats.frames += 1
         if out.record.state == TrackingState.TRACKING:
             stats.tracking += 1
         else:
             stats.lost += 1
         on_outcome(out)
+
+    def process(frame, capture_ms: float, t_start: float) -> None:
+        if in_order(frame):
+            count(localizer.localize(frame, capture_ms, t_start))
 
     def capture() -> None:
         try:
@@ -246,37 +277,111 @@ def run_loop(
         finally:
             slot.close()
 
+    def next_frame() -> tuple | None:
+        """The next frame to localize, (frame, capture_ms, t_start): the newest of a live source, the next file of
+        a replay; None at the end or on stop."""
+        while not stop.is_set():
+            if source.live:
+                ok, item = slot.get(timeout=0.05)
+                if ok:
+                    return item
+                if slot.finished:
+                    return None
+            else:
+                r = _read(source, events, stop, backoff)
+                if r[0] == "end":
+                    return None
+                if r[0] == "frame":
+                    return r[1:]
+        return None
+
     try:
         if source.live:
-            thread = threading.Thread(target=capture, name="capture", daemon=True)
-            thread.start()
-            while not stop.is_set():
-                ok, item = slot.get(timeout=0.05)
-                handle_events()
-                if ok:
-                    process(*item)
-                    if max_frames and stats.frames >= max_frames:
-                        break
-                elif slot.finished:
-                    break
+            threads.append(threading.Thread(target=capture, name="capture", daemon=True))
+            threads[-1].start()
+        if overlap:
+            _overlapped(localizer, next_frame, in_order, count, handle_events, stop, max_frames, stats, threads)
         else:
             while not stop.is_set():
-                r = _read(source, events, stop, backoff)
+                item = next_frame()
                 handle_events()
-                if r[0] == "end":
+                if item is None:
                     break
-                if r[0] == "frame":
-                    process(*r[1:])
-                    if max_frames and stats.frames >= max_frames:
-                        break
+                process(*item)
+                if max_frames and stats.frames >= max_frames:
+                    break
     except KeyboardInterrupt:
         stats.interrupted = True
     finally:
         stop.set()
-        if thread is not None:
+        for thread in threads:
             thread.join(timeout=2.0)
         handle_events()
         stats.dropped = slot.dropped
         stats.seconds = time.monotonic() - t0
         source.close()
     return stats
+
+
+def _overlapped(
+    localizer: EdgeLocalizer,
+    next_frame: Callable[[], tuple | None],
+    in_order: Callable[[Any], bool],
+    count: Callable[[FrameOutcome], None],
+    handle_events: Callable[[], None],
+    stop: threading.Event,
+    max_frames: int | None,
+    stats: RunStats,
+    threads: list[threading.Thread],
+) -> None:
+    """The pipelined loop: a preparing thread reads and prepares frame n+1 (inferring it when its expected plan
+    needs it: EdgeLocalizer.infer_after) once the main thread has taken frame n, and the main thread plans, solves
+    and reports frames in order. Errors of the preparing thread are raised here."""
+    go: queue.Queue[bool | None] = queue.Queue()
+    ready: queue.Queue[tuple] = queue.Queue()
+
+    def prepare_frames() -> None:
+        try:
+            while True:
+                infer = go.get()
+                if infer is None or stop.is_set():
+                    return
+                item = next_frame()
+                if item is None:
+                    ready.put(("end",))
+                    return
+                frame, capture_ms, t_start = item
+                ready.put(("frame", localizer.prepare(frame, capture_ms, t_start, infer=infer)))
+        except BaseException as e:  # raised again on the main thread
+            ready.put(("error", e))
+
+    worker = threading.Thread(target=prepare_frames, name="prepare", daemon=True)
+    threads.insert(0, worker)  # joined before the capture thread and before the source closes
+    go.put(localizer.infer_after(None))
+    worker.start()
+    try:
+        while not stop.is_set():
+            try:
+                item = ready.get(timeout=0.05)
+            except queue.Empty:
+                handle_events()
+                continue
+            handle_events()
+            if item[0] == "end":
+                break
+            if item[0] == "error":
+                raise item[1]
+            p = item[1]
+            if not in_order(p.frame):
+                go.put(localizer.infer_after(None))
+                continue
+            plan = localizer.plan_prepared(p)
+            last = bool(max_frames and stats.frames + 1 >= max_frames)
+            if not last:
+                go.put(localizer.infer_after(plan))  # the next frame is prepared while this one is solved
+            count(localizer.finish(p))
+            if last:
+                break
+    finally:
+        stop.set()
+        go.put(None)

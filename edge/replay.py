@@ -62,11 +62,16 @@ def summarize(outcomes: Sequence[FrameOutcome], stats: RunStats | None = None) -
 
 
 def replay_split(
-    localizer: EdgeLocalizer, scene: str | Path, split: str = TEST, progress: Callable[[int, int], None] | None = None
+    localizer: EdgeLocalizer,
+    scene: str | Path,
+    split: str = TEST,
+    progress: Callable[[int, int], None] | None = None,
+    overlap: bool = False,
 ) -> dict:
     """Localize every frame of ``scene``/``split`` in order (a sequence: the localizer tracks between frames when
     it was made with tracking) as fast as possible and compare with its poses (the summary also names precision,
-    input size, provider, onnxruntime version, CPU ISA (edge.inference.runtime_info) and whether it tracked)."""
+    input size, provider, onnxruntime version, CPU ISA (edge.inference.runtime_info), whether it tracked, whether the
+    next frame was prepared while one was solved (``overlap``, edge.loop) and the poses a second of the run)."""
     source = ReplaySource(split_folder(scene, split, need_poses=True))
     n = len(source)
     outcomes: list[FrameOutcome] = []
@@ -76,8 +81,11 @@ def replay_split(
         if progress:
             progress(len(outcomes), n)
 
-    stats = run_loop(source, localizer, keep)
+    stats = run_loop(source, localizer, keep, overlap=overlap)
     out = summarize(outcomes, stats)
+    out["overlap"] = overlap
+    out["threads"] = localizer.session.threads
+    out["poses_per_s"] = stats.frames / stats.seconds if stats.seconds > 0 else 0.0
     out["precision"] = localizer.precision
     out["input_size"] = list(localizer.input_size)
     out["scr_size"] = list(localizer.scr_size)

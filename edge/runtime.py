@@ -226,29 +226,74 @@ class EdgeLocalizer:
     def _localize(self, frame: SourceFrame, capture_ms: float, t_start: float | None) -> FrameOutcome:
         return self.solve(self.prepare(frame, capture_ms, t_start))
 
-    def prepare(self, frame: SourceFrame, capture_ms: float = 0.0, t_start: float | None = None) -> Prepared:
+    def prepare(
+        self, frame: SourceFrame, capture_ms: float = 0.0, t_start: float | None = None, infer: bool | None = None
+    ) -> Prepared:
         """The first phase of a frame: preprocess, the tracker's plan, inference (skipped on a frame to be tracked
         unless TrackingConfig.infer_tracked or a tap needs features). The plan is made from the tracker's state now:
-        run ``solve`` of the previous frame first, or the plan is one frame old."""
+        run ``solve`` of the previous frame first, or the plan is one frame old.
+
+        ``infer`` given (a pipeline, edge.loop, running this while the previous frame is solved): no plan is made
+        here (the tracker is the solving thread's); inference runs if ``infer`` (from ``infer_after``), and ``solve``
+        plans the frame, infers it after all if the plan needs it, and drops coordinates the plan does not use."""
         if frame.intrinsics is None:
             raise InputError(None, f"frame {frame.name or frame.frame_id} has no intrinsics: pass --intrinsics FILE")
         t_start = time.perf_counter() - capture_ms / 1000.0 if t_start is None else t_start
         t0 = time.perf_counter()
         gray, intr = self.prep(frame.image, frame.intrinsics, frame.distortion)
-        needs_coords = any(t.needs_features for t in self.taps)  # e.g. refinement's keyframes
+        tap_features = any(t.needs_features for t in self.taps)  # e.g. refinement's keyframes
         view = None
-        if self.scr_size != self.input_size and not needs_coords:
+        if self.scr_size != self.input_size and not tap_features:
             view = (gray, intr)
             gray, intr = scr_copy(gray, intr, self.scr_size)
         t1 = time.perf_counter()
-        plan = self.tracker.plan() if self.tracker is not None else Plan("scr")
-        p = Prepared(frame, gray, intr, plan, t_start, {"capture": capture_ms, "preprocess": (t1 - t0) * 1000.0})
-        p.view = view
-        if plan.mode != "track" or self.tracker.config.infer_tracked or needs_coords:
+        times = {"capture": capture_ms, "preprocess": (t1 - t0) * 1000.0, "inference": 0.0}
+        if infer is not None:
+            p = Prepared(frame, gray, intr, None, t_start, times, view=view)
+            if infer:
+                self._infer(p)
+            return p
+        p = Prepared(frame, gray, intr, self._plan(), t_start, times, view=view)
+        if self._needs_coords(p.plan):
             self._infer(p)
-        else:
-            p.times["inference"] = 0.0
         return p
+
+    def _plan(self) -> Plan:
+        return self.tracker.plan() if self.tracker is not None else Plan("scr")
+
+    def _needs_coords(self, plan: Plan) -> bool:
+        """Whether a frame planned ``plan`` runs inference: SCR, or a tracked frame whose coordinates are asked for
+        (TrackingConfig.infer_tracked, or a tap that needs features)."""
+        if plan.mode != "track" or any(t.needs_features for t in self.taps):
+            return True
+        return bool(self.tracker is not None and self.tracker.config.infer_tracked)
+
+    def infer_after(self, plan: Plan | None) -> bool:
+        """Whether the frame after one planned ``plan`` will run inference if that frame goes as planned (a pipeline
+        infers it ahead while this one is solved); None: no frame in between (the next frame gets today's plan)."""
+        if self.tracker is None:
+            return True
+        return self._needs_coords(self._plan() if plan is None else self.tracker.plan_after(plan))
+
+    def plan_prepared(self, p: Prepared) -> Plan:
+        """The plan of a frame a pipeline prepared ahead (``prepare(..., infer=...)``), made now from the tracker's
+        state, as ``prepare`` would have; coordinates inferred ahead that the plan does not use are dropped, so the
+        frame is solved as it would be without the pipeline."""
+        if p.plan is None:
+            p.plan = self._plan()
+            if not self._needs_coords(p.plan):
+                p.coords, p.features = None, None
+        return p.plan
+
+    def finish(self, p: Prepared) -> FrameOutcome:
+        """Solve a frame a pipeline prepared ahead, with the taps and the pacing ``localize`` gives a frame."""
+        for tap in self.taps:
+            tap.before_frame(p.frame)
+        out = self.solve(p)
+        for tap in self.taps:
+            tap.on_frame(out)
+        self._pace(out)
+        return out
 
     def _infer(self, p: Prepared) -> None:
         t1 = time.perf_counter()
@@ -261,6 +306,9 @@ class EdgeLocalizer:
     def solve(self, p: Prepared) -> FrameOutcome:
         """The second phase: the tracked alignment, or PnP + gate (then the re-anchor's alignment), the covariance and
         the pose record."""
+        self.plan_prepared(p)
+        if p.coords is None and self._needs_coords(p.plan):  # a pipeline did not infer it ahead
+            self._infer(p)
         times = {**p.times, "pnp": 0.0, "align": 0.0}
         plan, fallback = p.plan, p.plan.reason  # 'too_far': the prediction moved more than a frame is tracked
         mode = "scr" if plan.mode == "scr" and fallback is None else "reanchor"
@@ -399,7 +447,8 @@ class Prepared:
     frame: SourceFrame
     gray: np.ndarray
     intr: Intrinsics
-    plan: Plan
+    plan: Plan | None
+    """None: prepared ahead by a pipeline; ``solve`` plans it."""
     t_start: float
     times: dict[str, float]
     coords: np.ndarray | None = None

@@ -123,6 +123,18 @@ class Tracker:
             return Plan("reanchor", prediction, None, moving)
         return Plan("track", prediction, None, moving)
 
+    def plan_after(self, plan: Plan) -> Plan:
+        """The mode the frame after one planned ``plan`` gets if that frame goes as planned (tracked, or solved by
+        SCR): 'reanchor' when it completes the interval, 'track' otherwise, 'scr' without tracking. Only the mode
+        (and reason) is meant: the prediction is the current one. Does not change the state."""
+        cfg = self.config
+        if not cfg.enabled:
+            return Plan("scr")
+        since = self.since_anchor + 1 if plan.mode == "track" else 0
+        if since >= cfg.reanchor_every:
+            return Plan("reanchor", self.predict())
+        return Plan("track", self.predict())
+
     def tracked(self, T_c2w: np.ndarray) -> None:
         """The tracked alignment gave this frame's pose (4, 4)."""
         self._push(T_c2w)

@@ -25,7 +25,7 @@ from edge.calibration import read_calibration_file
 from edge.foxglove_tap import FoxgloveSettings
 from edge.inference import SessionSettings, check_provider, default_threads, runtime_info
 from edge.int8_check import Int8CheckConfig
-from edge.loop import LoopEvent, run_loop
+from edge.loop import LoopEvent, LoopSettings, overlap_threads, run_loop
 from edge.profile import ProfileOptions
 from edge.refine.session import RefineOptions
 from edge.runtime import STAGES, EdgeLocalizer, FrameOutcome, FrameTap, PnPSettings
@@ -34,6 +34,17 @@ from edge.tracking import TrackingConfig
 from firmware_bridge.sink import SinkConfig
 
 console = Console(stderr=True)
+THREADS_HELP = "onnxruntime intra-op threads (default: all cores; with --overlap, all but one)."
+
+
+def _threads(threads: int | None, overlap: bool, refine: bool) -> int | None:
+    """The onnxruntime threads of a run; --overlap leaves a core to the solving thread and refuses --refine (both
+    want the time between frames)."""
+    if not overlap:
+        return threads
+    if refine:
+        raise InputError(None, "--overlap cannot run with --refine: refinement uses the time between frames")
+    return threads or overlap_threads()
 
 
 def open_bundle(path: Path, precisions: list[str], align: bool = False) -> Bundle:
@@ -166,7 +177,8 @@ def localize_command(
     json_lines: Path | None = typer.Option(None, "--json-lines", help="Write one JSON object per frame here."),
     frames: int | None = typer.Option(None, help="Stop after this many frames."),
     realtime: bool = option(SourceOptions, "realtime"),
-    threads: int | None = typer.Option(None, help="onnxruntime intra-op threads (default: all cores)."),
+    threads: int | None = typer.Option(None, help=THREADS_HELP),
+    overlap: bool = option(LoopSettings, "overlap", "--overlap/--no-overlap"),
     provider: str = option(SessionSettings, "provider"),
     pnp: str | None = option(PnPSettings, "method", "--pnp", default=None),
     min_inliers: int | None = option(PnPSettings, "min_inliers", default=None),
@@ -194,6 +206,7 @@ def localize_command(
 ) -> None:
     """Localize frames from a live or recorded source; Ctrl-C ends with a summary."""
     stop_on_signals()
+    threads = _threads(threads, overlap, refine)
     check_provider(provider)
     b = open_bundle(bundle, ["int8" if int8 else "fp32"], align or tracking)
     precision = int8_gate(b, int8, skip_int8_check, threads, provider)
@@ -242,11 +255,12 @@ def localize_command(
     rt = runtime_info(provider)
     console.print(
         f"localizing {src.description} with {b.root} ({precision}, {_size_text(loc)}, "
-        f"{loc.session.threads} threads, PnP {loc.pnp.method}; provider {provider}, onnxruntime {rt['onnxruntime']}, "
+        f"{loc.session.threads} threads{', overlapped' if overlap else ''}, PnP {loc.pnp.method}; "
+        f"provider {provider}, onnxruntime {rt['onnxruntime']}, "
         f"ISA {' '.join(rt['cpu_isa']) or '-'}); Ctrl-C to stop"
     )
     try:
-        stats = run_loop(src, loc, on_outcome, on_event, max_frames=frames)
+        stats = run_loop(src, loc, on_outcome, on_event, max_frames=frames, overlap=overlap)
     finally:
         if log is not None:
             log.close()
@@ -319,7 +333,8 @@ def replay_command(
     scene: Path = typer.Argument(..., help="Scene folder in the ACE layout."),
     split: str = typer.Option("test", help="Split to replay."),
     int8: bool = typer.Option(False, "--int8", help="Run the bundle's INT8 model."),
-    threads: int | None = typer.Option(None, help="onnxruntime intra-op threads (default: all cores)."),
+    threads: int | None = typer.Option(None, help=THREADS_HELP),
+    overlap: bool = option(LoopSettings, "overlap", "--overlap/--no-overlap"),
     provider: str = option(SessionSettings, "provider"),
     pnp: str | None = option(PnPSettings, "method", "--pnp", default=None),
     json_out: Path | None = typer.Option(None, "--json", help="Write the numbers here."),
@@ -344,6 +359,7 @@ def replay_command(
     stop_on_signals()
     from edge.replay import replay_split
 
+    threads = _threads(threads, overlap, refine)
     check_provider(provider)
     b = open_bundle(bundle, ["int8" if int8 else "fp32"], align or tracking)
     precision = int8_gate(b, int8, skip_int8_check, threads, provider)
@@ -363,7 +379,7 @@ def replay_command(
     refiner = refine_session(refine, loc, b, budget_ms, save_splat, _warn, evaluate=True)
     with PhaseProgress("replay ") as bar:
         try:
-            s = replay_split(loc, scene, split, lambda i, n: bar("localize", i / n, {"frame": i}))
+            s = replay_split(loc, scene, split, lambda i, n: bar("localize", i / n, {"frame": i}), overlap)
         finally:
             if refiner is not None:
                 close_session(refiner, console.print)
@@ -392,7 +408,7 @@ def replay_command(
         stage_table(
             "timing (ms)",
             {precision: s["timing_ms"]},
-            {precision: 1000.0 / s["timing_ms"]["total"]["mean"] if s["frames"] else 0.0},
+            {precision: s["poses_per_s"]},
         )
     )
     if s["tracking_enabled"]:

@@ -1,0 +1,222 @@
+"""The overlapped loop (edge.loop, LoopSettings.overlap): frame n+1 prepared while frame n is solved, with the
+sequential loop's poses, order, counts and faults."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from acesplat.apps.edge_cli import app
+from acesplat.core.bundle import load_bundle
+from acesplat.core.errors import InputError
+from acesplat.core.pose import TrackingState
+from acesplat.core.scene import read_split
+from edge.loop import overlap_threads, run_loop
+from edge.runtime import EdgeLocalizer, FrameOutcome
+from edge.sources import ReplaySource, SourceFrame
+from edge.tracking import Plan, Tracker, TrackingConfig
+from tests.test_tracking import _sequence
+
+
+def _run(loc: EdgeLocalizer, folder: Path, overlap: bool) -> list[FrameOutcome]:
+    outs: list[FrameOutcome] = []
+    stats = run_loop(ReplaySource(folder), loc, outs.append, overlap=overlap)
+    assert stats.overlap == overlap and stats.frames == len(outs)
+    return outs
+
+
+def _same_outcomes(a: list[FrameOutcome], b: list[FrameOutcome]) -> None:
+    assert [o.name for o in a] == [o.name for o in b]
+    assert [o.mode for o in a] == [o.mode for o in b]
+    assert [o.record.state for o in a] == [o.record.state for o in b]
+    for x, y in zip(a, b, strict=True):
+        assert x.record.inliers == y.record.inliers
+        np.testing.assert_allclose(x.record.T_c2w, y.record.T_c2w, atol=1e-9, equal_nan=True)
+
+
+def test_overlapped_replay_gives_the_sequential_poses_in_order(tiny) -> None:
+    """Frames alone (no tracking): every frame, in order, with exactly the poses of the sequential loop."""
+    b = load_bundle(tiny["bundle"])
+    folder = Path(tiny["scene"]) / "test"
+    seq = _run(EdgeLocalizer(b, "fp32", 1), folder, overlap=False)
+    ovl = _run(EdgeLocalizer(b, "fp32", 1), folder, overlap=True)
+    assert len(seq) == 4
+    _same_outcomes(seq, ovl)
+    assert all(o.times_ms["inference"] > 0 for o in ovl)
+
+
+@pytest.fixture
+def tiny_preset(monkeypatch) -> TrackingConfig:
+    from acesplat.align.flow_pnp import TRACK_ALIGN
+    from edge import tracking
+
+    monkeypatch.setitem(tracking.ALIGN_PRESETS, "tiny", replace(TRACK_ALIGN, sample_step_px=1, min_points=50))
+    return TrackingConfig(preset="tiny", reanchor_every=3)
+
+
+def test_overlapped_tracking_plans_like_the_sequential_loop(tiny, tiny_preset, tmp_path: Path) -> None:
+    """A camera holding each view for four frames, a black frame mid-run: the same modes (tracked, re-anchors,
+    the fallback after the black frame), states and poses as the sequential loop; frames the pipeline expected to
+    track skip the network as they would without it (after a frame that fell back, the guess can be wrong)."""
+    b = load_bundle(tiny["bundle"])
+    folder = _sequence(Path(tiny["scene"]), tmp_path / "seq" / "test", repeats=4, blank=6)
+    seq = _run(EdgeLocalizer(b, "fp32", 1, tracking=tiny_preset), folder, overlap=False)
+    ovl = _run(EdgeLocalizer(b, "fp32", 1, tracking=tiny_preset), folder, overlap=True)
+    _same_outcomes(seq, ovl)
+    modes = [o.mode for o in ovl]
+    assert modes.count("tracked") >= 6 and modes.count("reanchor") >= 2, modes
+    assert ovl[6].record.state == TrackingState.LOST and ovl[6].fallback is not None
+    for prev, o in zip(ovl, ovl[1:]):
+        if o.mode == "tracked" and prev.fallback is None:  # the frame before went as planned: nothing inferred ahead
+            assert o.times_ms["inference"] == 0.0
+        elif o.mode != "tracked":
+            assert o.times_ms["inference"] > 0
+
+
+def test_plan_after_is_the_plan_the_next_frame_gets_when_this_one_goes_as_planned() -> None:
+    """Brute force over a tracked / re-anchored path: after each frame is tracked or solved as its plan says,
+    ``plan()`` gives the mode ``plan_after`` announced."""
+    rng = np.random.default_rng(0)
+    for every in (1, 2, 3, 10):
+        tr = Tracker(TrackingConfig(reanchor_every=every))
+        pose = np.eye(4)
+        for _ in range(40):
+            plan = tr.plan()
+            expected = tr.plan_after(plan)
+            pose = pose.copy()
+            pose[:3, 3] += rng.normal(0, 0.005, 3)
+            if plan.mode == "track":
+                tr.tracked(pose)
+            else:
+                tr.solved(pose, plan)
+            assert tr.plan().mode == expected.mode, (every, plan.mode)
+    assert Tracker(TrackingConfig(enabled=False)).plan_after(Plan("scr")).mode == "scr"
+
+
+class _Live:
+    """A camera faster than the localizer: frames every 2 ms, timestamps increasing."""
+
+    live = True
+    description = "fast camera"
+
+    def __init__(self, rgb: np.ndarray, intrinsics, n: int = 400, intrinsics_from: int | None = None) -> None:
+        self.rgb, self.intrinsics, self.n, self.i = rgb, intrinsics, n, 0
+        self.intrinsics_from = intrinsics_from
+
+    def read(self):
+        time.sleep(0.002)
+        self.i += 1
+        if self.i > self.n:
+            return None
+        k = None if self.intrinsics_from is not None and self.i >= self.intrinsics_from else self.intrinsics
+        return SourceFrame(self.rgb, time.monotonic(), k, self.i)
+
+    def reconnect(self) -> None: ...
+
+    def close(self) -> None: ...
+
+
+def test_overlapped_live_source_keeps_the_latest_frame_and_counts_drops(tiny) -> None:
+    f0 = read_split(tiny["scene"], "test").frames[0]
+    loc = EdgeLocalizer(load_bundle(tiny["bundle"]), "fp32", 1)
+    outs: list[FrameOutcome] = []
+
+    def slow(o: FrameOutcome) -> None:
+        outs.append(o)
+        time.sleep(0.03)
+
+    stats = run_loop(_Live(f0.load_rgb(), f0.intrinsics), loc, slow, max_frames=5, overlap=True)
+    ids = [o.record.frame_id for o in outs]
+    assert stats.frames == 5 and stats.dropped > 5
+    assert ids == sorted(ids) and len(set(ids)) == 5
+    assert not any(t.name == "prepare" and t.is_alive() for t in threading.enumerate())
+
+
+def test_an_error_while_preparing_reaches_the_caller_and_the_threads_end(tiny) -> None:
+    """A frame without intrinsics, met by the preparing thread: the same InputError as the sequential loop raises,
+    on the caller's thread, after the frames before it were localized."""
+    f0 = read_split(tiny["scene"], "test").frames[0]
+    loc = EdgeLocalizer(load_bundle(tiny["bundle"]), "fp32", 1)
+    outs: list[FrameOutcome] = []
+    src = _Live(f0.load_rgb(), f0.intrinsics, n=50, intrinsics_from=4)
+    src.live = False
+    with pytest.raises(InputError, match="has no intrinsics"):
+        run_loop(src, loc, outs.append, overlap=True)
+    assert [o.record.frame_id for o in outs] == [1, 2, 3]
+    assert not any(t.name == "prepare" and t.is_alive() for t in threading.enumerate())
+
+
+def test_ctrl_c_while_overlapped_ends_cleanly(tiny, monkeypatch) -> None:
+    import edge.runtime as rt
+
+    calls = {"n": 0}
+    real = rt.EdgeLocalizer.finish
+
+    def interrupting(self, p):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+        return real(self, p)
+
+    monkeypatch.setattr(rt.EdgeLocalizer, "finish", interrupting)
+    loc = EdgeLocalizer(load_bundle(tiny["bundle"]), "fp32", 1)
+    outs: list[FrameOutcome] = []
+    stats = run_loop(ReplaySource(Path(tiny["scene"]) / "test"), loc, outs.append, overlap=True)
+    assert stats.interrupted and stats.frames == 2 and len(outs) == 2
+    assert not any(t.name == "prepare" and t.is_alive() for t in threading.enumerate())
+
+
+def test_overlap_with_pacing_is_refused(tiny) -> None:
+    loc = EdgeLocalizer(load_bundle(tiny["bundle"]), "fp32", 1, pace_ms=50.0)
+    with pytest.raises(ValueError, match="pacing"):
+        run_loop(ReplaySource(Path(tiny["scene"]) / "test"), loc, lambda o: None, overlap=True)
+
+
+def test_replay_and_localize_commands_with_overlap(tiny, tmp_path: Path) -> None:
+    """--overlap: the replay JSON records it, its threads (all cores but one) and the poses a second; with --refine
+    it is refused in one line, exit 2; localize runs overlapped and reports it."""
+    out, plain = tmp_path / "o.json", tmp_path / "p.json"
+    runner = CliRunner()
+    for flag, path in (("--overlap", out), ("--no-overlap", plain)):
+        r = runner.invoke(
+            app, ["replay", str(tiny["bundle"]), str(tiny["scene"]), "--no-tracking", flag, "--json", str(path)]
+        )
+        assert r.exit_code == 0, r.output
+    s, p = json.loads(out.read_text()), json.loads(plain.read_text())
+    assert s["overlap"] is True and p["overlap"] is False
+    assert s["threads"] == overlap_threads() and s["poses_per_s"] > 0
+    assert (s["frames"], s["localized"], s["median_translation_m"]) == (
+        p["frames"],
+        p["localized"],
+        p["median_translation_m"],
+    )
+
+    r = runner.invoke(app, ["replay", str(tiny["bundle"]), str(tiny["scene"]), "--overlap", "--refine"])
+    assert r.exit_code == 2 and "--overlap cannot run with --refine" in r.output
+    assert len(r.output.strip().splitlines()) == 1 and "Traceback" not in r.output
+
+    summary = tmp_path / "l.json"
+    r = runner.invoke(
+        app,
+        [
+            "localize",
+            str(tiny["bundle"]),
+            "--source",
+            f"replay:{tiny['scene']}/test",
+            "--overlap",
+            "--quiet",
+            "--json",
+            str(summary),
+        ],
+    )
+    assert r.exit_code == 0, r.output
+    assert "overlapped" in r.output
+    ls = json.loads(summary.read_text())
+    assert ls["overlap"] is True and ls["frames"] == 4
