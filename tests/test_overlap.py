@@ -220,3 +220,25 @@ def test_replay_and_localize_commands_with_overlap(tiny, tmp_path: Path) -> None
     assert "overlapped" in r.output
     ls = json.loads(summary.read_text())
     assert ls["overlap"] is True and ls["frames"] == 4
+
+
+def test_the_bridge_reports_the_measured_pose_rate_not_one_over_the_latency(tiny) -> None:
+    """With --overlap a pose's latency exceeds the time between poses: the status the microcontroller gets carries
+    the rate measured between frames (the real sink on pyserial's loop:// port)."""
+    from acesplat.apps.edge_cmd import BridgeTap
+    from firmware_bridge.sink import open_sink
+
+    loc = EdgeLocalizer(load_bundle(tiny["bundle"]), "fp32", 1)
+    f0 = read_split(tiny["scene"], "test").frames[0]
+    out = loc.localize(SourceFrame(f0.load_rgb(), 1.0, f0.intrinsics, 0))
+    out.times_ms["total"] = 200.0  # a pose 200 ms old ...
+    tap = BridgeTap(open_sink("loop://"))
+    try:
+        for _ in range(4):  # ... arriving every 20 ms
+            tap.on_frame(out)
+            time.sleep(0.02)
+        status = dict(tap.sink._status)
+    finally:
+        tap.close()
+    assert status["latency_ms"] == 200.0
+    assert 20.0 < status["fps"] < 55.0  # about 50 a second (sleep plus the call), not 1000 / 200 = 5

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import sys
 import threading
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -288,6 +289,10 @@ def localize_command(
     report_json(json_out, summary)
 
 
+FPS_SMOOTHING = 0.2
+"""Weight of the newest interval in the bridge's reported pose rate (about the last five poses)."""
+
+
 class BridgeTap(FrameTap):
     """A localizer tap forwarding each pose to the firmware bridge's non-blocking sink; honours PAUSE/RESUME from the
     microcontroller (SET_RATE the sink applies itself) and reports LOST when the source disconnects."""
@@ -295,6 +300,18 @@ class BridgeTap(FrameTap):
     def __init__(self, sink) -> None:
         self.sink = sink
         self.paused = threading.Event()
+        self._last: float | None = None
+        self._fps = 0.0
+
+    def _rate(self) -> float:
+        """Poses a second between the last frames (exponential average): with --overlap a pose's latency is
+        longer than the time between poses, so the rate is measured, not inferred from the latency."""
+        now = time.perf_counter()
+        if self._last is not None and now > self._last:
+            fps = 1.0 / (now - self._last)
+            self._fps = fps if self._fps == 0.0 else FPS_SMOOTHING * fps + (1.0 - FPS_SMOOTHING) * self._fps
+        self._last = now
+        return self._fps
 
     def on_frame(self, out: FrameOutcome) -> None:
         from firmware_bridge.protocol import CommandCode, RuntimeState
@@ -306,10 +323,11 @@ class BridgeTap(FrameTap):
                 self.paused.clear()
         if self.paused.is_set():
             self.sink.update_status(state=RuntimeState.PAUSED)
+            self._last = None  # the pause is no interval between poses
             return
         state = RuntimeState.TRACKING if out.record.state == TrackingState.TRACKING else RuntimeState.LOST
-        total = out.times_ms.get("total", 0.0)
-        self.sink.update_status(state=state, latency_ms=total, fps=1000.0 / total if total > 0 else 0.0)
+        fps = self._rate()
+        self.sink.update_status(state=state, latency_ms=out.times_ms.get("total", 0.0), fps=fps)
         self.sink.submit(out.record)
 
     def on_event(self, e: LoopEvent) -> None:
