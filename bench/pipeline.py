@@ -1,14 +1,16 @@
-"""The overlapped loop against the sequential one: poses a second, latency and poses, measured in one process.
+"""The edge loop's ways of running, measured in one process: sequential or overlapped (edge.loop), onnxruntime's
+threads spinning or sleeping between operators (SessionSettings.spinning); poses a second, latency and poses.
 
     PYTHONPATH=. python -P bench/pipeline.py BUNDLE SCENE [--split test] [--precision int8] [--modes scr,align,track]
-        [--passes 3] [--rounds 3] [--json OUT]
+        [--variants sequential:on,sequential:off,overlapped:on] [--passes 3] [--rounds 3] [--json OUT]
 
-Per mode (scr: frames alone; align: --align; track: tracking on, as `replay` by default) and per loop (sequential
-with onnxruntime on every core; overlapped with every core but one, edge.loop.overlap_threads), ``rounds``
-alternating runs of ``passes`` replays of the split each. A replay's frames are solved in order; passes are separate
-replays (a split replayed twice would go back in time). Reported per run: poses a second (frames over the loops'
-seconds), end-to-end latency p50 / p95 (capture start to pose, edge.runtime's total, the wait for the solving thread
-included) and the median error of the last pass. The ratio row divides the medians over rounds.
+Per mode (scr: frames alone; align: --align; track: tracking on, as `replay` by default) and per variant (the loop:
+sequential with onnxruntime on every core, overlapped with every core but one, edge.loop.overlap_threads; and
+spinning on or off), ``rounds`` rounds, the variants' order reversed every other round, of ``passes`` replays of the
+split each. A replay's frames are solved in order; passes are separate replays (a split replayed twice would go
+back in time). Reported per run: poses a second (frames over the loops' seconds), end-to-end latency p50 / p95
+(capture start to pose, edge.runtime's total, any wait for the solving thread included), the inference stage's p50
+and the median error of the last pass. Ratios divide medians over rounds by the first variant's.
 """
 
 from __future__ import annotations
@@ -29,22 +31,29 @@ from edge.replay import replay_split
 from edge.runtime import EdgeLocalizer
 from edge.tracking import TrackingConfig
 
-LOOPS = ("sequential", "overlapped")
+KEYS = ("poses_per_s", "p50_ms", "p95_ms", "inference_p50_ms", "median_cm")
 
 
-def one_run(bundle, scene: str, split: str, precision: str, mode: str, loop: str, passes: int) -> dict:
+def one_run(bundle, scene: str, split: str, precision: str, mode: str, variant: str, passes: int) -> dict:
+    loop, spin = variant.split(":")
     overlap = loop == "overlapped"
     threads = overlap_threads() if overlap else default_threads()
     loc = EdgeLocalizer(
-        bundle, precision, threads, align=mode == "align", tracking=TrackingConfig() if mode == "track" else None
+        bundle,
+        precision,
+        threads,
+        align=mode == "align",
+        tracking=TrackingConfig() if mode == "track" else None,
+        spinning=spin == "on",
     )
-    frames, seconds, totals = 0, 0.0, []
+    frames, seconds, totals, inference = 0, 0.0, [], []
     last = {}
     for _ in range(passes):
         s = replay_split(loc, scene, split, overlap=overlap)
         frames += s["frames"]
         seconds += s["frames"] / s["poses_per_s"] if s["poses_per_s"] > 0 else 0.0
         totals += [f["ms"] for f in s["per_frame"]]
+        inference.append(s["timing_ms"]["inference"]["p50"])
         last = s
     del loc
     gc.collect()  # an idle onnxruntime session's threads must not spin beside the next run's
@@ -52,11 +61,11 @@ def one_run(bundle, scene: str, split: str, precision: str, mode: str, loop: str
         "poses_per_s": frames / seconds,
         "p50_ms": float(np.percentile(totals, 50)),
         "p95_ms": float(np.percentile(totals, 95)),
+        "inference_p50_ms": float(np.median(inference)),
         "median_cm": 100.0 * last["median_translation_m"],
         "localized": last["localized"],
         "frames": last["frames"],
         "threads": threads,
-        "tracked": last["tracked"],
     }
 
 
@@ -69,53 +78,56 @@ def main(argv: list[str] | None = None) -> int:
         "--precision", default="int8", help="fp32, int8 (the U8U8 graph an AVX2 CPU runs) or int8_vnni (U8S8)."
     )
     ap.add_argument("--modes", default="scr,align")
+    ap.add_argument("--variants", default="sequential:on,sequential:off,overlapped:on")
     ap.add_argument("--passes", type=int, default=3)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--json", type=Path)
     a = ap.parse_args(argv)
+    variants = a.variants.split(",")
+    for v in variants:
+        loop, _, spin = v.partition(":")
+        if loop not in ("sequential", "overlapped") or spin not in ("on", "off"):
+            ap.error(f"a variant is sequential|overlapped:on|off, got {v!r}")
     b = load_bundle(a.bundle)
-    precision = a.precision
     rows: dict[str, dict[str, list[dict]]] = {}
     for mode in a.modes.split(","):
-        rows[mode] = {loop: [] for loop in LOOPS}
+        rows[mode] = {v: [] for v in variants}
         for r in range(a.rounds):
-            order = LOOPS if r % 2 == 0 else LOOPS[::-1]
-            for loop in order:
-                res = one_run(b, a.scene, a.split, precision, mode, loop, a.passes)
-                rows[mode][loop].append(res)
+            for v in variants if r % 2 == 0 else variants[::-1]:
+                res = one_run(b, a.scene, a.split, a.precision, mode, v, a.passes)
+                rows[mode][v].append(res)
                 print(
-                    f"{mode:6s} {loop:11s} round {r}: {res['poses_per_s']:5.1f} poses/s, p50 {res['p50_ms']:6.1f} "
-                    f"p95 {res['p95_ms']:6.1f} ms, median {res['median_cm']:.2f} cm, "
-                    f"{res['localized']}/{res['frames']} localized ({res['threads']} threads)",
+                    f"{mode:6s} {v:16s} round {r}: {res['poses_per_s']:5.1f} poses/s, p50 {res['p50_ms']:6.1f} "
+                    f"p95 {res['p95_ms']:6.1f} ms, inference p50 {res['inference_p50_ms']:5.1f} ms, "
+                    f"median {res['median_cm']:.2f} cm, {res['localized']}/{res['frames']} localized "
+                    f"({res['threads']} threads)",
                     flush=True,
                 )
     print()
-    print("| mode | loop | poses/s (median of rounds) | p50 ms | p95 ms | median error | rounds: poses/s |")
-    print("|---|---|---|---|---|---|---|")
+    print("| mode | loop:spinning | poses/s | p50 ms | p95 ms | inference p50 ms | median error | rounds: poses/s |")
+    print("|---|---|---|---|---|---|---|---|")
     summary = {}
-    for mode, by_loop in rows.items():
-        med = {
-            loop: {k: statistics.median(x[k] for x in runs) for k in ("poses_per_s", "p50_ms", "p95_ms", "median_cm")}
-            for loop, runs in by_loop.items()
-        }
+    for mode, by_variant in rows.items():
+        med = {v: {k: statistics.median(x[k] for x in runs) for k in KEYS} for v, runs in by_variant.items()}
         summary[mode] = med
-        for loop, runs in by_loop.items():
-            m = med[loop]
+        base = med[variants[0]]
+        for v, runs in by_variant.items():
+            m = med[v]
             each = " ".join(f"{x['poses_per_s']:.1f}" for x in runs)
-            print(
-                f"| {mode} | {loop} | {m['poses_per_s']:.1f} | {m['p50_ms']:.1f} | {m['p95_ms']:.1f} | "
-                f"{m['median_cm']:.2f} cm | {each} |"
+            ratio = (
+                ""
+                if v == variants[0]
+                else (f" ({m['poses_per_s'] / base['poses_per_s']:.2f}x, p50 {m['p50_ms'] / base['p50_ms']:.2f}x)")
             )
-        s, o = med["sequential"], med["overlapped"]
-        print(
-            f"| {mode} | overlapped / sequential | {o['poses_per_s'] / s['poses_per_s']:.2f}x | "
-            f"{o['p50_ms'] / s['p50_ms']:.2f}x | {o['p95_ms'] / s['p95_ms']:.2f}x | | |"
-        )
+            print(
+                f"| {mode} | {v} | {m['poses_per_s']:.1f}{ratio} | {m['p50_ms']:.1f} | {m['p95_ms']:.1f} | "
+                f"{m['inference_p50_ms']:.1f} | {m['median_cm']:.2f} cm | {each} |"
+            )
     info = runtime_info("cpu")
     isa = " ".join(info["cpu_isa"])
-    print(f"\nonnxruntime {info['onnxruntime']}, ISA {isa}, {default_threads()} cores, {precision}")
+    print(f"\nonnxruntime {info['onnxruntime']}, ISA {isa}, {default_threads()} cores, {a.precision}")
     if a.json:
-        a.json.write_text(json.dumps({"runs": rows, "median": summary, "precision": precision, **info}, indent=1))
+        a.json.write_text(json.dumps({"runs": rows, "median": summary, "precision": a.precision, **info}, indent=1))
     return 0
 
 

@@ -7,7 +7,8 @@ Run letters: P plain (no refinement, paced at the budget); R refinement as `repl
 refinement session with no keyframe ever taken (its thread, pacing and feature output, no work); S refinement
 seeding at SCR depths (no ONNX initializer); M refinement with 15% of each frame's budget left free before the next
 frame (RefineOptions.margin); F as R with every object made before the replay frozen out of garbage collection
-(gc.freeze). bench/refine.md has the figures.
+(gc.freeze). Lower-case p and r: P and R with onnxruntime's threads sleeping between operators instead of spinning
+(SessionSettings.spinning off). bench/refine.md has the figures.
 """
 
 from __future__ import annotations
@@ -39,10 +40,12 @@ def options(kind: str, budget_ms: float) -> RefineOptions:
 
 
 def run(kind: str, bundle, scene: Path, budget_ms: float) -> dict:
-    if kind == "P":
-        return replay_split(EdgeLocalizer(bundle, "int8", pace_ms=budget_ms), scene, "test", lambda i, n: None)
-    loc = EdgeLocalizer(bundle, "int8")
-    s = start_refinement(loc, bundle, options(kind, budget_ms), lambda *a: None)
+    spinning = kind not in "pr"
+    if kind in "Pp":
+        loc = EdgeLocalizer(bundle, "int8", pace_ms=budget_ms, spinning=spinning)
+        return replay_split(loc, scene, "test", lambda i, n: None)
+    loc = EdgeLocalizer(bundle, "int8", spinning=spinning)
+    s = start_refinement(loc, bundle, options(kind.upper(), budget_ms), lambda *a: None)
     if kind == "F":  # what exists now is never collected: a collection scans only what the run makes
         gc.collect()
         gc.freeze()
@@ -86,8 +89,8 @@ def main() -> None:
     ap.add_argument("--order", default="PNSRMPNSRM")
     ap.add_argument("--gc-log", action="store_true", help="print each run's garbage collections by thread")
     args = ap.parse_args()
-    if set(args.order) - set("PRNSMF"):
-        ap.error("--order takes the letters P, R, N, S, M, F")
+    if set(args.order) - set("PRNSMFpr"):
+        ap.error("--order takes the letters P, R, N, S, M, F, p, r")
     bundle = load_bundle(args.bundle or args.workdir / "bundle")
     print(f"# {machine_line()}")
     res: dict[str, list[tuple[float, float]]] = {}
@@ -104,10 +107,11 @@ def main() -> None:
         print(f"{kind}: total p95 {t['total']['p95']:.1f} ms, inference p95 {t['inference']['p95']:.1f} ms", flush=True)
         if log is not None:
             print(f"   gc: {log.summary()}", flush=True)
-    base = statistics.median(v[0] for v in res.get("P", [(float("nan"), 0.0)]))
-    print("| run | total p95 (median of runs) | ratio to P | inference p95 (median) | runs |")
+    print("| run | total p95 (median of runs) | ratio to its plain run (P; p for r) | inference p95 (median) | runs |")
     print("|---|---|---|---|---|")
     for kind, v in res.items():
+        plain = "p" if kind in "pr" else "P"
+        base = statistics.median(x[0] for x in res.get(plain, [(float("nan"), 0.0)]))
         tot, inf = statistics.median(x[0] for x in v), statistics.median(x[1] for x in v)
         print(f"| {kind} | {tot:.1f} ms | {tot / base:.2f}x | {inf:.1f} ms | {' '.join(f'{x[0]:.1f}' for x in v)} |")
 

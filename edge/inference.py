@@ -43,6 +43,9 @@ class SessionSettings:
     """Where the edge's onnxruntime sessions run."""
 
     provider: str = knob("cpu", "Execution provider: cpu, cuda, tensorrt, openvino or coreml (nodes it lacks: CPU).")
+    spinning: bool = knob(
+        True, "onnxruntime's threads busy-wait between operators rather than sleep (either way: bench/pipeline.md)."
+    )
 
 
 def provider_list(name: str) -> list[str]:
@@ -100,8 +103,11 @@ def default_threads() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def session_options(threads: int | None = None, spinning: bool = True) -> ort.SessionOptions:
-    """Intra-op threads = cores and spinning on: per-frame latency matters more than idle CPU here."""
+def session_options(
+    threads: int | None = None, spinning: bool = knob_default(SessionSettings, "spinning")
+) -> ort.SessionOptions:
+    """Intra-op threads = cores (``threads`` if given); ``spinning``: the threads busy-wait between operators instead
+    of sleeping (SessionSettings.spinning)."""
     so = ort.SessionOptions()
     so.intra_op_num_threads = threads or default_threads()
     so.inter_op_num_threads = 1
@@ -124,12 +130,14 @@ class ScrSession:
         input_size: tuple[int, int],
         threads: int | None = None,
         provider: str = knob_default(SessionSettings, "provider"),
+        spinning: bool = knob_default(SessionSettings, "spinning"),
     ) -> None:
         self.path = Path(model_path)
         self.threads = threads or default_threads()
         self.provider = provider
         """The --provider name the session runs on."""
-        self._sess = create_session(self.path, session_options(self.threads), provider)
+        self.spinning = spinning
+        self._sess = create_session(self.path, session_options(self.threads, spinning), provider)
         inp = self._sess.get_inputs()[0]
         self._input = inp.name
         outputs = [o.name for o in self._sess.get_outputs()]

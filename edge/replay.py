@@ -85,6 +85,7 @@ def replay_split(
     out = summarize(outcomes, stats)
     out["overlap"] = overlap
     out["threads"] = localizer.session.threads
+    out["spinning"] = localizer.session.spinning
     out["poses_per_s"] = stats.frames / stats.seconds if stats.seconds > 0 else 0.0
     out["precision"] = localizer.precision
     out["input_size"] = list(localizer.input_size)

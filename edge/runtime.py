@@ -148,6 +148,7 @@ class EdgeLocalizer:
         tracking: TrackingConfig | None = None,
         align_config: AlignConfig = KEYFRAME_ALIGN,
         scr_short_side: int = knob_default(PreciseSettings, "scr_short_side"),
+        spinning: bool = knob_default(SessionSettings, "spinning"),
     ) -> None:
         if pace_ms is not None and not pace_ms > 0:
             raise ValueError(f"pace must be positive, got {pace_ms} ms")
@@ -155,7 +156,7 @@ class EdgeLocalizer:
         self.precision = precision
         self.input_size = bundle.input_size
         self.stride = bundle.output_stride
-        self.session = ScrSession(bundle.scr_model(precision), self.input_size, threads, provider)
+        self.session = ScrSession(bundle.scr_model(precision), self.input_size, threads, provider, spinning)
         self.prep = FramePrep(self.input_size)
         self.pnp = pnp or PnPSettings()
         self.gate = gate or GateConfig()

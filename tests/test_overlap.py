@@ -1,5 +1,6 @@
-"""The overlapped loop (edge.loop, LoopSettings.overlap): frame n+1 prepared while frame n is solved, with the
-sequential loop's poses, order, counts and faults."""
+"""How the edge loop runs: overlapped (edge.loop, LoopSettings.overlap: frame n+1 prepared while frame n is solved,
+with the sequential loop's poses, order, counts and faults), onnxruntime's spinning (SessionSettings.spinning), and
+the pose rate the firmware bridge reports."""
 
 from __future__ import annotations
 
@@ -242,3 +243,23 @@ def test_the_bridge_reports_the_measured_pose_rate_not_one_over_the_latency(tiny
         tap.close()
     assert status["latency_ms"] == 200.0
     assert 20.0 < status["fps"] < 55.0  # about 50 a second (sleep plus the call), not 1000 / 200 = 5
+
+
+def test_onnxruntime_threads_sleep_between_operators_unless_asked_and_runs_record_it(tiny, tmp_path: Path) -> None:
+    """SessionSettings.spinning (on by default, bench/pipeline.md): the session's config, the localizer's session
+    and the replay JSON all say which it was; --no-spinning turns it off."""
+    from edge.inference import SessionSettings, session_options
+
+    assert SessionSettings().spinning is True
+    assert session_options(1).get_session_config_entry("session.intra_op.allow_spinning") == "1"
+    assert session_options(1, spinning=False).get_session_config_entry("session.intra_op.allow_spinning") == "0"
+    b = load_bundle(tiny["bundle"])
+    assert EdgeLocalizer(b, "fp32", 1).session.spinning is True
+    assert EdgeLocalizer(b, "fp32", 1, spinning=False).session.spinning is False
+    for flag, want in (("--spinning", True), ("--no-spinning", False)):
+        out = tmp_path / f"{flag}.json"
+        r = CliRunner().invoke(
+            app, ["replay", str(tiny["bundle"]), str(tiny["scene"]), "--no-tracking", flag, "--json", str(out)]
+        )
+        assert r.exit_code == 0, r.output
+        assert json.loads(out.read_text())["spinning"] is want

@@ -180,6 +180,7 @@ def localize_command(
     realtime: bool = option(SourceOptions, "realtime"),
     threads: int | None = typer.Option(None, help=THREADS_HELP),
     overlap: bool = option(LoopSettings, "overlap", "--overlap/--no-overlap"),
+    spinning: bool = option(SessionSettings, "spinning", "--spinning/--no-spinning"),
     provider: str = option(SessionSettings, "provider"),
     pnp: str | None = option(PnPSettings, "method", "--pnp", default=None),
     min_inliers: int | None = option(PnPSettings, "min_inliers", default=None),
@@ -223,6 +224,7 @@ def localize_command(
         tracking=track,
         align_config=_align_config(align_warp, align_matcher),
         scr_short_side=_scr_side(align_scr_side),
+        spinning=spinning,
     )
     src = open_source(source, SourceOptions(calibration=calib, input_size=b.input_size, realtime=realtime))
     fox = _foxglove_tap(loc, foxglove, mcap, foxglove_host)
@@ -269,6 +271,7 @@ def localize_command(
         refine_stats = close_session(refiner, console.print) if refiner is not None else None
         fox_stats = fox.close() if fox is not None else None
     summary = {"bundle": str(b.root), "source": src.description, "precision": precision, **rt, **stats.as_dict()}
+    summary.update(threads=loc.session.threads, spinning=loc.session.spinning)
     summary.update(tracking_enabled=track is not None, reanchors=modes.pop("reanchor"), **modes)
     if fox_stats is not None:
         summary["foxglove"] = fox_stats
@@ -353,6 +356,7 @@ def replay_command(
     int8: bool = typer.Option(False, "--int8", help="Run the bundle's INT8 model."),
     threads: int | None = typer.Option(None, help=THREADS_HELP),
     overlap: bool = option(LoopSettings, "overlap", "--overlap/--no-overlap"),
+    spinning: bool = option(SessionSettings, "spinning", "--spinning/--no-spinning"),
     provider: str = option(SessionSettings, "provider"),
     pnp: str | None = option(PnPSettings, "method", "--pnp", default=None),
     json_out: Path | None = typer.Option(None, "--json", help="Write the numbers here."),
@@ -392,6 +396,7 @@ def replay_command(
         tracking=track,
         align_config=_align_config(align_warp, align_matcher),
         scr_short_side=_scr_side(align_scr_side),
+        spinning=spinning,
     )
     fox = _foxglove_tap(loc, foxglove, mcap, foxglove_host)
     refiner = refine_session(refine, loc, b, budget_ms, save_splat, _warn, evaluate=True)

@@ -18,7 +18,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import onnxruntime as ort
 
 from acesplat.core.bundle import Bundle, verify_file
 from acesplat.core.config import knob_default
@@ -35,7 +34,7 @@ from acesplat.splatcore.head_io import (
 from acesplat.splatcore.lattice import seed_pixels
 from acesplat.splatcore.pixel_coords import pixel_depths
 from acesplat.splatcore.seeding import block_colours
-from edge.inference import SessionSettings, create_session
+from edge.inference import SessionSettings, create_session, session_options
 from edge.refine.bundle_models import splat_section
 
 CALIBRATION_RUNS = 3
@@ -67,10 +66,7 @@ class OnnxSeeder:
             raise InputError(
                 self.path, "bundle manifest's 'splat' section lacks the initializer's description"
             ) from None
-        so = ort.SessionOptions()
-        so.intra_op_num_threads = threads
-        so.inter_op_num_threads = 1
-        so.log_severity_level = 3
+        so = session_options(threads)
         self.provider = provider
         """The --provider name the initializer runs on."""
         self.sess = create_session(self.path, so, provider, "the initializer")
