@@ -254,13 +254,13 @@ class EdgeLocalizer:
             if infer:
                 self._infer(p)
             return p
-        p = Prepared(frame, gray, intr, self._plan(), t_start, times, view=view)
+        p = Prepared(frame, gray, intr, self._plan(frame.frame_id), t_start, times, view=view)
         if self._needs_coords(p.plan):
             self._infer(p)
         return p
 
-    def _plan(self) -> Plan:
-        return self.tracker.plan() if self.tracker is not None else Plan("scr")
+    def _plan(self, frame_id: int | None = None) -> Plan:
+        return self.tracker.plan(frame_id) if self.tracker is not None else Plan("scr")
 
     def _needs_coords(self, plan: Plan) -> bool:
         """Whether a frame planned ``plan`` runs inference: SCR, or a tracked frame whose coordinates are asked for
@@ -281,7 +281,7 @@ class EdgeLocalizer:
         state, as ``prepare`` would have; coordinates inferred ahead that the plan does not use are dropped, so the
         frame is solved as it would be without the pipeline."""
         if p.plan is None:
-            p.plan = self._plan()
+            p.plan = self._plan(p.frame.frame_id)
             if not self._needs_coords(p.plan):
                 p.coords, p.features = None, None
         return p.plan
@@ -318,7 +318,7 @@ class EdgeLocalizer:
             al = self._track(p, plan.prediction)
             times["align"] = (time.perf_counter() - t0) * 1000.0
             if al.status == "aligned":
-                self.tracker.tracked(al.pose)
+                self.tracker.tracked(al.pose, p.frame.frame_id)
                 res = PnPResult(al.pose, al.inliers, al.points, True)
                 rec = to_record(p.frame, res, al.covariance, self.tracker.reset_counter)
                 self.previous = al.pose
@@ -358,7 +358,7 @@ class EdgeLocalizer:
         self.previous = res.T_c2w if res.localized else None
         reset = False
         if self.tracker is not None:
-            reset = self.tracker.solved(res.T_c2w if res.localized else None, plan)
+            reset = self.tracker.solved(res.T_c2w if res.localized else None, plan, p.frame.frame_id)
             if res.localized and self.track_keyframes is None:
                 self._anchor = frame_keyframe(p.gray, p.intr, p.coords, self.stride, res.T_c2w, pnp.threshold_px)
             if res.localized:

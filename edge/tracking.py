@@ -1,6 +1,6 @@
 """Tracking between frames on the edge (torch-free): the last precise poses seed the next frame.
 
-A constant-velocity prediction from the last two precise poses (one frame step ahead) seeds a cheap flow + PnP
+A constant-velocity prediction from the last two precise poses seeds a cheap flow + PnP
 alignment (acesplat.align.flow_pnp.TRACK_ALIGN) of the frame against the nearest bundle keyframe, or, for a bundle
 without keyframes, against the last frame SCR solved (its depth from its scene coordinates). SCR + PnP + the gate run
 to initialize, every ``reanchor_every`` frames to re-anchor, and whenever the tracked alignment is unsure (it keeps
@@ -9,6 +9,11 @@ tracked (the history is then kept: frames stay SCR until the motion slows); with
 by the precise keyframe alignment of --align (KEYFRAME_ALIGN), not the cheap one. A re-anchor farther than
 ``reset_m``/``reset_deg`` from a moving prediction (two poses known) increments the pose record's
 ``reset_counter``. When SCR is unsure (the gate) the frame is LOST and tracking starts again from SCR.
+
+Velocity is per camera frame, counted by the sources' frame ids: a frame the loop dropped (latest frame wins) still
+advances the id, so the prediction for a frame three ids after the last pose is three steps of the velocity, and
+a velocity measured across a gap is divided by it (acesplat.core.geometry.pose_power). Without ids (None) a step
+is a processed frame.
 
 ``Tracker`` is the state machine alone (poses in, decisions out); edge.runtime.EdgeLocalizer runs the images.
 """
@@ -34,7 +39,7 @@ from acesplat.align.flow_pnp import (
 from acesplat.align.keyframe_align import Keyframe, _depth_at, anchor_inliers, resample_to
 from acesplat.core.camera import Intrinsics
 from acesplat.core.config import knob
-from acesplat.core.geometry import invert_pose, pose_error
+from acesplat.core.geometry import invert_pose, pose_error, pose_power
 from acesplat.core.grid import cell_centers
 from acesplat.core.pose_refine import reprojection
 
@@ -95,24 +100,39 @@ class Tracker:
     config: TrackingConfig = field(default_factory=TrackingConfig)
     history: list[np.ndarray] = field(default_factory=list)
     """The last (at most two) precise camera-to-world poses, oldest first; empty when there is nothing to track."""
+    history_ids: list[int | None] = field(default_factory=list)
+    """The frame ids of ``history``'s poses (None where the source gave none)."""
     since_anchor: int = 0
     """Frames since SCR last solved one."""
     reset_counter: int = 0
 
-    def predict(self) -> np.ndarray | None:
-        """The next frame's camera-to-world (4, 4) at constant velocity (one frame step), or None without a pose."""
+    def steps(self, frame_id: int | None) -> tuple[float, float]:
+        """(frames from the last pose to ``frame_id``, frames between the last two poses) by the frame ids; (1, 1)
+        where ids are missing or do not increase (a source that restarted its count)."""
+        ids = self.history_ids
+        if frame_id is None or len(ids) < 2 or ids[-1] is None or ids[-2] is None:
+            return 1.0, 1.0
+        ahead, between = frame_id - ids[-1], ids[-1] - ids[-2]
+        if ahead < 1 or between < 1:
+            return 1.0, 1.0
+        return float(ahead), float(between)
+
+    def predict(self, frame_id: int | None = None) -> np.ndarray | None:
+        """The camera-to-world (4, 4) of frame ``frame_id`` at constant velocity per frame (one step when ids are not
+        known), or None without a pose."""
         if not self.history:
             return None
         last = self.history[-1]
         if len(self.history) < 2:
             return last.copy()
         d = invert_pose(self.history[-2]) @ last
-        return last @ d
+        ahead, between = self.steps(frame_id)
+        return last @ (d if ahead == between else pose_power(d, ahead / between))
 
-    def plan(self) -> Plan:
-        """The next frame's plan (does not change the state)."""
+    def plan(self, frame_id: int | None = None) -> Plan:
+        """Frame ``frame_id``'s plan (does not change the state)."""
         cfg = self.config
-        prediction = self.predict()
+        prediction = self.predict(frame_id)
         if not cfg.enabled or prediction is None:
             return Plan("scr")
         moving = len(self.history) == 2
@@ -135,17 +155,18 @@ class Tracker:
             return Plan("reanchor", self.predict())
         return Plan("track", self.predict())
 
-    def tracked(self, T_c2w: np.ndarray) -> None:
-        """The tracked alignment gave this frame's pose (4, 4)."""
-        self._push(T_c2w)
+    def tracked(self, T_c2w: np.ndarray, frame_id: int | None = None) -> None:
+        """The tracked alignment gave frame ``frame_id``'s pose (4, 4)."""
+        self._push(T_c2w, frame_id)
         self.since_anchor += 1
 
-    def solved(self, T_c2w: np.ndarray | None, plan: Plan) -> bool:
-        """SCR solved the frame planned by ``plan`` (``T_c2w`` (4, 4) or None when the gate refused it: LOST).
-        True when the pose jumped from the tracked prediction (``reset_counter`` then incremented)."""
+    def solved(self, T_c2w: np.ndarray | None, plan: Plan, frame_id: int | None = None) -> bool:
+        """SCR solved frame ``frame_id``, planned by ``plan`` (``T_c2w`` (4, 4) or None when the gate refused it:
+        LOST). True when the pose jumped from the tracked prediction (``reset_counter`` then incremented)."""
         self.since_anchor = 0
         if T_c2w is None:
             self.history.clear()
+            self.history_ids.clear()
             return False
         jump = False
         if plan.prediction is not None and plan.moving:
@@ -153,12 +174,14 @@ class Tracker:
             jump = dt > self.config.reset_m or dr > self.config.reset_deg
         if jump:
             self.history.clear()  # the velocity before the jump says nothing about the next frame
+            self.history_ids.clear()
             self.reset_counter += 1
-        self._push(T_c2w)
+        self._push(T_c2w, frame_id)
         return jump
 
-    def _push(self, T: np.ndarray) -> None:
+    def _push(self, T: np.ndarray, frame_id: int | None) -> None:
         self.history = [*self.history[-1:], np.asarray(T, np.float64).copy()]
+        self.history_ids = [*self.history_ids[-1:], None if frame_id is None else int(frame_id)]
 
 
 def frame_keyframe(

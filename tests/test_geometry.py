@@ -17,7 +17,9 @@ from acesplat.core.geometry import (
     look_at,
     make_pose,
     matrix_to_quat,
+    matrix_to_rodrigues,
     pose_error,
+    pose_power,
     quat_to_matrix,
     rigidity_problem,
     rodrigues_to_matrix,
@@ -332,3 +334,40 @@ def test_apply_similarity_maps_poses_back() -> None:
     np.testing.assert_allclose(apply_similarity(s, R, t, moved), poses, atol=1e-9)
     with pytest.raises(ValueError, match="scale"):
         apply_similarity(0.0, R0, np.zeros(3), poses)
+
+
+def _random_pose(rng: np.random.Generator, max_angle: float = 2.5) -> np.ndarray:
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    return make_pose(rodrigues_to_matrix(axis * rng.uniform(0.0, max_angle)), rng.normal(0, 1.0, 3))
+
+
+def test_matrix_to_rodrigues_matches_opencv_and_round_trips() -> None:
+    rng = np.random.default_rng(3)
+    for angle in (0.0, 1e-9, 0.3, 2.0, np.pi - 1e-3, np.pi):
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        R = rodrigues_to_matrix(axis * angle)
+        w = matrix_to_rodrigues(R)
+        np.testing.assert_allclose(rodrigues_to_matrix(w), R, atol=1e-9)
+        if 0.0 < angle < np.pi - 1e-2:
+            np.testing.assert_allclose(w, cv2.Rodrigues(R)[0].ravel(), atol=1e-9)
+
+
+def test_pose_power_is_repeated_composition() -> None:
+    """Integer powers equal the motion composed with itself, halves compose back to the motion, 0 and 1 are the
+    identity and the motion, -1 the inverse: against brute-force products."""
+    rng = np.random.default_rng(4)
+    for _ in range(20):
+        T = _random_pose(rng)
+        np.testing.assert_allclose(pose_power(T, 1.0), T, atol=1e-9)
+        np.testing.assert_allclose(pose_power(T, 0.0), np.eye(4), atol=1e-12)
+        np.testing.assert_allclose(pose_power(T, 2.0), T @ T, atol=1e-8)
+        np.testing.assert_allclose(pose_power(T, 3.0), T @ T @ T, atol=1e-8)
+        np.testing.assert_allclose(pose_power(T, -1.0), invert_pose(T), atol=1e-8)
+        h = pose_power(T, 0.5)
+        np.testing.assert_allclose(h @ h, T, atol=1e-8)
+    small = make_pose(rodrigues_to_matrix(np.array([1e-10, 0.0, 0.0])), np.array([0.1, 0.0, 0.0]))
+    np.testing.assert_allclose(pose_power(small, 3.0)[:3, 3], [0.3, 0.0, 0.0], atol=1e-9)
+    with pytest.raises(ValueError, match="4, 4"):
+        pose_power(np.eye(3), 2.0)

@@ -39,6 +39,34 @@ def test_constant_velocity_prediction_is_exact_on_a_constant_velocity_path() -> 
         tr.tracked(T[k])
 
 
+def test_velocity_is_per_camera_frame_across_dropped_frames() -> None:
+    """Frames the loop dropped still advance the source's frame ids: the prediction for a frame k ids after the last
+    pose is k steps of the velocity, and a velocity measured across a gap is divided by it; exact on a constant
+    velocity path. Without ids, or with ids that do not increase, a step is a processed frame."""
+    T = _trajectory(16, step_m=0.04, step_deg=4.0)
+    tr = Tracker(TrackingConfig(reanchor_every=100, max_motion_m=10.0, max_motion_deg=90.0))
+    tr.solved(T[0], tr.plan(0), 0)
+    tr.tracked(T[1], 1)
+    for k in (2, 4, 5):  # the next frame, and frames after two and three drops
+        dt, dr = pose_error(tr.plan(k).prediction, T[k])
+        assert dt < 1e-9 and dr < 1e-6, k
+    tr.tracked(T[4], 4)  # a velocity measured across a gap of three frames ...
+    dt, dr = pose_error(tr.plan(5).prediction, T[5])  # ... is one third of that motion per frame
+    assert dt < 1e-9 and dr < 1e-6
+    assert pose_error(tr.predict(), T[7])[0] < 1e-9  # no id: one processed frame (three camera frames here)
+    assert pose_error(tr.predict(3), T[7])[0] < 1e-9  # an id that does not increase: the same
+    # the motion to the frame decides 'too far': 4 cm a frame tracks, the same velocity five frames on does not
+    cfg = TrackingConfig(max_motion_m=0.15, max_motion_deg=30.0, reanchor_every=100)
+    tr = Tracker(cfg)
+    tr.solved(T[0], tr.plan(10), 10)
+    tr.tracked(T[1], 11)
+    assert tr.plan(12).mode == "track" and tr.plan(16).reason == "too_far"
+    # after a gap, SCR solves frame 15, the loop keeps up again: frame 16 is one step of the velocity, tracked
+    tr.solved(T[5], tr.plan(15), 15)
+    p = tr.plan(16)
+    assert p.mode == "track" and pose_error(p.prediction, T[6])[0] < 1e-9
+
+
 def test_reanchor_interval_and_reset_counting() -> None:
     cfg = TrackingConfig(reanchor_every=3, reset_m=0.05, reset_deg=2.0)
     tr = Tracker(cfg)

@@ -150,6 +150,45 @@ def rodrigues_to_matrix(rvec: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(theta) * Kx + (1 - np.cos(theta)) * Kx @ Kx
 
 
+def _skew(w: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def matrix_to_rodrigues(R: np.ndarray) -> np.ndarray:
+    """Axis-angle vector (3,) of rotation ``R`` (3, 3), angle in [0, pi] (the inverse of rodrigues_to_matrix)."""
+    R = np.asarray(R, dtype=np.float64)
+    theta = np.radians(rotation_angle_deg(R))
+    vee = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if theta < 1e-12:
+        return vee / 2.0
+    if np.pi - theta > 1e-6:
+        return vee * (theta / (2.0 * np.sin(theta)))
+    # at pi the antisymmetric part vanishes: the axis is the column of R + I with the largest norm
+    B = R + np.eye(3)
+    k = B[:, int(np.argmax(np.linalg.norm(B, axis=0)))]
+    return k / np.linalg.norm(k) * theta
+
+
+def _left_jacobian(w: np.ndarray) -> np.ndarray:
+    """SO(3)'s left Jacobian V(w) (3, 3): exp of the twist (w, v) has translation V(w) v."""
+    theta = float(np.linalg.norm(w))
+    W = _skew(w)
+    if theta < 1e-8:
+        return np.eye(3) + 0.5 * W
+    return np.eye(3) + (1.0 - np.cos(theta)) / theta**2 * W + (theta - np.sin(theta)) / theta**3 * W @ W
+
+
+def pose_power(T: np.ndarray, r: float) -> np.ndarray:
+    """The rigid motion ``T`` (4, 4) applied ``r`` times (any real ``r``): exp(r log T) on SE(3), the screw motion a
+    constant velocity gives; pose_power(T, 2) = T @ T, pose_power(T, 0.5) twice = T. Rotations below pi."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise ValueError(f"pose must be (4, 4), got {T.shape}")
+    w = matrix_to_rodrigues(T[:3, :3])
+    v = np.linalg.solve(_left_jacobian(w), T[:3, 3])
+    return make_pose(rodrigues_to_matrix(r * w), _left_jacobian(r * w) @ (r * v))
+
+
 def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
     """Camera-to-world pose (OpenCV axes) at ``eye`` looking at ``target``; image y points along -up."""
     eye = np.asarray(eye, dtype=np.float64)
