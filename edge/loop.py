@@ -34,11 +34,19 @@ BACKOFF_S = (0.1, 2.0)
 
 @dataclass
 class LoopSettings:
-    overlap: bool = knob(
-        False,
-        "Prepare and infer frame n+1 while frame n is solved: more poses a second when solving is a large share of a "
-        "frame (--align), each pose later (bench/pipeline.md).",
+    overlap: bool | None = knob(
+        None,
+        "Prepare and infer frame n+1 while frame n is solved; unset: on for a live source while tracking (it keeps "
+        "the camera's rate), else off (each pose sooner); bench/tracking.md, bench/pipeline.md.",
     )
+
+
+def overlap_for(overlap: bool | None, live: bool, tracking: bool, paced: bool = False) -> bool:
+    """LoopSettings.overlap resolved for a run: as set, or when unset, on for a ``live`` source while ``tracking``
+    unless a ``paced`` tap (refinement) owns the time between frames."""
+    if overlap is not None:
+        return bool(overlap)
+    return live and tracking and not paced
 
 
 def overlap_threads() -> int:

@@ -263,3 +263,36 @@ def test_onnxruntime_threads_sleep_between_operators_unless_asked_and_runs_recor
         )
         assert r.exit_code == 0, r.output
         assert json.loads(out.read_text())["spinning"] is want
+
+
+def test_overlap_is_on_for_a_live_source_while_tracking_unless_set(tiny, tmp_path: Path) -> None:
+    """LoopSettings.overlap unset: on for a live source while tracking (the camera's rate, bench/tracking.md), off
+    for files read in step, frames alone, or beside refinement; --overlap/--no-overlap decide when given."""
+    from edge.loop import overlap_for
+
+    assert overlap_for(None, live=True, tracking=True)
+    assert not overlap_for(None, live=False, tracking=True)
+    assert not overlap_for(None, live=True, tracking=False)
+    assert not overlap_for(None, live=True, tracking=True, paced=True)
+    assert overlap_for(True, live=False, tracking=False) and not overlap_for(False, live=True, tracking=True)
+
+    live = tmp_path / "live"
+    live.mkdir()
+    src = Path(tiny["scene"]) / "test"
+    for sub in ("rgb", "poses", "calibration"):
+        (live / sub).symlink_to(src / sub)
+    n = len(list((src / "rgb").iterdir()))
+    (live / "timestamps.txt").write_text("".join(f"{i / 30:.6f}\n" for i in range(n)))
+    runs = {}
+    for name, args in (
+        ("live", ["--source", f"replay:{live}", "--realtime"]),
+        ("live, frames alone", ["--source", f"replay:{live}", "--realtime", "--no-tracking"]),
+        ("live, --no-overlap", ["--source", f"replay:{live}", "--realtime", "--no-overlap"]),
+        ("files", ["--source", f"replay:{src}"]),
+    ):
+        out = tmp_path / f"{len(runs)}.json"
+        r = CliRunner().invoke(app, ["localize", str(tiny["bundle"]), *args, "--quiet", "--json", str(out)])
+        assert r.exit_code == 0, (name, r.output)
+        runs[name] = json.loads(out.read_text())
+    assert runs["live"]["overlap"] is True and runs["live"]["threads"] == overlap_threads()
+    assert not any(runs[k]["overlap"] for k in ("live, frames alone", "live, --no-overlap", "files"))

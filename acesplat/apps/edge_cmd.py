@@ -18,7 +18,7 @@ from acesplat.align.keyframe_align import PreciseSettings
 from acesplat.apps.refine_cmd import close_session, exit_if_harmed, refine_line, refine_session
 from acesplat.apps.support import PhaseProgress, one_line_errors, option, report_json, stop_on_signals
 from acesplat.core.bundle import PRECISION_ROLES, Bundle, load_bundle
-from acesplat.core.config import knob_default
+from acesplat.core.config import knob_default, knob_help
 from acesplat.core.errors import InputError
 from acesplat.core.geometry import matrix_to_quat
 from acesplat.core.pose import TrackingState
@@ -26,7 +26,7 @@ from edge.calibration import read_calibration_file
 from edge.foxglove_tap import FoxgloveSettings
 from edge.inference import SessionSettings, check_provider, default_threads, runtime_info
 from edge.int8_check import Int8CheckConfig
-from edge.loop import LoopEvent, LoopSettings, overlap_threads, run_loop
+from edge.loop import LoopEvent, LoopSettings, overlap_for, overlap_threads, run_loop
 from edge.profile import ProfileOptions
 from edge.refine.session import RefineOptions
 from edge.runtime import STAGES, EdgeLocalizer, FrameOutcome, FrameTap, PnPSettings
@@ -36,6 +36,7 @@ from firmware_bridge.sink import SinkConfig
 
 console = Console(stderr=True)
 THREADS_HELP = "onnxruntime intra-op threads (default: all cores; with --overlap, all but one)."
+OVERLAP_HELP = knob_help(LoopSettings, "overlap")
 
 
 def _threads(threads: int | None, overlap: bool, refine: bool) -> int | None:
@@ -179,7 +180,7 @@ def localize_command(
     frames: int | None = typer.Option(None, help="Stop after this many frames."),
     realtime: bool = option(SourceOptions, "realtime"),
     threads: int | None = typer.Option(None, help=THREADS_HELP),
-    overlap: bool = option(LoopSettings, "overlap", "--overlap/--no-overlap"),
+    overlap: bool | None = typer.Option(None, "--overlap/--no-overlap", help=OVERLAP_HELP),
     spinning: bool = option(SessionSettings, "spinning", "--spinning/--no-spinning"),
     provider: str = option(SessionSettings, "provider"),
     pnp: str | None = option(PnPSettings, "method", "--pnp", default=None),
@@ -208,25 +209,30 @@ def localize_command(
 ) -> None:
     """Localize frames from a live or recorded source; Ctrl-C ends with a summary."""
     stop_on_signals()
-    threads = _threads(threads, overlap, refine)
     check_provider(provider)
     b = open_bundle(bundle, ["int8" if int8 else "fp32"], align or tracking)
-    precision = int8_gate(b, int8, skip_int8_check, threads, provider)
     calib = read_calibration_file(intrinsics) if intrinsics else None
     track = _tracking(tracking, reanchor_every)
-    loc = EdgeLocalizer(
-        b,
-        precision,
-        threads,
-        _pnp(pnp, min_inliers),
-        align=align,
-        provider=provider,
-        tracking=track,
-        align_config=_align_config(align_warp, align_matcher),
-        scr_short_side=_scr_side(align_scr_side),
-        spinning=spinning,
-    )
     src = open_source(source, SourceOptions(calibration=calib, input_size=b.input_size, realtime=realtime))
+    try:
+        overlap = overlap_for(overlap, src.live, track is not None, refine)
+        threads = _threads(threads, overlap, refine)
+        precision = int8_gate(b, int8, skip_int8_check, threads, provider)
+        loc = EdgeLocalizer(
+            b,
+            precision,
+            threads,
+            _pnp(pnp, min_inliers),
+            align=align,
+            provider=provider,
+            tracking=track,
+            align_config=_align_config(align_warp, align_matcher),
+            scr_short_side=_scr_side(align_scr_side),
+            spinning=spinning,
+        )
+    except BaseException:
+        src.close()
+        raise
     fox = _foxglove_tap(loc, foxglove, mcap, foxglove_host)
     refiner = refine_session(refine, loc, b, budget_ms, save_splat, _warn)
     log = None
@@ -355,7 +361,7 @@ def replay_command(
     split: str = typer.Option("test", help="Split to replay."),
     int8: bool = typer.Option(False, "--int8", help="Run the bundle's INT8 model."),
     threads: int | None = typer.Option(None, help=THREADS_HELP),
-    overlap: bool = option(LoopSettings, "overlap", "--overlap/--no-overlap"),
+    overlap: bool | None = typer.Option(None, "--overlap/--no-overlap", help=OVERLAP_HELP),
     spinning: bool = option(SessionSettings, "spinning", "--spinning/--no-spinning"),
     provider: str = option(SessionSettings, "provider"),
     pnp: str | None = option(PnPSettings, "method", "--pnp", default=None),
@@ -381,6 +387,7 @@ def replay_command(
     stop_on_signals()
     from edge.replay import replay_split
 
+    overlap = overlap_for(overlap, False, tracking, refine)  # files are read in step: no live source
     threads = _threads(threads, overlap, refine)
     check_provider(provider)
     b = open_bundle(bundle, ["int8" if int8 else "fp32"], align or tracking)
