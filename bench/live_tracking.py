@@ -2,7 +2,7 @@
 sequential or overlapped, per INT8 graph; frames localized, dropped, how each pose was made, accuracy, poses a second.
 
     PYTHONPATH=. python -P bench/live_tracking.py BUNDLE SCENE [--split train] [--fps 30] [--precisions int8,int8_vnni]
-        [--loops sequential,overlapped] [--repeats 2] [--json OUT]
+        [--loops sequential,overlapped] [--repeats 2] [--max-motion M,DEG] [--json OUT]
 
 The split's images, poses and calibrations are linked into a temporary folder with a ``timestamps.txt`` at ``fps``
 (the split's own timestamps are not needed), then replayed with ``realtime`` as `acesplat-edge localize --source
@@ -43,9 +43,9 @@ def timed_copy(split: Path, out: Path, fps: float) -> int:
     return n
 
 
-def one_run(bundle, folder: Path, precision: str, loop: str) -> dict:
+def one_run(bundle, folder: Path, precision: str, loop: str, tracking: TrackingConfig) -> dict:
     overlap = loop == "overlapped"
-    loc = EdgeLocalizer(bundle, precision, overlap_threads() if overlap else None, tracking=TrackingConfig())
+    loc = EdgeLocalizer(bundle, precision, overlap_threads() if overlap else None, tracking=tracking)
     src = open_source(f"replay:{folder}", SourceOptions(input_size=bundle.input_size, realtime=True))
     outs = []
     stats = run_loop(src, loc, outs.append, overlap=overlap)
@@ -74,9 +74,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--precisions", default="int8,int8_vnni")
     ap.add_argument("--loops", default="sequential,overlapped")
     ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--max-motion", default=None, help="M,DEG: TrackingConfig.max_motion_m and max_motion_deg")
     ap.add_argument("--json", type=Path)
     a = ap.parse_args(argv)
     bundle = load_bundle(a.bundle)
+    tracking = TrackingConfig()
+    if a.max_motion:
+        m, deg = (float(x) for x in a.max_motion.split(","))
+        tracking = TrackingConfig(max_motion_m=m, max_motion_deg=deg)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp) / a.split
@@ -84,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
         for r in range(a.repeats):
             for precision in a.precisions.split(","):
                 for loop in a.loops.split(","):
-                    run = one_run(bundle, folder, precision, loop)
+                    run = one_run(bundle, folder, precision, loop, tracking)
                     res = {"precision": precision, "loop": loop, "repeat": r, **run}
                     rows.append(res)
                     print(
