@@ -285,9 +285,10 @@ def run_loop(
         finally:
             slot.close()
 
-    def next_frame() -> tuple | None:
+    def next_frame(idle: Callable[[], None] | None = None) -> tuple | None:
         """The next frame to localize, (frame, capture_ms, t_start): the newest of a live source, the next file of
-        a replay; None at the end or on stop."""
+        a replay; None at the end or on stop. ``idle`` runs whenever a wait for a frame ends without one (the
+        events of a camera that went away reach the taps while it is gone)."""
         while not stop.is_set():
             if source.live:
                 ok, item = slot.get(timeout=0.05)
@@ -301,6 +302,8 @@ def run_loop(
                     return None
                 if r[0] == "frame":
                     return r[1:]
+            if idle is not None:
+                idle()
         return None
 
     try:
@@ -311,7 +314,7 @@ def run_loop(
             _overlapped(localizer, next_frame, in_order, count, handle_events, stop, max_frames, stats, threads)
         else:
             while not stop.is_set():
-                item = next_frame()
+                item = next_frame(handle_events)
                 handle_events()
                 if item is None:
                     break

@@ -296,3 +296,49 @@ def test_overlap_is_on_for_a_live_source_while_tracking_unless_set(tiny, tmp_pat
         runs[name] = json.loads(out.read_text())
     assert runs["live"]["overlap"] is True and runs["live"]["threads"] == overlap_threads()
     assert not any(runs[k]["overlap"] for k in ("live, frames alone", "live, --no-overlap", "files"))
+
+
+@pytest.mark.parametrize("overlap", [False, True])
+def test_a_camera_that_goes_away_is_reported_to_the_taps_while_it_is_gone(tiny, overlap: bool) -> None:
+    """The 'disconnected' event reaches the taps (the firmware bridge reports LOST on it) while the camera is away,
+    before the first frame after it comes back, in either loop."""
+    import cv2
+
+    from edge.calibration import CameraCalibration
+    from edge.runtime import FrameTap
+    from edge.sources import CameraSource
+    from tests.test_edge_runtime import FakeCapture
+
+    split = read_split(tiny["scene"], "test")
+    frames = [cv2.cvtColor(f.load_rgb(), cv2.COLOR_RGB2BGR) for f in split.frames]
+    script = {"reads": 0, "fail_at": 3, "opens": 0}
+
+    class PacedCapture(FakeCapture):  # a camera's frame interval: the loop waits on an empty slot when it goes
+        def read(self):
+            time.sleep(0.03)
+            return super().read()
+
+    def opener(index: int):
+        script["opens"] += 1
+        cap = PacedCapture(frames, script)
+        cap.opened = script["opens"] not in (2, 3, 4, 5)  # away for four reconnect attempts
+        return cap
+
+    class Log(FrameTap):
+        def __init__(self) -> None:
+            self.heard: dict[str, float] = {}  # event kind -> when the tap heard it
+            self.events: dict[str, float] = {}  # event kind -> when it happened
+
+        def on_event(self, event) -> None:
+            self.heard.setdefault(event.kind, time.time())
+            self.events.setdefault(event.kind, event.wall_time)
+
+    calib = CameraCalibration(K=split.frames[0].intrinsics.K, size=(80, 64))
+    loc = EdgeLocalizer(load_bundle(tiny["bundle"]), "fp32", 1)
+    log = Log()
+    loc.add_tap(log)
+    stats = run_loop(
+        CameraSource(0, calib, opener=opener), loc, lambda o: None, max_frames=4, backoff=(0.05, 0.1), overlap=overlap
+    )
+    assert stats.frames == 4 and stats.disconnects == 1
+    assert log.heard["disconnected"] < log.events["reconnected"]  # reported while away, not when frames resume
