@@ -271,7 +271,7 @@ class EdgeLocalizer:
 
     def infer_after(self, plan: Plan | None) -> bool:
         """Whether the frame after one planned ``plan`` will run inference if that frame goes as planned (a pipeline
-        infers it ahead while this one is solved); None: no frame in between (the next frame gets today's plan)."""
+        infers it ahead while this one is solved); None: no frame in between (the next frame gets the plan of now)."""
         if self.tracker is None:
             return True
         return self._needs_coords(self._plan() if plan is None else self.tracker.plan_after(plan))
