@@ -194,7 +194,13 @@ class EdgeLocalizer:
         self.taps.append(tap)
 
     def notify(self, event: Any) -> None:
-        """Hand a loop event (edge.loop.LoopEvent) to every tap."""
+        """Hand a loop event (edge.loop.LoopEvent) to every tap. A source that went away ('disconnected') also ends
+        tracking and the gate's motion check: the camera may be anywhere when it is back, so its first frame is
+        solved by SCR from scratch."""
+        if getattr(event, "kind", None) == "disconnected":
+            self.previous = None
+            if self.tracker is not None:
+                self.tracker.lost()
         for tap in self.taps:
             tap.on_event(event)
 

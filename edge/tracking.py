@@ -179,6 +179,13 @@ class Tracker:
         self._push(T_c2w, frame_id)
         return jump
 
+    def lost(self) -> None:
+        """The source went away: the motion model no longer holds, the next frame is SCR's (not a re-anchor, so no
+        reset is counted)."""
+        self.history.clear()
+        self.history_ids.clear()
+        self.since_anchor = 0
+
     def _push(self, T: np.ndarray, frame_id: int | None) -> None:
         self.history = [*self.history[-1:], np.asarray(T, np.float64).copy()]
         self.history_ids = [*self.history_ids[-1:], None if frame_id is None else int(frame_id)]

@@ -235,3 +235,22 @@ def test_a_blank_query_is_no_match_for_the_flow() -> None:
     assert same.mean() > 0.9
     with pytest.raises(ValueError, match="max_photo_diff"):
         replace(TRACK_ALIGN, max_photo_diff=0.0)
+
+
+def test_a_source_that_went_away_ends_tracking(tiny, tiny_preset, tmp_path: Path) -> None:
+    """After 'disconnected' the camera may be anywhere: the next frame is solved by SCR from scratch (no prediction,
+    no reset counted, no motion check against the pose before the gap)."""
+    from acesplat.core.bundle import load_bundle
+    from edge.loop import LoopEvent
+    from edge.runtime import EdgeLocalizer
+    from edge.sources import ReplaySource
+
+    seq = _sequence(Path(tiny["scene"]), tmp_path / "seq" / "test")
+    src = ReplaySource(seq)
+    loc = EdgeLocalizer(load_bundle(tiny["bundle"]), "fp32", 1, tracking=tiny_preset)
+    modes = [loc.localize(src.read()).mode for _ in range(3)]
+    assert modes == ["scr", "tracked", "tracked"] and loc.previous is not None
+    loc.notify(LoopEvent("disconnected", "camera 0: read failed", 0.0))
+    assert loc.previous is None and loc.tracker.history == [] and loc.tracker.plan() == Plan("scr")
+    out = loc.localize(src.read())
+    assert out.mode == "scr" and not out.reset and out.fallback is None
