@@ -8,7 +8,8 @@ the predicted pose: too few pairs or inliers, a correction too large) or the pre
 tracked (the history is then kept: frames stay SCR until the motion slows); with keyframes, an SCR pose is refined
 by the precise keyframe alignment of --align (KEYFRAME_ALIGN), not the cheap one. A re-anchor farther than
 ``reset_m``/``reset_deg`` from a moving prediction (two poses known) increments the pose record's
-``reset_counter``. When SCR is unsure (the gate) the frame is LOST and tracking starts again from SCR.
+``reset_counter``. When SCR is unsure (the gate) the frame is LOST and tracking starts again from SCR; so it does
+after the source went away (``Tracker.lost``: the camera may be anywhere when it is back).
 
 Velocity is per camera frame, counted by the sources' frame ids: a frame the loop dropped (latest frame wins) still
 advances the id, so the prediction for a frame three ids after the last pose is three steps of the velocity, and
