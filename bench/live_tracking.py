@@ -56,7 +56,7 @@ def one_run(bundle, folder: Path, precision: str, loop: str, tracking: TrackingC
     return {
         "frames": stats.frames,
         "dropped": stats.dropped,
-        "poses_per_s": stats.frames / stats.seconds if stats.seconds > 0 else 0.0,
+        "poses_per_s": stats.fps,
         "modes": dict(collections.Counter(o.mode for o in outs)),
         "fallbacks": dict(collections.Counter(o.fallback for o in outs if o.fallback)),
         "within_5cm_5deg": good / max(1, stats.frames),

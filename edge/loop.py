@@ -123,6 +123,11 @@ class RunStats:
     overlap: bool = False
     """The next frame was prepared while the current one was solved (LoopSettings.overlap)."""
 
+    @property
+    def fps(self) -> float:
+        """Frames localized a second over the run."""
+        return self.frames / self.seconds if self.seconds > 0 else 0.0
+
     def as_dict(self) -> dict:
         return {
             "frames": self.frames,
@@ -138,7 +143,7 @@ class RunStats:
             "gap_s": self.gap_s,
             "interrupted": self.interrupted,
             "seconds": self.seconds,
-            "fps": self.frames / self.seconds if self.seconds > 0 else 0.0,
+            "fps": self.fps,
             "overlap": self.overlap,
         }
 

@@ -86,7 +86,8 @@ def replay_split(
     out["overlap"] = overlap
     out["threads"] = localizer.session.threads
     out["spinning"] = localizer.session.spinning
-    out["poses_per_s"] = stats.frames / stats.seconds if stats.seconds > 0 else 0.0
+    out["seconds"] = stats.seconds
+    out["poses_per_s"] = stats.fps
     out["precision"] = localizer.precision
     out["input_size"] = list(localizer.input_size)
     out["scr_size"] = list(localizer.scr_size)

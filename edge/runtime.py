@@ -248,9 +248,8 @@ class EdgeLocalizer:
         t_start = time.perf_counter() - capture_ms / 1000.0 if t_start is None else t_start
         t0 = time.perf_counter()
         gray, intr = self.prep(frame.image, frame.intrinsics, frame.distortion)
-        tap_features = any(t.needs_features for t in self.taps)  # e.g. refinement's keyframes
         view = None
-        if self.scr_size != self.input_size and not tap_features:
+        if self.scr_size != self.input_size and not self._taps_need_features():
             view = (gray, intr)
             gray, intr = scr_copy(gray, intr, self.scr_size)
         t1 = time.perf_counter()
@@ -268,10 +267,15 @@ class EdgeLocalizer:
     def _plan(self, frame_id: int | None = None) -> Plan:
         return self.tracker.plan(frame_id) if self.tracker is not None else Plan("scr")
 
+    def _taps_need_features(self) -> bool:
+        """Whether a tap asks for every frame's coordinates and features at the bundle's size (e.g. refinement's
+        keyframes)."""
+        return any(t.needs_features for t in self.taps)
+
     def _needs_coords(self, plan: Plan) -> bool:
         """Whether a frame planned ``plan`` runs inference: SCR, or a tracked frame whose coordinates are asked for
         (TrackingConfig.infer_tracked, or a tap that needs features)."""
-        if plan.mode != "track" or any(t.needs_features for t in self.taps):
+        if plan.mode != "track" or self._taps_need_features():
             return True
         return bool(self.tracker is not None and self.tracker.config.infer_tracked)
 
@@ -304,7 +308,7 @@ class EdgeLocalizer:
 
     def _infer(self, p: Prepared) -> None:
         t1 = time.perf_counter()
-        if self.session.has_features and any(t.needs_features for t in self.taps):
+        if self.session.has_features and self._taps_need_features():
             p.coords, p.features = self.session.run_with_features(p.gray)
         else:
             p.coords, p.features = self.session.run(p.gray), None

@@ -146,15 +146,13 @@ class Tracker:
 
     def plan_after(self, plan: Plan) -> Plan:
         """The mode the frame after one planned ``plan`` gets if that frame goes as planned (tracked, or solved by
-        SCR): 'reanchor' when it completes the interval, 'track' otherwise, 'scr' without tracking. Only the mode
-        (and reason) is meant: the prediction is the current one. Does not change the state."""
+        SCR): 'reanchor' when it completes the interval, 'track' otherwise, 'scr' without tracking. The mode only,
+        without a prediction (that frame's is made when it is planned). Does not change the state."""
         cfg = self.config
         if not cfg.enabled:
             return Plan("scr")
         since = self.since_anchor + 1 if plan.mode == "track" else 0
-        if since >= cfg.reanchor_every:
-            return Plan("reanchor", self.predict())
-        return Plan("track", self.predict())
+        return Plan("reanchor" if since >= cfg.reanchor_every else "track")
 
     def tracked(self, T_c2w: np.ndarray, frame_id: int | None = None) -> None:
         """The tracked alignment gave frame ``frame_id``'s pose (4, 4)."""

@@ -139,19 +139,19 @@ def pose_error(T_est: np.ndarray, T_gt: np.ndarray) -> tuple[float, float]:
     return t_err, r_err
 
 
+def _skew(w: np.ndarray) -> np.ndarray:
+    """The cross-product matrix (3, 3) of ``w`` (3,): _skew(w) @ x = w x x."""
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
 def rodrigues_to_matrix(rvec: np.ndarray) -> np.ndarray:
     """Rotation matrix from an axis-angle vector (3,) (the OpenCV rvec)."""
     rvec = np.asarray(rvec, dtype=np.float64).reshape(3)
     theta = np.linalg.norm(rvec)
     if theta < 1e-12:
         return np.eye(3)
-    k = rvec / theta
-    Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    Kx = _skew(rvec / theta)
     return np.eye(3) + np.sin(theta) * Kx + (1 - np.cos(theta)) * Kx @ Kx
-
-
-def _skew(w: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
 
 
 def matrix_to_rodrigues(R: np.ndarray) -> np.ndarray:
