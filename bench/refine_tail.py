@@ -15,11 +15,14 @@ from __future__ import annotations
 
 import argparse
 import gc
+import json
 import statistics
 import threading
 import time
 from dataclasses import replace
 from pathlib import Path
+
+import numpy as np
 
 from acesplat.core.bundle import load_bundle
 from acesplat.core.machine import machine_line
@@ -81,6 +84,31 @@ class GcLog:
         return "; ".join(parts) or "no collections"
 
 
+def pooled_ratios(frames: dict[str, list[list[float]]], seed: int, draws: int = 2000) -> dict:
+    """Per letter: the p95 of every frame of every run pooled, its ratio to the plain letter's (P; p for r) and a 90%
+    interval of that ratio from resampling whole runs of both letters (runs, not frames: frames of a run share its
+    sitting)."""
+    rng = np.random.default_rng(seed)
+    out: dict = {}
+    for kind, runs in frames.items():
+        plain = "p" if kind in "pr" else "P"
+        base = frames.get(plain)
+        if not base:
+            continue
+
+        def p95(rs: list[list[float]]) -> float:
+            return float(np.percentile(np.concatenate([np.asarray(r) for r in rs]), 95))
+
+        boot = []
+        for _ in range(draws):
+            a = [runs[i] for i in rng.integers(0, len(runs), len(runs))]
+            b = [base[i] for i in rng.integers(0, len(base), len(base))]
+            boot.append(p95(a) / p95(b))
+        lo, hi = np.percentile(boot, [5, 95])
+        out[kind] = {"p95": p95(runs), "ratio": p95(runs) / p95(base), "lo": float(lo), "hi": float(hi)}
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("workdir", type=Path)
@@ -88,18 +116,23 @@ def main() -> None:
     ap.add_argument("--budget-ms", type=float, default=100.0)
     ap.add_argument("--order", default="PNSRMPNSRM")
     ap.add_argument("--gc-log", action="store_true", help="print each run's garbage collections by thread")
+    ap.add_argument("--json", type=Path, default=None, help="every run's per-frame totals and the pooled figures")
+    ap.add_argument("--seed", type=int, default=0, help="of the bootstrap over runs")
     args = ap.parse_args()
     if set(args.order) - set("PRNSMFpr"):
         ap.error("--order takes the letters P, R, N, S, M, F, p, r")
     bundle = load_bundle(args.bundle or args.workdir / "bundle")
     print(f"# {machine_line()}")
     res: dict[str, list[tuple[float, float]]] = {}
+    frames: dict[str, list[list[float]]] = {}
     for kind in args.order:
         log = GcLog() if args.gc_log else None
         if log is not None:
             gc.callbacks.append(log)
         try:
-            t = run(kind, bundle, args.workdir / "scene", args.budget_ms)["timing_ms"]
+            out = run(kind, bundle, args.workdir / "scene", args.budget_ms)
+            t = out["timing_ms"]
+            frames.setdefault(kind, []).append([f["ms"] for f in out["per_frame"]])
         finally:
             if log is not None:
                 gc.callbacks.remove(log)
@@ -114,6 +147,15 @@ def main() -> None:
         base = statistics.median(x[0] for x in res.get(plain, [(float("nan"), 0.0)]))
         tot, inf = statistics.median(x[0] for x in v), statistics.median(x[1] for x in v)
         print(f"| {kind} | {tot:.1f} ms | {tot / base:.2f}x | {inf:.1f} ms | {' '.join(f'{x[0]:.1f}' for x in v)} |")
+    pooled = pooled_ratios(frames, args.seed)
+    if pooled:
+        print("| run | pooled total p95 (all frames of all runs) | ratio to its plain run | 90% interval (bootstrap) |")
+        print("|---|---|---|---|")
+        for kind, r in pooled.items():
+            print(f"| {kind} | {r['p95']:.1f} ms | {r['ratio']:.3f}x | {r['lo']:.3f}-{r['hi']:.3f}x |")
+    if args.json is not None:
+        doc = {"machine": machine_line(), "order": args.order, "p95": res, "frames_ms": frames, "pooled": pooled}
+        args.json.write_text(json.dumps(doc, indent=1))
 
 
 if __name__ == "__main__":
