@@ -68,6 +68,7 @@ METHODS = (
     "scr_corners_1200",
     "scr_corners_2000",
     "scr_corners_cells",
+    "scr_corners_gapcells",
     "random",
 )
 SCR_VARIANTS = {
@@ -80,20 +81,26 @@ SCR_VARIANTS = {
     "scr_corners_1200": {"start": "corners", "seed_corners": 1200},
     "scr_corners_2000": {"start": "corners", "seed_corners": 2000},
     "scr_corners_cells": {"start": "corners", "seed_corners": 1200},
+    "scr_corners_gapcells": {"start": "corners", "seed_corners": 1200},
 }
 """SplatConfig fields of the library's SCR starts: the trained head (an early default), its analytic start (no
 training, the fresh head's zero residuals) with or without the filled pixels, the textured-cell point start and the
 triangulated-corner start (the library's default count, 800 per view as in its first runs, and 1200: about as many
 seeds as SIFT's on herzjesu25). ``scr_corners_cells`` is the 1200-corner start with the ``cells`` start's points
-added (corners_with_cells: a bench-only variant, measured and not shipped, bench/splat_init.md)."""
+added (corners_with_cells: a bench-only variant, measured and not shipped, bench/splat_init.md);
+``scr_corners_gapcells`` adds the most textured of the cells in the corners' gaps (GAP_SPACINGS)."""
 CORNER_CELLS = 12_000
 """Cells scr_corners_cells adds to the corners: the cells start's default count."""
+GAP_SPACINGS = 4.0
+"""scr_corners_gapcells: a cell is in a gap when it is farther than this many median corner spacings from every
+corner."""
 
 
 @contextlib.contextmanager
-def corners_with_cells(n_cells: int):
+def corners_with_cells(n_cells: int, gaps_only: bool = False):
     """Within the block, the library's corners start also seeds the ``n_cells`` most textured trusted cells (the
-    cells start's points) beside its triangulated corners."""
+    cells start's points) beside its triangulated corners; ``gaps_only``: chosen among the cells farther than
+    GAP_SPACINGS median corner spacings from every corner."""
     import acesplat.splat.pipeline as pl
     from acesplat.splatcore.cell_seeds import cell_points, cell_texture, textured_cells
 
@@ -108,7 +115,23 @@ def corners_with_cells(n_cells: int):
         pts, cols, per_view = triangulated(keyframes, rgbs, n)
         views = views_now[0]
         textures = [cell_texture(v.gray, v.validity.valid.shape) for v in views]
-        masks = textured_cells(textures, [v.validity.valid for v in views], n_cells)
+        valid = [v.validity.valid for v in views]
+        if gaps_only:  # every valid cell farther than GAP_SPACINGS corner spacings from every corner may enter
+            from scipy.spatial import cKDTree
+
+            tree = cKDTree(pts)
+            spacing = float(np.median(tree.query(pts, k=2)[0][:, 1]))
+            gaps = []
+            for v, m in zip(views, valid):
+                d = tree.query(np.asarray(v.coords, np.float64).reshape(-1, 3), k=1)[0].reshape(m.shape)
+                gaps.append(m & (d > GAP_SPACINGS * spacing))
+            print(
+                f"corner spacing {spacing:.4f}; valid cells {int(sum(m.sum() for m in valid))}, in gaps "
+                f"{int(sum(g.sum() for g in gaps))}",
+                flush=True,
+            )
+            valid = gaps
+        masks = textured_cells(textures, valid, n_cells)
         parts = [cell_points(v.coords, m, v.rgb) for v, m in zip(views, masks)]
         cells = np.concatenate([p for p, _ in parts])
         colours = np.concatenate([c for _, c in parts])
@@ -252,7 +275,11 @@ def run_method(method: str, scene: Path, map_path: Path, args, eval_train, eval_
     info: dict = {}
     if method in SCR_VARIANTS:
         net = m.network(encoder_for_map(m, map_path, args.encoder))
-        variant = corners_with_cells(CORNER_CELLS) if method == "scr_corners_cells" else contextlib.nullcontext()
+        variant = (
+            corners_with_cells(CORNER_CELLS, gaps_only=method == "scr_corners_gapcells")
+            if method in ("scr_corners_cells", "scr_corners_gapcells")
+            else contextlib.nullcontext()
+        )
         with variant:
             res = splat_scene(
                 frames,
