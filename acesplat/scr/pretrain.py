@@ -18,6 +18,7 @@ writes the checkpoint, the encoder and the summary.
 
 from __future__ import annotations
 
+import gc
 import hashlib
 import json
 import os
@@ -314,6 +315,12 @@ def distributed_from_env(device: str) -> Iterator[tuple[Distributed, str]]:
     dist.init_process_group(backend, rank=rank, world_size=world)
     try:
         yield Distributed(rank, world, backend), device
+        # A normal end: free what still holds the group (a DistributedDataParallel's reducer in a reference cycle)
+        # while the group lives, and leave together. gloo work freed at interpreter exit, or a group torn down while
+        # the other rank still sends, aborts the process (SIGABRT). After an error no barrier: the other rank may
+        # never reach it.
+        gc.collect()
+        dist.barrier()
     finally:
         dist.destroy_process_group()
 
