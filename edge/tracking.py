@@ -164,16 +164,14 @@ class Tracker:
         LOST). True when the pose jumped from the tracked prediction (``reset_counter`` then incremented)."""
         self.since_anchor = 0
         if T_c2w is None:
-            self.history.clear()
-            self.history_ids.clear()
+            self._forget()
             return False
         jump = False
         if plan.prediction is not None and plan.moving:
             dt, dr = pose_error(T_c2w, plan.prediction)
             jump = dt > self.config.reset_m or dr > self.config.reset_deg
         if jump:
-            self.history.clear()  # the velocity before the jump says nothing about the next frame
-            self.history_ids.clear()
+            self._forget()  # the velocity before the jump says nothing about the next frame
             self.reset_counter += 1
         self._push(T_c2w, frame_id)
         return jump
@@ -181,9 +179,13 @@ class Tracker:
     def lost(self) -> None:
         """The source went away: the motion model no longer holds, the next frame is SCR's (not a re-anchor, so no
         reset is counted)."""
+        self._forget()
+        self.since_anchor = 0
+
+    def _forget(self) -> None:
+        """No pose to track from: the history and its frame ids go together."""
         self.history.clear()
         self.history_ids.clear()
-        self.since_anchor = 0
 
     def _push(self, T: np.ndarray, frame_id: int | None) -> None:
         self.history = [*self.history[-1:], np.asarray(T, np.float64).copy()]
