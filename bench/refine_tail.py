@@ -84,6 +84,11 @@ class GcLog:
         return "; ".join(parts) or "no collections"
 
 
+def pooled_p95(runs: list[list[float]]) -> float:
+    """The p95 of every frame of ``runs`` (each a run's per-frame totals) together."""
+    return float(np.percentile(np.concatenate([np.asarray(r) for r in runs]), 95))
+
+
 def pooled_ratios(frames: dict[str, list[list[float]]], seed: int, draws: int = 2000) -> dict:
     """Per letter: the p95 of every frame of every run pooled, its ratio to the plain letter's (P; p for r) and a 90%
     interval of that ratio from resampling whole runs of both letters (runs, not frames: frames of a run share its
@@ -95,17 +100,14 @@ def pooled_ratios(frames: dict[str, list[list[float]]], seed: int, draws: int = 
         base = frames.get(plain)
         if not base:
             continue
-
-        def p95(rs: list[list[float]]) -> float:
-            return float(np.percentile(np.concatenate([np.asarray(r) for r in rs]), 95))
-
         boot = []
         for _ in range(draws):
             a = [runs[i] for i in rng.integers(0, len(runs), len(runs))]
             b = [base[i] for i in rng.integers(0, len(base), len(base))]
-            boot.append(p95(a) / p95(b))
+            boot.append(pooled_p95(a) / pooled_p95(b))
         lo, hi = np.percentile(boot, [5, 95])
-        out[kind] = {"p95": p95(runs), "ratio": p95(runs) / p95(base), "lo": float(lo), "hi": float(hi)}
+        p95 = pooled_p95(runs)
+        out[kind] = {"p95": p95, "ratio": p95 / pooled_p95(base), "lo": float(lo), "hi": float(hi)}
     return out
 
 
